@@ -1,0 +1,1 @@
+"""The `warpbags` command line (installed as `warpbags.cli`)."""

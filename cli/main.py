@@ -1,0 +1,42 @@
+"""`warpbags` command-line entry point: parses options and calls the package, nothing more."""
+
+from __future__ import annotations
+
+import functools
+import sys
+from typing import Callable
+
+import typer
+from rich.console import Console
+
+from warpbags.errors import WarpbagsError
+
+app = typer.Typer(
+    name="warpbags",
+    help="Bundle-Adjusting Gaussian Splatting with NVIDIA Warp kernels.",
+    no_args_is_help=True,
+    add_completion=False,
+    pretty_exceptions_enable=False,
+)
+console = Console(stderr=True)
+
+
+def clean_errors(command: Callable) -> Callable:
+    """Turn a WarpbagsError into one red line on stderr and exit code 2, never a traceback."""
+
+    @functools.wraps(command)
+    def wrapper(*args, **kwargs):
+        try:
+            return command(*args, **kwargs)
+        except WarpbagsError as error:
+            console.print(f"[bold red]error:[/] {error}", highlight=False, soft_wrap=True)
+            sys.exit(2)
+        except KeyboardInterrupt:
+            console.print("[yellow]interrupted[/]")
+            sys.exit(130)
+
+    return wrapper
+
+
+def main() -> None:
+    app()

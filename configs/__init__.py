@@ -1,0 +1,1 @@
+"""Typed presets and scene definitions (installed as `warpbags.configs`)."""

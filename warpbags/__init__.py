@@ -1,0 +1,7 @@
+"""warpbags: Bundle-Adjusting Gaussian Splatting (BAGS) with NVIDIA Warp kernels."""
+
+from warpbags.errors import WarpbagsError
+
+__version__ = "0.1.0"
+
+__all__ = ["WarpbagsError", "__version__"]
