@@ -1,0 +1,108 @@
+"""Dense plain-torch reference renderer: every pixel against every Gaussian, no tiles, no Warp.
+
+Written independently of kernels/ from the published 3DGS/gsplat equations, so the tiled Warp renderer can be
+compared with it forward and backward (autograd through this reference gives the expected gradients).
+"""
+
+from __future__ import annotations
+
+import torch
+
+SH_C0 = 0.28209479177387814
+SH_C1 = 0.4886025119029199
+SH_C2 = (1.0925484305920792, -1.0925484305920792, 0.31539156525252005, -1.0925484305920792, 0.5462742152960396)
+SH_C3 = (-0.5900435899266435, 2.890611442640554, -0.4570457994644658, 0.3731763325901154, -0.4570457994644658,
+         1.445305721320277, -0.5900435899266435)
+
+
+def se3_exp_reference(deltas: torch.Tensor) -> torch.Tensor:
+    """[C, 6] (omega, v) -> [C, 4, 4] through the matrix exponential of the twist matrix."""
+    w, v = deltas[:, :3], deltas[:, 3:]
+    twist = torch.zeros(deltas.shape[0], 4, 4, dtype=deltas.dtype, device=deltas.device)
+    twist[:, 0, 1], twist[:, 0, 2], twist[:, 1, 2] = -w[:, 2], w[:, 1], -w[:, 0]
+    twist[:, 1, 0], twist[:, 2, 0], twist[:, 2, 1] = w[:, 2], -w[:, 1], w[:, 0]
+    twist[:, :3, 3] = v
+    return torch.linalg.matrix_exp(twist)
+
+
+def quat_to_rotmat_reference(quats: torch.Tensor) -> torch.Tensor:
+    w, x, y, z = (quats / quats.norm(dim=-1, keepdim=True)).unbind(-1)
+    return torch.stack([
+        1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
+        2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
+        2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
+    ], -1).reshape(*quats.shape[:-1], 3, 3)
+
+
+def sh_reference(coeffs: torch.Tensor, dirs: torch.Tensor, degree: int) -> torch.Tensor:
+    """coeffs [N, K, 3], unit dirs [N, 3] -> colour [N, 3] = max(SH + 0.5, 0)."""
+    x, y, z = dirs.unbind(-1)
+    basis = [torch.full_like(x, SH_C0)]
+    if degree > 0:
+        basis += [-SH_C1 * y, SH_C1 * z, -SH_C1 * x]
+    if degree > 1:
+        xx, yy, zz = x * x, y * y, z * z
+        basis += [SH_C2[0] * x * y, SH_C2[1] * y * z, SH_C2[2] * (2 * zz - xx - yy), SH_C2[3] * x * z,
+                  SH_C2[4] * (xx - yy)]
+    if degree > 2:
+        basis += [SH_C3[0] * y * (3 * xx - yy), SH_C3[1] * x * y * z, SH_C3[2] * y * (4 * zz - xx - yy),
+                  SH_C3[3] * z * (2 * zz - 3 * xx - 3 * yy), SH_C3[4] * x * (4 * zz - xx - yy),
+                  SH_C3[5] * z * (xx - yy), SH_C3[6] * x * (xx - 3 * yy)]
+    basis = torch.stack(basis, -1)  # [N, B]
+    return torch.clamp_min((basis[..., None] * coeffs[:, : basis.shape[-1]]).sum(1) + 0.5, 0.0)
+
+
+def render_reference(means, quats, scales, opacities, colors, viewmats, Ks, width, height, *, sh_degree=None,
+                     backgrounds=None, pose_deltas=None, near_plane=0.01, far_plane=1e10, eps2d=0.3):
+    """Same contract as warpbags.rasterization (render_mode "RGB+D"); returns (rgb [C,H,W,3], depth [C,H,W,1],
+    alpha [C,H,W,1])."""
+    if pose_deltas is not None:
+        viewmats = se3_exp_reference(pose_deltas) @ viewmats
+    ys, xs = torch.meshgrid(torch.arange(height, dtype=means.dtype), torch.arange(width, dtype=means.dtype), indexing="ij")
+    pixels = torch.stack([xs, ys], -1).reshape(-1, 2) + 0.5  # [P, 2]
+    rot_g = quat_to_rotmat_reference(quats)
+    m = rot_g * scales[:, None, :]
+    cov3d = m @ m.transpose(1, 2)
+    rgbs, depths_out, alphas_out = [], [], []
+    for cam in range(viewmats.shape[0]):
+        rot, trans = viewmats[cam, :3, :3], viewmats[cam, :3, 3]
+        p = means @ rot.T + trans
+        z = p[:, 2]
+        fx, fy, cx, cy = Ks[cam, 0, 0], Ks[cam, 1, 1], Ks[cam, 0, 2], Ks[cam, 1, 2]
+        lim_x_pos, lim_x_neg = (width - cx) / fx + 0.3 * width / fx, cx / fx + 0.3 * width / fx
+        lim_y_pos, lim_y_neg = (height - cy) / fy + 0.3 * height / fy, cy / fy + 0.3 * height / fy
+        tx = z * torch.minimum(lim_x_pos, torch.maximum(-lim_x_neg, p[:, 0] / z))
+        ty = z * torch.minimum(lim_y_pos, torch.maximum(-lim_y_neg, p[:, 1] / z))
+        zeros = torch.zeros_like(z)
+        jac = torch.stack([fx / z, zeros, -fx * tx / z**2, zeros, fy / z, -fy * ty / z**2], -1).reshape(-1, 2, 3)
+        cov2d = jac @ rot @ cov3d @ rot.T @ jac.transpose(1, 2) + eps2d * torch.eye(2, dtype=means.dtype)
+        a, b, c = cov2d[:, 0, 0], cov2d[:, 0, 1], cov2d[:, 1, 1]
+        det = a * c - b * b
+        mean2d = torch.stack([fx * p[:, 0] / z + cx, fy * p[:, 1] / z + cy], -1)
+        valid = (z >= near_plane) & (z <= far_plane) & (det > 0) & (opacities >= 1 / 255)
+        if sh_degree is None:
+            rgb = colors if colors.dim() == 2 else colors[cam]
+        else:
+            center = -rot.T @ trans
+            dirs = means - center
+            rgb = sh_reference(colors, dirs / dirs.norm(dim=-1, keepdim=True), sh_degree)
+
+        order = torch.argsort(z.detach())
+        d = pixels[:, None, :] - mean2d[None, order]  # [P, N, 2]
+        conic_a, conic_b, conic_c = (c / det)[order], (-b / det)[order], (a / det)[order]
+        sigma = 0.5 * (conic_a * d[..., 0] ** 2 + conic_c * d[..., 1] ** 2) + conic_b * d[..., 0] * d[..., 1]
+        alpha = torch.clamp(opacities[order] * torch.exp(-sigma), max=0.99)
+        keep = valid[order] & (sigma >= 0) & (alpha >= 1 / 255)
+        alpha = torch.where(keep, alpha, torch.zeros_like(alpha))
+        # Compositing stops before a Gaussian that would bring T to 1e-4 or below (T only decreases).
+        alpha = torch.where(torch.cumprod(1 - alpha, dim=1) > 1e-4, alpha, torch.zeros_like(alpha))
+        t_before = torch.cumprod(torch.cat([torch.ones_like(alpha[:, :1]), 1 - alpha[:, :-1]], 1), dim=1)
+        weights = alpha * t_before  # [P, N]
+        image = weights @ rgb[order]
+        alpha_img = weights.sum(1, keepdim=True)
+        if backgrounds is not None:
+            image = image + (1 - alpha_img) * backgrounds[cam]
+        rgbs.append(image.reshape(height, width, 3))
+        depths_out.append((weights @ z[order]).reshape(height, width, 1))
+        alphas_out.append(alpha_img.reshape(height, width, 1))
+    return torch.stack(rgbs), torch.stack(depths_out), torch.stack(alphas_out)

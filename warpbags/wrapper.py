@@ -1,0 +1,405 @@
+"""Thin torch wrappers around the Warp kernels, one per stage (gsplat's layout).
+
+Projection, spherical harmonics and the pose transform have no dynamic loops, so their gradients come from Warp's
+Tape. The rasterizer has a hand-written backward kernel (see kernels/rasterize.py). Binning is not differentiable.
+
+Tensors stay where they are: CPU tensors run on Warp's "cpu" device, CUDA tensors on the matching CUDA device and
+the current torch stream, without host copies. float32 and float64 are both supported (float64 for gradchecks).
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from concurrent.futures import ThreadPoolExecutor
+from contextlib import ExitStack
+from typing import NamedTuple, Sequence
+
+import torch
+import warp as wp
+
+from warpbags.kernels.bin import count_tiles_kernel, emit_intersections_kernel
+from warpbags.kernels.pose import apply_pose_deltas_kernel
+from warpbags.kernels.project import project_gaussians_kernel
+from warpbags.kernels.rasterize import rasterize_backward_kernel, rasterize_forward_kernel
+from warpbags.kernels.sh import sh_to_colors_kernel
+
+_WP_SCALARS = {torch.float32: wp.float32, torch.float64: wp.float64}
+
+# Warp value type of each tensor "kind": the trailing tensor dimensions it consumes.
+_KIND_SHAPES = {"scalar": (), "vec2": (2,), "vec3": (3,), "vec4": (4,), "mat33": (3, 3), "mat44": (4, 4)}
+
+
+def _warp_dtype(kind: str, scalar: torch.dtype):
+    if kind == "int32":
+        return wp.int32
+    if kind == "int64":
+        return wp.int64
+    base = _WP_SCALARS[scalar]
+    shape = _KIND_SHAPES[kind]
+    if len(shape) == 0:
+        return base
+    if len(shape) == 1:
+        return wp.types.vector(shape[0], base)
+    return wp.types.matrix(shape, base)
+
+
+def _to_warp(tensor: torch.Tensor, kind: str, grad: torch.Tensor | None = None) -> wp.array:
+    """Zero-copy Warp view of a contiguous tensor; `grad`, if given, becomes the array's adjoint buffer."""
+    wp.init()  # idempotent; deferred to first use so importing warpbags has no side effects
+    dtype = _warp_dtype(kind, tensor.dtype)
+    if grad is None:
+        return wp.from_torch(tensor, dtype=dtype, requires_grad=False)
+    return wp.from_torch(tensor, dtype=dtype, requires_grad=True, grad=grad)
+
+
+def _launch_scope(device: torch.device) -> ExitStack:
+    """Run Warp on the tensors' device (and, on CUDA, on torch's current stream)."""
+    scope = ExitStack()
+    scope.enter_context(wp.ScopedDevice(wp.device_from_torch(device)))
+    if device.type == "cuda":
+        scope.enter_context(wp.ScopedStream(wp.stream_from_torch(device)))
+    return scope
+
+
+class _TapedKernel(torch.autograd.Function):
+    """Launch one Warp kernel under a Tape; backward replays the tape with the incoming cotangents.
+
+    `input_kinds[i]` is the Warp kind of argument i: "vec3", "mat44", ... for tensors, "float" for a Python number
+    passed in the tensors' precision, None for any other plain argument.
+    `output_specs` are (kind, shape) of the kernel's outputs, allocated here as zeros; integer outputs are marked
+    non-differentiable.
+    """
+
+    @staticmethod
+    def forward(ctx, kernel, dim, input_kinds, output_specs, *args):
+        tensors = [a for a in args if isinstance(a, torch.Tensor)]
+        device = tensors[0].device
+        scalar = next(t.dtype for t in tensors if t.is_floating_point())
+        wp_inputs, input_grads = [], []
+        for arg, kind in zip(args, input_kinds):
+            if kind is None or kind == "float":
+                wp_inputs.append(arg if kind is None else _WP_SCALARS[scalar](arg))
+                input_grads.append(None)
+                continue
+            value = arg.detach().contiguous()
+            grad = torch.zeros_like(value) if value.is_floating_point() and arg.requires_grad else None
+            wp_inputs.append(_to_warp(value, kind, grad))
+            input_grads.append(grad)
+
+        outputs, wp_outputs = [], []
+        for kind, shape in output_specs:
+            is_float = kind not in ("int32", "int64")
+            dtype = scalar if is_float else getattr(torch, kind)
+            value = torch.zeros((*shape, *_KIND_SHAPES.get(kind, ())), dtype=dtype, device=device)
+            grad = torch.zeros_like(value) if is_float else None
+            outputs.append(value)
+            wp_outputs.append(_to_warp(value, kind, grad))
+
+        tape = wp.Tape()
+        with _launch_scope(device), tape:
+            wp.launch(kernel, dim=dim, inputs=wp_inputs, outputs=wp_outputs)
+        ctx.tape, ctx.device = tape, device
+        ctx.wp_outputs, ctx.input_grads = wp_outputs, input_grads
+        ctx.mark_non_differentiable(*[o for o in outputs if not o.is_floating_point()])
+        return tuple(outputs)
+
+    @staticmethod
+    def backward(ctx, *v_outputs):
+        # The adjoint kernel accumulates into the input gradient buffers: clear them so a second backward through
+        # the same graph (retain_graph, gradcheck) starts from zero, and hand torch copies it may keep.
+        for grad in ctx.input_grads:
+            if grad is not None:
+                grad.zero_()
+        cotangents = {}
+        for wp_out, v_out in zip(ctx.wp_outputs, v_outputs):
+            if wp_out.requires_grad and v_out is not None:
+                wp.copy(wp_out.grad, wp.from_torch(v_out.contiguous(), dtype=wp_out.dtype))
+                cotangents[wp_out] = wp_out.grad
+        if cotangents:
+            with _launch_scope(ctx.device):
+                ctx.tape.backward(grads=cotangents)
+        input_grads = [None if grad is None else grad.clone() for grad in ctx.input_grads]
+        return (None, None, None, None, *input_grads)
+
+
+def apply_pose_deltas(viewmats: torch.Tensor, pose_deltas: torch.Tensor) -> torch.Tensor:
+    """`exp(pose_deltas) @ viewmats`.
+
+    Args:
+        viewmats: [C, 4, 4] world-to-camera matrices.
+        pose_deltas: [C, 6] se(3) corrections ordered [wx, wy, wz, vx, vy, vz] (axis-angle rotation, then the
+            translation part of the twist), applied on the left (in the camera frame).
+
+    Returns:
+        [C, 4, 4] corrected world-to-camera matrices; differentiable in both inputs.
+    """
+    cams = viewmats.shape[0]
+    (out,) = _TapedKernel.apply(
+        apply_pose_deltas_kernel, cams, ("mat44", "scalar"), [("mat44", (cams,))], viewmats, pose_deltas
+    )
+    return out
+
+
+def project_gaussians(
+    means: torch.Tensor,
+    quats: torch.Tensor,
+    scales: torch.Tensor,
+    opacities: torch.Tensor,
+    viewmats: torch.Tensor,
+    Ks: torch.Tensor,
+    width: int,
+    height: int,
+    near_plane: float = 0.01,
+    far_plane: float = 1e10,
+    eps2d: float = 0.3,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """EWA projection of N Gaussians into C cameras.
+
+    Args:
+        means: [N, 3] centres. quats: [N, 4] (w, x, y, z), any norm. scales: [N, 3] linear.
+        opacities: [N] in [0, 1] (only for the opacity-aware radius). viewmats: [C, 4, 4] world-to-camera.
+        Ks: [C, 3, 3] pinhole intrinsics. near_plane, far_plane: depth culling. eps2d: low-pass added to the 2D
+        covariance, in pixels^2.
+
+    Returns:
+        means2d [C, N, 2] pixels, conics [C, N, 3] (upper triangle of the inverse 2D covariance), depths [C, N]
+        camera z, radii [C, N] int32 (0 = culled). Culled entries of the float outputs are zero.
+    """
+    cams, n = viewmats.shape[0], means.shape[0]
+    return _TapedKernel.apply(
+        project_gaussians_kernel,
+        (cams, n),
+        ("vec3", "vec4", "vec3", "scalar", "mat44", "mat33", None, None, "float", "float", "float"),
+        [("vec2", (cams, n)), ("vec3", (cams, n)), ("scalar", (cams, n)), ("int32", (cams, n))],
+        means, quats, scales, opacities, viewmats, Ks, width, height, near_plane, far_plane, eps2d,
+    )
+
+
+def spherical_harmonics(means: torch.Tensor, coeffs: torch.Tensor, viewmats: torch.Tensor, degree: int) -> torch.Tensor:
+    """View-dependent colour max(SH(dir) + 0.5, 0) with dir from each camera centre to each Gaussian.
+
+    Args:
+        means: [N, 3]. coeffs: [N, K, 3] with K >= (degree + 1)^2. viewmats: [C, 4, 4] world-to-camera.
+        degree: active SH degree, 0-3.
+
+    Returns:
+        [C, N, 3] colours; differentiable in means, coeffs and viewmats.
+    """
+    cams, n = viewmats.shape[0], means.shape[0]
+    (colors,) = _TapedKernel.apply(
+        sh_to_colors_kernel, (cams, n), ("vec3", "vec3", "mat44", None), [("vec3", (cams, n))], means, coeffs, viewmats, degree
+    )
+    return colors
+
+
+class TileBins(NamedTuple):
+    """Gaussian/tile intersections sorted by tile, then depth.
+
+    tile_offsets: [C * tiles_y * tiles_x + 1] int32, the intersections of tile t are isect_ids[offsets[t]:offsets[t+1]].
+    isect_ids: [M] int32 flat index cam * N + gaussian.
+    """
+
+    tile_size: int
+    tiles_x: int
+    tiles_y: int
+    tile_offsets: torch.Tensor
+    isect_ids: torch.Tensor
+
+
+@torch.no_grad()
+def bin_gaussians(means2d: torch.Tensor, radii: torch.Tensor, depths: torch.Tensor, width: int, height: int, tile_size: int) -> TileBins:
+    """Sort the (Gaussian, tile) intersections of projected Gaussians by tile and depth.
+
+    Args:
+        means2d: [C, N, 2]. radii: [C, N] int32 (0 = culled). depths: [C, N]. width, height: image size in pixels.
+        tile_size: tile edge in pixels.
+    """
+    cams, n = radii.shape
+    device = radii.device
+    tiles_x, tiles_y = math.ceil(width / tile_size), math.ceil(height / tile_size)
+    flat_means2d = means2d.detach().reshape(-1, 2).contiguous()
+    flat_radii = radii.reshape(-1).contiguous()
+    counts = torch.zeros(cams * n, dtype=torch.int32, device=device)
+    with _launch_scope(device):
+        wp.launch(
+            count_tiles_kernel,
+            dim=cams * n,
+            inputs=[_to_warp(flat_means2d, "vec2"), _to_warp(flat_radii, "int32"), tile_size, tiles_x, tiles_y],
+            outputs=[_to_warp(counts, "int32")],
+        )
+    ends = torch.cumsum(counts, 0, dtype=torch.int64)
+    num_isects = int(ends[-1]) if ends.numel() else 0
+    write_offsets = (ends - counts).to(torch.int32)
+    depth_ranks = torch.empty(cams * n, dtype=torch.int64, device=device)
+    depth_ranks[torch.argsort(depths.detach().reshape(-1))] = torch.arange(cams * n, device=device)
+    keys = torch.empty(num_isects, dtype=torch.int64, device=device)
+    ids = torch.empty(num_isects, dtype=torch.int32, device=device)
+    if num_isects:
+        with _launch_scope(device):
+            wp.launch(
+                emit_intersections_kernel,
+                dim=cams * n,
+                inputs=[
+                    _to_warp(flat_means2d, "vec2"), _to_warp(flat_radii, "int32"), _to_warp(write_offsets, "int32"),
+                    _to_warp(depth_ranks, "int64"), n, tile_size, tiles_x, tiles_y,
+                ],
+                outputs=[_to_warp(keys, "int64"), _to_warp(ids, "int32")],
+            )
+    keys, order = torch.sort(keys)
+    num_tiles = cams * tiles_x * tiles_y
+    tile_of_isect = keys // max(cams * n, 1)
+    tile_offsets = torch.searchsorted(tile_of_isect, torch.arange(num_tiles + 1, device=device)).to(torch.int32)
+    return TileBins(tile_size, tiles_x, tiles_y, tile_offsets, ids[order].contiguous())
+
+
+def _default_cpu_threads() -> int:
+    return max(1, len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1))
+
+
+def _pixel_ranges(num_tiles: int, pixels_per_tile: int, num_chunks: int) -> list[tuple[int, int]]:
+    """Split the tile-major pixel index space into `num_chunks` tile-aligned [start, stop) ranges."""
+    bounds = torch.linspace(0, num_tiles, num_chunks + 1).round().long().tolist()
+    return [(a * pixels_per_tile, b * pixels_per_tile) for a, b in zip(bounds[:-1], bounds[1:]) if b > a]
+
+
+def _for_each_worker(work, ranges: list[tuple[int, int]], workers: int) -> None:
+    """Run work(worker, start, stop) over the ranges, each worker in its own thread on every workers-th range.
+
+    Warp CPU launches release the GIL, so host threads over disjoint tiles run in parallel. The first range runs
+    alone so that a kernel's first-use compilation happens once, not in every thread at the same time.
+    """
+    if not ranges:
+        return
+    work(0, *ranges[0])
+    rest = ranges[1:]
+
+    def run(worker: int) -> None:
+        for start, stop in rest[worker::workers]:
+            work(worker, start, stop)
+
+    if workers == 1:
+        run(0)
+        return
+    with ThreadPoolExecutor(max_workers=workers) as pool:
+        list(pool.map(run, range(workers)))
+
+
+class _RasterizeToPixels(torch.autograd.Function):
+    """Forward and hand-written backward rasterization kernels; see kernels/rasterize.py."""
+
+    @staticmethod
+    def forward(ctx, means2d, conics, colors, opacities, depths, bins: TileBins, width, height, cpu_threads):
+        cams, n = depths.shape
+        device, scalar = means2d.device, means2d.dtype
+        flat = dict(
+            means2d=means2d.detach().reshape(-1, 2).contiguous(),
+            conics=conics.detach().reshape(-1, 3).contiguous(),
+            colors=colors.detach().reshape(-1, 3).contiguous(),
+            opacities=opacities.detach().contiguous(),
+            depths=depths.detach().reshape(-1).contiguous(),
+        )
+        pixels = cams * height * width
+        out_colors = torch.zeros(cams, height, width, 3, dtype=scalar, device=device)
+        out_depths = torch.zeros(cams, height, width, dtype=scalar, device=device)
+        out_alphas = torch.zeros(cams, height, width, dtype=scalar, device=device)
+        final_transmittance = torch.ones(cams, height, width, dtype=scalar, device=device)
+        isect_end = torch.zeros(cams, height, width, dtype=torch.int32, device=device)
+
+        ctx.geometry = (n, width, height, bins.tile_size, bins.tiles_x, bins.tiles_y)
+        common = [
+            _to_warp(flat["means2d"], "vec2"), _to_warp(flat["conics"], "vec3"), _to_warp(flat["colors"], "vec3"),
+            _to_warp(flat["opacities"], "scalar"), _to_warp(flat["depths"], "scalar"),
+            _to_warp(bins.tile_offsets, "int32"), _to_warp(bins.isect_ids, "int32"), *ctx.geometry,
+        ]
+        outputs = [
+            _to_warp(out_colors.view(pixels, 3), "vec3"), _to_warp(out_depths.view(pixels), "scalar"),
+            _to_warp(out_alphas.view(pixels), "scalar"), _to_warp(final_transmittance.view(pixels), "scalar"),
+            _to_warp(isect_end.view(pixels), "int32"),
+        ]
+        workers = 1 if device.type == "cuda" else (cpu_threads or _default_cpu_threads())
+        ranges = _pixel_ranges(cams * bins.tiles_x * bins.tiles_y, bins.tile_size**2, 1 if workers == 1 else 8 * workers)
+
+        def work(worker, start, stop):
+            wp.launch(rasterize_forward_kernel, dim=stop - start, inputs=[*common, start], outputs=outputs)
+
+        with _launch_scope(device):
+            _for_each_worker(work, ranges, workers)
+
+        ctx.bins, ctx.workers, ctx.ranges = bins, workers, ranges
+        ctx.save_for_backward(*flat.values(), final_transmittance, isect_end)
+        ctx.mark_non_differentiable(final_transmittance, isect_end)
+        return out_colors, out_depths, out_alphas, final_transmittance, isect_end
+
+    @staticmethod
+    def backward(ctx, v_out_colors, v_out_depths, v_out_alphas, _v_transmittance, _v_isect_end):
+        means2d, conics, colors, opacities, depths, final_transmittance, isect_end = ctx.saved_tensors
+        bins, workers = ctx.bins, ctx.workers
+        pixels = final_transmittance.numel()
+        device, scalar = means2d.device, means2d.dtype
+
+        def cotangent(v, *shape):
+            if v is None:
+                return torch.zeros(*shape, dtype=scalar, device=device)
+            return v.contiguous().view(*shape)
+
+        common = [
+            _to_warp(means2d, "vec2"), _to_warp(conics, "vec3"), _to_warp(colors, "vec3"),
+            _to_warp(opacities, "scalar"), _to_warp(depths, "scalar"),
+            _to_warp(bins.tile_offsets, "int32"), _to_warp(bins.isect_ids, "int32"), *ctx.geometry,
+        ]
+        saved = [
+            _to_warp(final_transmittance.view(pixels), "scalar"), _to_warp(isect_end.view(pixels), "int32"),
+            _to_warp(cotangent(v_out_colors, pixels, 3), "vec3"), _to_warp(cotangent(v_out_depths, pixels), "scalar"),
+            _to_warp(cotangent(v_out_alphas, pixels), "scalar"),
+        ]
+        # One private set of gradient buffers per worker: CPU atomics are plain adds.
+        buffers = [
+            [torch.zeros_like(means2d), torch.zeros_like(conics), torch.zeros_like(colors), torch.zeros_like(opacities), torch.zeros_like(depths)]
+            for _ in range(workers)
+        ]
+        wp_buffers = [
+            [_to_warp(b[0], "vec2"), _to_warp(b[1], "vec3"), _to_warp(b[2], "vec3"), _to_warp(b[3], "scalar"), _to_warp(b[4], "scalar")]
+            for b in buffers
+        ]
+
+        def work(worker, start, stop):
+            wp.launch(rasterize_backward_kernel, dim=stop - start, inputs=[*common, start, *saved], outputs=wp_buffers[worker])
+
+        with _launch_scope(device):
+            _for_each_worker(work, ctx.ranges, workers)
+
+        v_means2d, v_conics, v_colors, v_opacities, v_depths = (sum(parts[1:], parts[0]) for parts in zip(*buffers))
+        cams, n = final_transmittance.shape[0], ctx.geometry[0]
+        return (
+            v_means2d.view(cams, n, 2), v_conics.view(cams, n, 3), v_colors.view(cams, n, 3), v_opacities,
+            v_depths.view(cams, n), None, None, None, None,
+        )
+
+
+def rasterize_to_pixels(
+    means2d: torch.Tensor,
+    conics: torch.Tensor,
+    colors: torch.Tensor,
+    opacities: torch.Tensor,
+    depths: torch.Tensor,
+    bins: TileBins,
+    width: int,
+    height: int,
+    cpu_threads: int | None = None,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Alpha-composite the binned Gaussians of every camera.
+
+    Args:
+        means2d: [C, N, 2]. conics: [C, N, 3]. colors: [C, N, 3]. opacities: [N]. depths: [C, N].
+        bins: from `bin_gaussians`. width, height: image size. cpu_threads: host threads for CPU tensors
+            (default: the cores this process may use); ignored on CUDA.
+
+    Returns:
+        colors [C, H, W, 3] (no background), depths [C, H, W] (alpha-weighted camera z), alphas [C, H, W];
+        all differentiable.
+    """
+    out_colors, out_depths, out_alphas, _, _ = _RasterizeToPixels.apply(
+        means2d, conics, colors, opacities, depths, bins, width, height, cpu_threads
+    )
+    return out_colors, out_depths, out_alphas
