@@ -1,9 +1,9 @@
-"""Tile binning: which Gaussians touch which screen tiles, as (tile, depth-rank) sort keys.
+"""Tile binning: which Gaussians touch which screen tiles, as (tile, depth) sort keys.
 
 Two passes, as gsplat: count the tiles under each projected Gaussian's bounding square, then (after a prefix sum
-on the host side) emit one key per (Gaussian, tile) pair. Key = tile * num_projected + depth_rank, so one integer
-sort orders by tile, then front to back. Camera c's tiles are numbered c * tiles_per_camera + ty * tiles_x + tx.
-Never differentiated.
+on the host side) emit one key per (Gaussian, tile) pair. Key = tile << 32 | depth bits: the bit pattern of a
+positive float32 orders like its value, so one 64-bit integer sort orders by tile, then front to back (gsplat's
+trick). Camera c's tiles are numbered c * tiles_per_camera + ty * tiles_x + tx. Never differentiated.
 """
 
 from typing import Any
@@ -47,7 +47,7 @@ def emit_intersections_kernel(
     means2d: wp.array(dtype=Any),
     radii: wp.array(dtype=wp.int32),
     write_offsets: wp.array(dtype=wp.int32),
-    depth_ranks: wp.array(dtype=wp.int64),
+    depth_bits: wp.array(dtype=wp.int32),
     num_gaussians: int,
     tile_size: int,
     tiles_x: int,
@@ -60,11 +60,11 @@ def emit_intersections_kernel(
         return
     cam = gid / num_gaussians
     x0, x1, y0, y1 = tile_bounds(means2d[gid], radii[gid], tile_size, tiles_x, tiles_y)
-    num_projected = wp.int64(depth_ranks.shape[0])
+    depth_key = wp.int64(depth_bits[gid])
     cursor = write_offsets[gid]
     for ty in range(y0, y1):
         for tx in range(x0, x1):
             tile = cam * tiles_x * tiles_y + ty * tiles_x + tx
-            isect_keys[cursor] = wp.int64(tile) * num_projected + depth_ranks[gid]
+            isect_keys[cursor] = (wp.int64(tile) << wp.int64(32)) | depth_key
             isect_ids[cursor] = gid
             cursor += 1

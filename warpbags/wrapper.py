@@ -231,8 +231,8 @@ def bin_gaussians(means2d: torch.Tensor, radii: torch.Tensor, depths: torch.Tens
     ends = torch.cumsum(counts, 0, dtype=torch.int64)
     num_isects = int(ends[-1]) if ends.numel() else 0
     write_offsets = (ends - counts).to(torch.int32)
-    depth_ranks = torch.empty(cams * n, dtype=torch.int64, device=device)
-    depth_ranks[torch.argsort(depths.detach().reshape(-1))] = torch.arange(cams * n, device=device)
+    # Culled Gaussians emit nothing, so every depth used here is > near_plane > 0.
+    depth_bits = depths.detach().reshape(-1).to(torch.float32).contiguous().view(torch.int32)
     keys = torch.empty(num_isects, dtype=torch.int64, device=device)
     ids = torch.empty(num_isects, dtype=torch.int32, device=device)
     if num_isects:
@@ -242,13 +242,13 @@ def bin_gaussians(means2d: torch.Tensor, radii: torch.Tensor, depths: torch.Tens
                 dim=cams * n,
                 inputs=[
                     _to_warp(flat_means2d, "vec2"), _to_warp(flat_radii, "int32"), _to_warp(write_offsets, "int32"),
-                    _to_warp(depth_ranks, "int64"), n, tile_size, tiles_x, tiles_y,
+                    _to_warp(depth_bits, "int32"), n, tile_size, tiles_x, tiles_y,
                 ],
                 outputs=[_to_warp(keys, "int64"), _to_warp(ids, "int32")],
             )
     keys, order = torch.sort(keys)
     num_tiles = cams * tiles_x * tiles_y
-    tile_of_isect = keys // max(cams * n, 1)
+    tile_of_isect = keys >> 32
     tile_offsets = torch.searchsorted(tile_of_isect, torch.arange(num_tiles + 1, device=device)).to(torch.int32)
     return TileBins(tile_size, tiles_x, tiles_y, tile_offsets, ids[order].contiguous())
 
