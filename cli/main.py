@@ -40,3 +40,6 @@ def clean_errors(command: Callable) -> Callable:
 
 def main() -> None:
     app()
+
+
+from warpbags.cli import info as _info  # noqa: E402,F401  registers `info` and `synth`

@@ -1,0 +1,64 @@
+"""Named scenes: where each lives, its default resolution and published splits (typed presets, no logic).
+
+`warpbags.data.catalog.open_scene` resolves a name (or any folder path) through these.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Literal
+
+MIPNERF360_URL = "http://storage.googleapis.com/gresearch/refraw360/360_v2.zip"
+
+
+@dataclass(frozen=True)
+class ScenePreset:
+    """One named scene.
+
+    Attributes:
+        name: the name users type (`warpbags info kitchen`).
+        source: "data_root" (a folder under --data-root / $WARPBAGS_DATA / data/), "packaged" (shipped inside
+            the warpbags package under `warpbags/assets/`) or "synthetic" (generated on first use into the cache).
+        folders: candidate folder names, tried in order (relative to the data root or the package assets).
+        resolution: image downsampling factor to load (images_{resolution}); None = the largest available.
+        default_splits: splits used when the scene's own `sparse_{key}.txt` file is missing.
+        how_to_get: one sentence telling a user how to obtain the data.
+        synthetic_views, synthetic_size: generator settings for source "synthetic".
+    """
+
+    name: str
+    source: Literal["data_root", "packaged", "synthetic"]
+    folders: tuple[str, ...] = ()
+    resolution: int | None = None
+    default_splits: dict[str, tuple[int, ...]] = field(default_factory=dict)
+    how_to_get: str = ""
+    synthetic_views: int = 48
+    synthetic_size: int = 256
+
+
+SCENES: dict[str, ScenePreset] = {
+    preset.name: preset
+    for preset in (
+        ScenePreset(
+            name="kitchen",
+            source="data_root",
+            folders=("kitchen", "360_v2/kitchen", "mip360/kitchen"),
+            resolution=4,
+            # GaussianObject's published 4-view kitchen split (maintainers, chensjtu/GaussianObject issue #10).
+            default_splits={"4": (14, 70, 171, 196)},
+            how_to_get=f"download {MIPNERF360_URL}, unzip it and pass its folder as --data-root (or set WARPBAGS_DATA)",
+        ),
+        ScenePreset(
+            name="maryrose",
+            source="packaged",
+            folders=("maryrose",),
+            resolution=8,
+            how_to_get="it ships inside the warpbags package (warpbags/assets/maryrose); reinstall warpbags",
+        ),
+        ScenePreset(
+            name="synthetic",
+            source="synthetic",
+            how_to_get="it is generated on first use; set WARPBAGS_CACHE to a writable folder",
+        ),
+    )
+}

@@ -1,0 +1,487 @@
+"""Scenes and datasets: COLMAP/LLFF/transforms.json loaders, maryrose, the synthetic scene, bad input, `info`."""
+
+from __future__ import annotations
+
+import functools
+import json
+import math
+import shutil
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pycolmap
+import pytest
+import torch
+from typer.testing import CliRunner
+
+from warpbags.cli.main import app
+from warpbags.data import (
+    ORBIT_RADIUS,
+    SceneNormalization,
+    SyntheticOptions,
+    farthest_views,
+    generate_synthetic_scene,
+    load_scene,
+    open_scene,
+)
+from warpbags.data.colmap import read_model, write_model
+from warpbags.data.synthetic import OBJECT_CENTER, dome_viewmats, intrinsics
+from warpbags.errors import WarpbagsError
+
+SYNTHETIC = SyntheticOptions(views=12, width=64, height=64, num_points=600)
+
+
+def project(viewmats: torch.Tensor, Ks: torch.Tensor, points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Pixel coordinates [C,P,2] (continuous, pixel centres at +0.5) and depths [C,P] of world points [P,3]."""
+    camera = viewmats[:, None, :3, :3] @ points[None, :, :, None] + viewmats[:, None, :3, 3:]
+    camera = camera[..., 0]
+    pixels = (Ks[:, None] @ camera[..., None])[..., 0]
+    return pixels[..., :2] / pixels[..., 2:], camera[..., 2]
+
+
+@pytest.fixture(scope="module")
+def synthetic_dir(tmp_path_factory) -> Path:
+    return generate_synthetic_scene(tmp_path_factory.mktemp("synthetic") / "scene", SYNTHETIC)
+
+
+@pytest.fixture(scope="module")
+def synthetic(synthetic_dir):
+    return load_scene(synthetic_dir)
+
+
+@pytest.fixture
+def scene_copy(synthetic_dir, tmp_path) -> Path:
+    """A writable copy of the synthetic scene, for corrupting."""
+    return Path(shutil.copytree(synthetic_dir, tmp_path / "scene"))
+
+
+@pytest.fixture(scope="module")
+def maryrose():
+    return open_scene("maryrose")
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# COLMAP model
+
+
+@pytest.mark.parametrize("binary", [True, False])
+def test_colmap_model_round_trip(tmp_path, binary):
+    options = SyntheticOptions(views=5, width=40, height=30)
+    viewmats = dome_viewmats(options)
+    Ks = np.tile(intrinsics(options), (5, 1, 1))
+    Ks[:, 0, 0] += np.arange(5)  # distinct cameras
+    names = [f"img_{index}.jpg" for index in (3, 1, 4, 0, 2)]
+    rng = np.random.default_rng(0)
+    points, colors = rng.normal(size=(20, 3)), rng.integers(0, 256, size=(20, 3)).astype(np.uint8)
+    write_model(tmp_path, names, viewmats, Ks, 40, 30, points, colors, binary=binary)
+    model = read_model(tmp_path)
+    order = np.argsort(names)
+    assert model.image_names == sorted(names)
+    np.testing.assert_allclose(model.viewmats, viewmats[order], atol=1e-12)
+    np.testing.assert_allclose(np.stack([camera.K for camera in model.cameras]), Ks[order], atol=1e-9)
+    assert all((camera.width, camera.height, camera.model) == (40, 30, "PINHOLE") for camera in model.cameras)
+    by_position = {tuple(np.round(p, 9)): c for p, c in zip(points, colors)}
+    assert len(model.points) == 20
+    for point, color in zip(model.points, model.colors):
+        np.testing.assert_array_equal(by_position[tuple(np.round(point, 9))], color)
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# maryrose (the shipped real capture, LLFF layout)
+
+
+def test_maryrose_loads_all_views_masks_and_splits(maryrose):
+    assert maryrose.layout == "llff" and maryrose.num_views == 69
+    assert maryrose.images.shape == (69, 432, 432, 3) and maryrose.images.dtype == torch.float32
+    assert maryrose.masks.shape == (69, 432, 432) and set(maryrose.masks.unique().tolist()) == {0.0, 1.0}
+    assert maryrose.depths is None
+    assert maryrose.splits["4"] == [0, 16, 43, 57]
+    assert maryrose.splits["6"] == [0, 7, 16, 43, 50, 57]
+    assert maryrose.splits["9"] == [0, 7, 13, 16, 32, 43, 50, 57, 62]
+    assert maryrose.splits["test"] == [1, 8, 15, 22, 28, 35, 41, 48, 55, 63]
+    focal = np.load(Path(maryrose.root) / "poses_bounds.npy")[0, 14] / 8  # full-res focal, images_8
+    torch.testing.assert_close(maryrose.Ks[0], torch.tensor([[focal, 0, 216], [0, focal, 216], [0, 0, 1]]).float())
+    assert maryrose.orbit_radius() == pytest.approx(ORBIT_RADIUS, rel=1e-5)
+
+
+def test_maryrose_poses_agree_with_masks(maryrose):
+    """The object centre (the origin after normalization) projects inside every view's mask: the LLFF
+    down/right/back -> OpenCV conversion is right (any other axis order misses the masks by far)."""
+    pixels, depths = project(maryrose.viewmats.double(), maryrose.Ks.double(), torch.zeros(1, 3, dtype=torch.float64))
+    assert (depths > 0).all()
+    columns, rows = pixels[:, 0, 0].long(), pixels[:, 0, 1].long()
+    assert maryrose.masks[torch.arange(69), rows, columns].all()
+    rotations = maryrose.viewmats[:, :3, :3]
+    identity = torch.eye(3).expand(69, 3, 3)
+    torch.testing.assert_close(rotations @ rotations.transpose(1, 2), identity, atol=1e-5, rtol=0)
+    assert torch.allclose(torch.linalg.det(rotations), torch.ones(69), atol=1e-5)
+
+
+def test_farthest_point_choice_reproduces_maryrose_splits(maryrose):
+    centers = maryrose.camera_centers().double().numpy()
+    for size in (4, 6, 9):
+        assert sorted(farthest_views(centers, size)) == maryrose.splits[str(size)]
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# Synthetic scene
+
+
+def test_synthetic_layout_and_scene(synthetic_dir, synthetic):
+    for folder in ("images", "masks", "depths", "sparse/0"):
+        assert (synthetic_dir / folder).is_dir()
+    assert synthetic.layout == "colmap" and synthetic.num_views == 12
+    assert synthetic.images.shape == (12, 64, 64, 3) and synthetic.depth_units == "scene"
+    assert synthetic.orbit_radius() == pytest.approx(ORBIT_RADIUS, rel=1e-5)
+    assert set(synthetic.splits) == {"4", "6", "9", "test"}
+    assert all(source.startswith("sparse_") for source in synthetic.split_sources.values())
+    assert 0.02 < float(synthetic.masks.mean()) < 0.6
+
+
+def test_synthetic_points_reproject_inside_masks(synthetic):
+    """Every 3D point lands inside every view's mask (dilated by one pixel for the pixel grid)."""
+    pixels, depths = project(synthetic.viewmats.double(), synthetic.Ks.double(), synthetic.points.double())
+    assert (depths > 0).all()
+    dilated = torch.nn.functional.max_pool2d(synthetic.masks[:, None], 3, stride=1, padding=1)[:, 0]
+    columns = pixels[..., 0].floor().long().clamp(0, synthetic.width - 1)
+    rows = pixels[..., 1].floor().long().clamp(0, synthetic.height - 1)
+    inside_image = (pixels[..., 0] >= 0) & (pixels[..., 0] < synthetic.width)
+    inside_image &= (pixels[..., 1] >= 0) & (pixels[..., 1] < synthetic.height)
+    assert inside_image.all()
+    views = torch.arange(synthetic.num_views)[:, None].expand_as(rows)
+    assert dilated[views, rows, columns].bool().all()
+
+
+def test_synthetic_depth_maps_agree_across_views(synthetic):
+    """Pixels of view 0 lifted with its depth map land, in every other view, on the surface that view's depth map
+    sees (or behind it, when occluded) — never in front of it."""
+    rows, columns = torch.nonzero(synthetic.masks[0] > 0, as_tuple=True)
+    depth = synthetic.depths[0, rows, columns].double()
+    assert (depth > 0).all()
+    pixels = torch.stack([columns + 0.5, rows + 0.5, torch.ones_like(depth)], 1).double()
+    camera = torch.linalg.solve(synthetic.Ks[0].double(), pixels.T).T * depth[:, None]
+    viewmat = synthetic.viewmats[0].double()
+    world = (viewmat[:3, :3].T @ (camera.T - viewmat[:3, 3:])).T
+    projected, point_depths = project(synthetic.viewmats[1:].double(), synthetic.Ks[1:].double(), world)
+    column_index = projected[..., 0].floor().long()
+    row_index = projected[..., 1].floor().long()
+    valid = (column_index >= 0) & (column_index < 64) & (row_index >= 0) & (row_index < 64)
+    views = torch.arange(1, synthetic.num_views)[:, None].expand_as(row_index)
+    seen = synthetic.depths[views, row_index.clamp(0, 63), column_index.clamp(0, 63)].double()
+    relative = (point_depths - seen) / point_depths
+    agree = valid & (relative.abs() < 0.02)
+    in_front = valid & (seen > 0) & (relative < -0.05)
+    assert agree.sum() > 0.4 * valid.sum()  # the rest is occluded in that view
+    assert in_front.sum() < 0.02 * valid.sum()  # only pixel-grid effects at silhouette edges
+
+
+def test_synthetic_poses_are_exact(synthetic_dir):
+    scene = load_scene(synthetic_dir, normalize=False)
+    truth = torch.from_numpy(dome_viewmats(SYNTHETIC)).float()
+    torch.testing.assert_close(scene.viewmats, truth, atol=1e-6, rtol=0)
+    torch.testing.assert_close(scene.Ks[0], torch.from_numpy(intrinsics(SYNTHETIC)).float())
+    assert scene.normalization == SceneNormalization.identity()
+    assert (scene.camera_centers() - torch.from_numpy(OBJECT_CENTER).float()).norm(dim=1).allclose(
+        torch.full((12,), SYNTHETIC.radius), atol=1e-5
+    )
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# Normalization
+
+
+def test_normalization_round_trips_and_preserves_projections(synthetic_dir, synthetic):
+    raw = load_scene(synthetic_dir, normalize=False)
+    normalization = synthetic.normalization
+    close = functools.partial(torch.testing.assert_close, atol=1e-5, rtol=0)
+    close(normalization.apply_viewmats(raw.viewmats.double()).float(), synthetic.viewmats)
+    close(normalization.invert_viewmats(synthetic.viewmats.double()).float(), raw.viewmats)
+    close(normalization.invert_points(synthetic.points.double()).float(), raw.points)
+    close(normalization.apply_points(raw.points.double()).float(), synthetic.points)
+    torch.testing.assert_close(synthetic.depths, raw.depths * normalization.scale)
+    raw_pixels, raw_depths = project(raw.viewmats.double(), raw.Ks.double(), raw.points.double())
+    pixels, depths = project(synthetic.viewmats.double(), synthetic.Ks.double(), synthetic.points.double())
+    torch.testing.assert_close(pixels, raw_pixels, atol=1e-3, rtol=0)
+    torch.testing.assert_close(depths, raw_depths * normalization.scale, atol=1e-4, rtol=0)
+    homogeneous = torch.cat([raw.points.double(), torch.ones(len(raw.points), 1, dtype=torch.float64)], 1)
+    matrix = torch.from_numpy(normalization.matrix())
+    torch.testing.assert_close((homogeneous @ matrix.T)[:, :3].float(), synthetic.points, atol=1e-5, rtol=0)
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# LLFF and transforms.json conventions, against the synthetic scene's exact poses
+
+
+def _strip_to_images(scene_dir: Path, out: Path) -> Path:
+    out.mkdir()
+    shutil.copytree(scene_dir / "images", out / "images")
+    shutil.copytree(scene_dir / "masks", out / "masks")
+    return out
+
+
+def test_llff_layout_matches_exact_poses(synthetic_dir, tmp_path):
+    folder = _strip_to_images(synthetic_dir, tmp_path / "llff")
+    viewmats = dome_viewmats(SYNTHETIC)
+    camera_to_world = np.linalg.inv(viewmats)
+    right, down, forward = camera_to_world[:, :3, 0], camera_to_world[:, :3, 1], camera_to_world[:, :3, 2]
+    focal = intrinsics(SYNTHETIC)[0, 0]
+    hwf = np.tile([SYNTHETIC.height, SYNTHETIC.width, focal], (12, 1))
+    matrices = np.stack([down, right, -forward, camera_to_world[:, :3, 3], hwf], axis=2)  # [C,3,5]
+    np.save(folder / "poses_bounds.npy", np.concatenate([matrices.reshape(12, 15), np.ones((12, 2))], 1))
+    scene = load_scene(folder, normalize=False)
+    assert scene.layout == "llff"
+    torch.testing.assert_close(scene.viewmats, torch.from_numpy(viewmats).float(), atol=1e-5, rtol=0)
+    torch.testing.assert_close(scene.Ks[0], torch.from_numpy(intrinsics(SYNTHETIC)).float())
+
+
+def test_transforms_json_matches_exact_poses(synthetic_dir, tmp_path):
+    folder = _strip_to_images(synthetic_dir, tmp_path / "nerfstudio")
+    viewmats = dome_viewmats(SYNTHETIC)
+    opengl = np.linalg.inv(viewmats) @ np.diag([1.0, -1.0, -1.0, 1.0])
+    frames = [
+        {"file_path": f"images/view_{index:03d}", "transform_matrix": opengl[index].tolist()}
+        for index in reversed(range(12))
+    ]
+    fov = math.radians(SYNTHETIC.fov_deg)
+    (folder / "transforms.json").write_text(json.dumps({"camera_angle_x": fov, "frames": frames}))
+    scene = load_scene(folder, normalize=False)
+    assert scene.layout == "transforms" and scene.image_names[0] == "images/view_000.png"
+    torch.testing.assert_close(scene.viewmats, torch.from_numpy(viewmats).float(), atol=1e-5, rtol=0)
+    torch.testing.assert_close(scene.Ks[0], torch.from_numpy(intrinsics(SYNTHETIC)).float())
+    assert scene.masks is not None
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# Resolutions, distortion, depth formats, splits
+
+
+def test_downsampled_resolution_scales_intrinsics(synthetic_dir, synthetic):
+    half = load_scene(synthetic_dir, resolution=2)
+    assert (half.width, half.height) == (32, 32) and half.masks.shape == (12, 32, 32)
+    torch.testing.assert_close(half.Ks[:, :2], synthetic.Ks[:, :2] / 2)
+    # the object centre comes from the masks' centroids, so it moves slightly with the mask resolution
+    torch.testing.assert_close(half.viewmats[:, :3, :3], synthetic.viewmats[:, :3, :3])
+    torch.testing.assert_close(half.viewmats, synthetic.viewmats, atol=0.02, rtol=0)
+
+
+def test_opencv_camera_is_undistorted_and_exotic_model_refused(scene_copy):
+    model = pycolmap.Reconstruction()
+    model.read(str(scene_copy / "sparse" / "0"))
+    for camera in model.cameras.values():
+        fx, fy, cx, cy = camera.params
+        camera.model = "OPENCV"
+        camera.params = [fx, fy, cx, cy, 0.05, -0.01, 0.0, 0.0]
+    model.write(str(scene_copy / "sparse" / "0"))
+    scene = load_scene(scene_copy)
+    assert scene.images.shape == (12, 64, 64, 3) and scene.Ks[0, 0, 1] == 0
+    for camera in model.cameras.values():
+        camera.model = "FULL_OPENCV"
+        camera.params = list(camera.params) + [0.0] * 4
+    model.write(str(scene_copy / "sparse" / "0"))
+    with pytest.raises(WarpbagsError, match="FULL_OPENCV"):
+        load_scene(scene_copy)
+
+
+@pytest.mark.parametrize("model_name", ["SIMPLE_RADIAL", "RADIAL", "OPENCV"])
+def test_distorted_images_are_undistorted_to_the_pinhole_view(scene_copy, synthetic, model_name):
+    """Distort the pinhole renders with OpenCV's forward model, declare the distortion in cameras.bin: the loader
+    must give back the pinhole images (up to interpolation) with the same K."""
+    distortion = {"SIMPLE_RADIAL": [0.3, 0, 0, 0], "RADIAL": [0.25, 0.1, 0, 0], "OPENCV": [0.25, 0.05, 0.01, -0.01]}
+    k1, k2, p1, p2 = distortion[model_name]
+    model = pycolmap.Reconstruction()
+    model.read(str(scene_copy / "sparse" / "0"))
+    camera = next(iter(model.cameras.values()))
+    fx, fy, cx, cy = camera.params
+    K_opencv = np.array([[fx, 0, cx - 0.5], [0, fy, cy - 0.5], [0, 0, 1]])
+    params = {
+        "SIMPLE_RADIAL": [fx, cx, cy, k1],
+        "RADIAL": [fx, cx, cy, k1, k2],
+        "OPENCV": [fx, fy, cx, cy, k1, k2, p1, p2],
+    }
+    for camera in model.cameras.values():
+        camera.model, camera.params = model_name, params[model_name]
+    model.write(str(scene_copy / "sparse" / "0"))
+    # each distorted pixel samples the pinhole image where its undistorted ray lands
+    rows, columns = np.mgrid[0:64, 0:64].astype(np.float64)
+    distorted = np.stack([columns.ravel(), rows.ravel()], 1)[:, None, :]
+    criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 50, 1e-10)
+    undistorted = cv2.undistortPoints(distorted, K_opencv, np.array([k1, k2, p1, p2]), P=K_opencv, criteria=criteria)
+    map_x = undistorted[:, 0, 0].reshape(64, 64).astype(np.float32)
+    map_y = undistorted[:, 0, 1].reshape(64, 64).astype(np.float32)
+    for folder, interpolation in (("images", cv2.INTER_LINEAR), ("masks", cv2.INTER_NEAREST)):
+        for path in (scene_copy / folder).iterdir():
+            cv2.imwrite(str(path), cv2.remap(cv2.imread(str(path)), map_x, map_y, interpolation))
+    scene = load_scene(scene_copy, load_depths=False)
+    torch.testing.assert_close(scene.Ks, synthetic.Ks)
+    interior = (slice(None), slice(8, 56), slice(8, 56))  # away from the borders, which resampling loses
+    files = sorted((scene_copy / "masks").iterdir())
+    distorted_masks = torch.from_numpy(np.stack([cv2.imread(str(path), 0) > 127 for path in files])).float()
+    mismatch_before = (distorted_masks[interior] != synthetic.masks[interior]).float().mean()
+    mismatch_after = (scene.masks[interior] != synthetic.masks[interior]).float().mean()
+    assert mismatch_before > 0.003  # the distortion is visible
+    assert mismatch_after < 0.1 * mismatch_before, (mismatch_after, mismatch_before)
+    assert (scene.images[interior] - synthetic.images[interior]).abs().mean() < 0.02  # texture: bilinear twice
+
+
+def test_zoe_depth_png_millimetres(scene_copy):
+    shutil.rmtree(scene_copy / "depths")
+    (scene_copy / "zoe_depth").mkdir()
+    for index in range(12):
+        cv2.imwrite(str(scene_copy / "zoe_depth" / f"view_{index:03d}.png"), np.full((64, 64), 1500 + index, np.uint16))
+    scene = load_scene(scene_copy)
+    assert scene.depth_units == "relative"
+    assert scene.depths[3, 10, 10].item() == pytest.approx(1.503)
+
+
+def test_missing_split_files_use_preset_then_farthest_point(scene_copy, caplog):
+    for path in scene_copy.glob("sparse_*.txt"):
+        path.unlink()
+    scene = load_scene(scene_copy, default_splits={"4": [1, 2, 3, 5]})
+    assert scene.splits["4"] == [1, 2, 3, 5] and scene.split_sources["4"] == "preset"
+    assert scene.split_sources["6"] == "farthest-point" and len(scene.splits["6"]) == 6
+    assert scene.splits["6"] == sorted(farthest_views(scene.camera_centers().double().numpy(), 6))
+    train = set(scene.splits["4"]) | set(scene.splits["6"]) | set(scene.splits["9"])
+    assert not train & set(scene.splits["test"])
+    assert "farthest-point" in caplog.text
+    assert load_scene(scene_copy).splits == load_scene(scene_copy).splits  # deterministic
+
+
+def test_train_views_and_noise(synthetic):
+    assert synthetic.train_views(4) == synthetic.splits["4"]
+    assert len(synthetic.train_views(5)) == 5
+    from warpbags.data.noise import PoseNoise, noisy_viewmats
+
+    noisy = noisy_viewmats(synthetic, PoseNoise(rot_fixed_deg=15.0, trans_std=0.0, seed=3))
+    relative = noisy[:, :3, :3] @ synthetic.viewmats[:, :3, :3].transpose(1, 2)
+    angles = torch.rad2deg(torch.arccos(((relative.diagonal(dim1=1, dim2=2).sum(-1) - 1) / 2).clamp(-1, 1)))
+    torch.testing.assert_close(angles, torch.full((12,), 15.0), atol=1e-2, rtol=0)
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# Bad input: one-line WarpbagsError naming the file or value, nothing written
+
+
+def _snapshot(folder: Path) -> dict[str, int]:
+    return {str(path.relative_to(folder)): path.stat().st_mtime_ns for path in folder.rglob("*")}
+
+
+def _expect_error(folder: Path, match: str, **kwargs) -> None:
+    before = _snapshot(folder) if folder.is_dir() else None
+    with pytest.raises(WarpbagsError, match=match) as error:
+        load_scene(folder, **kwargs)
+    assert "\n" not in str(error.value)
+    if before is not None:
+        assert _snapshot(folder) == before
+
+
+def test_missing_folder(tmp_path):
+    _expect_error(tmp_path / "nowhere", "nowhere does not exist")
+
+
+def test_no_cameras(tmp_path):
+    (tmp_path / "images").mkdir()
+    _expect_error(tmp_path, "no cameras in")
+
+
+@pytest.mark.parametrize("name", ["cameras.bin", "images.bin"])
+def test_missing_model_file(scene_copy, name):
+    (scene_copy / "sparse" / "0" / name).unlink()
+    _expect_error(scene_copy, f"{name} is missing")
+
+
+@pytest.mark.parametrize("name", ["cameras.bin", "images.bin"])
+@pytest.mark.parametrize("content", ["garbage", "truncated"])
+def test_corrupt_model_file(scene_copy, name, content):
+    path = scene_copy / "sparse" / "0" / name
+    data = path.read_bytes()
+    path.write_bytes(b"\x07not a colmap file" if content == "garbage" else data[: len(data) // 2])
+    _expect_error(scene_copy, "COLMAP model")
+
+
+def test_image_named_by_model_absent(scene_copy):
+    (scene_copy / "images" / "view_005.png").unlink()
+    _expect_error(scene_copy, "view_005.png is missing")
+
+
+def test_mask_missing(scene_copy):
+    (scene_copy / "masks" / "view_007.png").unlink()
+    _expect_error(scene_copy, "mask for image view_007.png is missing")
+
+
+def test_mask_wrong_size(scene_copy):
+    cv2.imwrite(str(scene_copy / "masks" / "view_002.png"), np.zeros((50, 70), np.uint8))
+    _expect_error(scene_copy, r"mask .*view_002.png is 70x50, its image is 64x64")
+
+
+def test_split_index_out_of_range(scene_copy):
+    (scene_copy / "sparse_4.txt").write_text("0\n3\n12\n7\n")
+    _expect_error(scene_copy, r"sparse_4.txt:3: view index 12 out of range for 12 images")
+
+
+def test_unreadable_image(scene_copy):
+    (scene_copy / "images" / "view_004.png").write_bytes(b"not a png")
+    _expect_error(scene_copy, "view_004.png is unreadable")
+
+
+def test_fewer_images_than_views(synthetic):
+    with pytest.raises(WarpbagsError, match="12 images, fewer than --views 20"):
+        synthetic.train_views(20)
+
+
+def test_unknown_scene_and_missing_dataset(tmp_path):
+    with pytest.raises(WarpbagsError, match="no preset of that name"):
+        open_scene(str(tmp_path / "missing"))
+    with pytest.raises(WarpbagsError, match=r"scene kitchen not found \(looked in .*360_v2.zip"):
+        open_scene("kitchen", root=tmp_path)
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# CLI
+
+
+def test_cli_info_prints_summary(synthetic_dir):
+    result = CliRunner().invoke(app, ["info", str(synthetic_dir)])
+    assert result.exit_code == 0, result.output
+    for text in ("64 x 64", "split 4", "orbit radius", "4.0000", "masks", "depth maps", "fx "):
+        assert text in result.output
+
+
+@pytest.mark.parametrize("make_bad", ["missing_folder", "corrupt_cameras", "missing_kitchen"])
+def test_cli_bad_input_exits_cleanly(scene_copy, tmp_path, make_bad):
+    arguments = ["info", str(scene_copy)]
+    if make_bad == "missing_folder":
+        arguments = ["info", str(tmp_path / "absent")]
+    elif make_bad == "corrupt_cameras":
+        (scene_copy / "sparse" / "0" / "cameras.bin").write_bytes(b"junk")
+    else:
+        arguments = ["info", "kitchen", "--data-root", str(tmp_path / "empty")]
+    result = CliRunner().invoke(app, arguments)
+    assert result.exit_code == 2
+    assert "Traceback" not in result.output and not isinstance(result.exception, WarpbagsError)
+    assert result.output.count("error:") == 1
+
+
+def test_cli_synth_writes_a_loadable_scene(tmp_path):
+    result = CliRunner().invoke(app, ["synth", str(tmp_path / "out"), "--views", "6", "--size", "24"])
+    assert result.exit_code == 0, result.output
+    scene = load_scene(tmp_path / "out")
+    assert scene.num_views == 6 and scene.width == 24 and scene.depths is not None
+    again = CliRunner().invoke(app, ["synth", str(tmp_path / "out"), "--views", "6", "--size", "24"])
+    assert again.exit_code == 2 and "not empty" in again.output
+
+
+def test_synthetic_preset_generated_once_into_cache(tmp_path, monkeypatch):
+    import dataclasses
+
+    from warpbags.data import catalog
+
+    preset = dataclasses.replace(catalog.SCENES["synthetic"], synthetic_views=5, synthetic_size=20)
+    monkeypatch.setitem(catalog.SCENES, "synthetic", preset)
+    monkeypatch.setenv("WARPBAGS_CACHE", str(tmp_path / "cache"))
+    scene = open_scene("synthetic")
+    assert scene.name == "synthetic" and scene.num_views == 5 and scene.root.parent == tmp_path / "cache"
+    stamp = (scene.root / "synthetic.json").stat().st_mtime_ns
+    assert open_scene("synthetic").num_views == 5
+    assert (scene.root / "synthetic.json").stat().st_mtime_ns == stamp
+    assert [path.name for path in (tmp_path / "cache").iterdir()] == [scene.root.name]

@@ -1,0 +1,178 @@
+"""COLMAP sparse models through pycolmap: read cameras/poses/points, write a model (for the synthetic scene).
+
+COLMAP already uses OpenCV camera axes, world-to-camera poses and pixel centres at (x+0.5, y+0.5), so its
+poses and principal points are used as they are.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pycolmap
+
+from warpbags.errors import WarpbagsError
+
+SUPPORTED_MODELS = ("PINHOLE", "SIMPLE_PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV")
+
+
+@dataclass
+class ColmapCamera:
+    """One COLMAP camera reduced to a pinhole K plus OpenCV distortion coefficients.
+
+    Attributes:
+        width, height: the size the calibration refers to (full resolution).
+        K: [3,3] float64 intrinsics at (width, height).
+        distortion: [4] float64 OpenCV (k1, k2, p1, p2); all zero for pinhole models.
+        model: the COLMAP model name.
+    """
+
+    width: int
+    height: int
+    K: np.ndarray
+    distortion: np.ndarray
+    model: str
+
+
+@dataclass
+class ColmapModel:
+    """A sparse model with its images sorted by name.
+
+    Attributes:
+        image_names: C names, sorted.
+        viewmats: [C,4,4] float64 world-to-camera.
+        cameras: C `ColmapCamera`, one per image.
+        points: [P,3] float64 points, colors: [P,3] uint8.
+    """
+
+    image_names: list[str]
+    viewmats: np.ndarray
+    cameras: list[ColmapCamera]
+    points: np.ndarray
+    colors: np.ndarray
+
+
+def find_model_files(model_dir: Path) -> str:
+    """Return "bin" or "txt" for the complete model in `model_dir`, or raise naming the missing file."""
+    for extension in ("bin", "txt"):
+        if (model_dir / f"cameras.{extension}").is_file() or (model_dir / f"images.{extension}").is_file():
+            for stem in ("cameras", "images"):
+                if not (model_dir / f"{stem}.{extension}").is_file():
+                    raise WarpbagsError(f"{model_dir / f'{stem}.{extension}'} is missing (COLMAP model incomplete)")
+            return extension
+    raise WarpbagsError(f"no COLMAP model in {model_dir}: expected cameras.bin and images.bin (or .txt)")
+
+
+def _camera_from_pycolmap(camera: pycolmap.Camera, source: Path) -> ColmapCamera:
+    model = camera.model.name
+    params = np.asarray(camera.params, dtype=np.float64)
+    distortion = np.zeros(4)
+    if model == "PINHOLE":
+        fx, fy, cx, cy = params
+    elif model == "SIMPLE_PINHOLE":
+        fx, cx, cy = params
+        fy = fx
+    elif model == "SIMPLE_RADIAL":
+        fx, cx, cy, k1 = params
+        fy = fx
+        distortion[0] = k1
+    elif model == "RADIAL":
+        fx, cx, cy, k1, k2 = params
+        fy = fx
+        distortion[:2] = k1, k2
+    elif model == "OPENCV":
+        fx, fy, cx, cy = params[:4]
+        distortion[:] = params[4:8]
+    else:
+        raise WarpbagsError(
+            f"{source}: camera {camera.camera_id} uses COLMAP model {model}, not supported "
+            f"(supported: {', '.join(SUPPORTED_MODELS)}; run `colmap image_undistorter` first)"
+        )
+    K = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
+    return ColmapCamera(int(camera.width), int(camera.height), K, distortion, model)
+
+
+def read_model(model_dir: Path) -> ColmapModel:
+    """Read `model_dir/{cameras,images,points3D}.{bin,txt}`.
+
+    Raises:
+        WarpbagsError: a file is missing or unreadable, or a camera model is unsupported.
+    """
+    extension = find_model_files(model_dir)
+    reconstruction = pycolmap.Reconstruction()
+    try:
+        if extension == "bin":
+            reconstruction.read_binary(str(model_dir))
+        else:
+            reconstruction.read_text(str(model_dir))
+    except Exception as error:  # pycolmap raises ValueError/RuntimeError with a multi-line C++ message
+        reason = str(error).strip().splitlines()[-1] if str(error).strip() else type(error).__name__
+        raise WarpbagsError(f"cannot read COLMAP model {model_dir}/*.{extension}: {reason}") from None
+
+    registered = [image for image in reconstruction.images.values() if image.has_pose]
+    if not registered:
+        raise WarpbagsError(f"{model_dir / f'images.{extension}'} holds no posed images")
+    registered.sort(key=lambda image: image.name)
+    cameras = {
+        camera_id: _camera_from_pycolmap(camera, model_dir / f"cameras.{extension}")
+        for camera_id, camera in reconstruction.cameras.items()
+    }
+    viewmats = np.tile(np.eye(4), (len(registered), 1, 1))
+    for index, image in enumerate(registered):
+        viewmats[index, :3, :] = image.cam_from_world().matrix()
+    points3d = list(reconstruction.points3D.values())
+    points = np.array([point.xyz for point in points3d], dtype=np.float64).reshape(-1, 3)
+    colors = np.array([point.color for point in points3d], dtype=np.uint8).reshape(-1, 3)
+    return ColmapModel(
+        image_names=[image.name for image in registered],
+        viewmats=viewmats,
+        cameras=[cameras[image.camera_id] for image in registered],
+        points=points,
+        colors=colors,
+    )
+
+
+def write_model(
+    model_dir: Path,
+    image_names: list[str],
+    viewmats: np.ndarray,
+    Ks: np.ndarray,
+    width: int,
+    height: int,
+    points: np.ndarray | None = None,
+    colors: np.ndarray | None = None,
+    binary: bool = True,
+) -> None:
+    """Write a PINHOLE COLMAP model (one camera per image).
+
+    Args:
+        model_dir: output folder (created).
+        image_names: C names.
+        viewmats: [C,4,4] world-to-camera, OpenCV axes.
+        Ks: [C,3,3] intrinsics at (width, height), pixel centres at +0.5.
+        points: [P,3] optional points; colors: [P,3] uint8.
+        binary: .bin files (default) or .txt.
+    """
+    reconstruction = pycolmap.Reconstruction()
+    for index, (name, viewmat, K) in enumerate(zip(image_names, np.asarray(viewmats), np.asarray(Ks)), start=1):
+        camera = pycolmap.Camera(
+            model="PINHOLE",
+            width=int(width),
+            height=int(height),
+            params=[K[0, 0], K[1, 1], K[0, 2], K[1, 2]],
+            camera_id=index,
+        )
+        reconstruction.add_camera_with_trivial_rig(camera)
+        image = pycolmap.Image(name=name, camera_id=index, image_id=index)
+        pose = pycolmap.Rigid3d(np.asarray(viewmat[:3, :4], dtype=np.float64))
+        reconstruction.add_image_with_trivial_frame(image, pose)
+    if points is not None:
+        colors = np.zeros_like(points, dtype=np.uint8) if colors is None else colors
+        for xyz, color in zip(np.asarray(points, dtype=np.float64), np.asarray(colors, dtype=np.uint8)):
+            reconstruction.add_point3D(xyz, pycolmap.Track(), color)
+    model_dir.mkdir(parents=True, exist_ok=True)
+    if binary:
+        reconstruction.write_binary(str(model_dir))
+    else:
+        reconstruction.write_text(str(model_dir))

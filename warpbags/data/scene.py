@@ -1,0 +1,186 @@
+"""The `Scene` every loader returns, and the reversible scene normalization.
+
+Conventions (the renderer relies on them):
+- `viewmats [C,4,4]` float32 world-to-camera, OpenCV camera axes (x right, y down, z forward).
+- `Ks [C,3,3]` float32 pinhole intrinsics at the loaded image resolution, pixel centres at (x+0.5, y+0.5).
+- `images [C,H,W,3]` float32 RGB in [0,1]; `masks [C,H,W]` float32 in {0,1}; `depths [C,H,W]` float32, 0 = no value.
+- Split indices are 0-based into the images sorted by name.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from warpbags.errors import WarpbagsError
+
+ORBIT_RADIUS = 4.0
+"""Mean distance from the camera centres to the object centre after normalization.
+
+4.0 matches the NeRF-Synthetic (Blender) orbit (radius ~4.03), so BARF's pose-noise magnitudes (se(3) sigma 0.15)
+mean the same thing here.
+"""
+
+
+@dataclass(frozen=True)
+class SceneNormalization:
+    """The similarity `x_normalized = scale * (x_source - center)` from source (e.g. COLMAP) to normalized world.
+
+    Camera rotations are unchanged; camera-space lengths (depths) scale by `scale`.
+
+    Attributes:
+        center: [3] float64, the object centre in source world coordinates.
+        scale: source-to-normalized length factor.
+    """
+
+    center: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    scale: float = 1.0
+
+    @staticmethod
+    def identity() -> SceneNormalization:
+        return SceneNormalization()
+
+    def matrix(self) -> np.ndarray:
+        """[4,4] float64 homogeneous source-to-normalized transform."""
+        transform = np.eye(4)
+        transform[:3, :3] *= self.scale
+        transform[:3, 3] = -self.scale * np.asarray(self.center)
+        return transform
+
+    def apply_points(self, points: torch.Tensor) -> torch.Tensor:
+        """Source-world points [..., 3] -> normalized-world points [..., 3]."""
+        center = torch.as_tensor(self.center, dtype=points.dtype, device=points.device)
+        return (points - center) * self.scale
+
+    def invert_points(self, points: torch.Tensor) -> torch.Tensor:
+        """Normalized-world points [..., 3] -> source-world points [..., 3]."""
+        center = torch.as_tensor(self.center, dtype=points.dtype, device=points.device)
+        return points / self.scale + center
+
+    def apply_viewmats(self, viewmats: torch.Tensor) -> torch.Tensor:
+        """Source world-to-camera [C,4,4] -> normalized world-to-camera [C,4,4] (camera units scaled too)."""
+        center = torch.as_tensor(self.center, dtype=viewmats.dtype, device=viewmats.device)
+        out = viewmats.clone()
+        out[..., :3, 3] = self.scale * (viewmats[..., :3, 3] + viewmats[..., :3, :3] @ center)
+        return out
+
+    def invert_viewmats(self, viewmats: torch.Tensor) -> torch.Tensor:
+        """Normalized world-to-camera [C,4,4] -> source world-to-camera [C,4,4] (for export)."""
+        center = torch.as_tensor(self.center, dtype=viewmats.dtype, device=viewmats.device)
+        out = viewmats.clone()
+        out[..., :3, 3] = viewmats[..., :3, 3] / self.scale - viewmats[..., :3, :3] @ center
+        return out
+
+
+@dataclass
+class Scene:
+    """A loaded multi-view capture in normalized world coordinates (see module docstring for conventions).
+
+    Attributes:
+        name: scene name (preset name or folder name).
+        root: the scene folder.
+        layout: which layout it was read from: "colmap", "llff" or "transforms".
+        image_names: C file names (relative to the image folder), sorted.
+        images: [C,H,W,3] float32 RGB in [0,1].
+        masks: [C,H,W] float32 in {0,1} (1 = object), or None.
+        depths: [C,H,W] float32 depth along the optical axis (0 = no value), or None.
+        depth_units: "scene" (true depth, in normalized scene units) or "relative" (monocular, arbitrary scale,
+            e.g. ZoeDepth), or None when there are no depth maps.
+        viewmats: [C,4,4] float32 world-to-camera (OpenCV axes), normalized world.
+        Ks: [C,3,3] float32 pinhole intrinsics at (width, height).
+        width, height: image size in pixels.
+        splits: named view subsets, e.g. {"4": [...], "6": [...], "9": [...], "test": [...]}.
+        split_sources: where each split came from (a file name, "preset" or "farthest-point").
+        points: [P,3] float32 SfM points in normalized world, or None.
+        point_colors: [P,3] float32 RGB in [0,1], or None.
+        normalization: the source-to-normalized similarity (invert it for export).
+    """
+
+    name: str
+    root: Path
+    layout: str
+    image_names: list[str]
+    images: torch.Tensor
+    masks: torch.Tensor | None
+    depths: torch.Tensor | None
+    depth_units: str | None
+    viewmats: torch.Tensor
+    Ks: torch.Tensor
+    width: int
+    height: int
+    splits: dict[str, list[int]] = field(default_factory=dict)
+    split_sources: dict[str, str] = field(default_factory=dict)
+    points: torch.Tensor | None = None
+    point_colors: torch.Tensor | None = None
+    normalization: SceneNormalization = field(default_factory=SceneNormalization)
+
+    @property
+    def num_views(self) -> int:
+        return len(self.image_names)
+
+    def camera_centers(self) -> torch.Tensor:
+        """[C,3] camera centres in normalized world: -R^T t."""
+        rotations = self.viewmats[:, :3, :3]
+        return -(rotations.transpose(1, 2) @ self.viewmats[:, :3, 3:]).squeeze(-1)
+
+    def orbit_radius(self) -> float:
+        """Mean distance of the camera centres from the world origin (the object centre)."""
+        return float(self.camera_centers().norm(dim=-1).mean())
+
+    def train_views(self, views: int) -> list[int]:
+        """Indices of `views` training views: the split of that name, else a farthest-point choice.
+
+        Raises:
+            WarpbagsError: when the scene has fewer images than `views`.
+        """
+        if views < 1:
+            raise WarpbagsError(f"--views must be at least 1, got {views}")
+        if views > self.num_views:
+            raise WarpbagsError(f"scene {self.name} has {self.num_views} images, fewer than --views {views}")
+        if str(views) in self.splits:
+            return list(self.splits[str(views)])
+        return farthest_views(self.camera_centers().double().numpy(), views)
+
+    def subset(self, indices: list[int]) -> Scene:
+        """A scene with only the given views (splits dropped, since their indices would no longer hold)."""
+        index = torch.as_tensor(indices, dtype=torch.long)
+        pick = lambda tensor: None if tensor is None else tensor[index]  # noqa: E731
+        return replace(
+            self,
+            image_names=[self.image_names[i] for i in indices],
+            images=self.images[index],
+            masks=pick(self.masks),
+            depths=pick(self.depths),
+            viewmats=self.viewmats[index],
+            Ks=self.Ks[index],
+            splits={},
+            split_sources={},
+        )
+
+
+def farthest_views(camera_centers: np.ndarray, count: int, center: np.ndarray | None = None) -> list[int]:
+    """Deterministic farthest-point sampling of viewing directions, starting from view 0.
+
+    With the default centre this reproduces the split files shipped with maryrose.
+
+    Args:
+        camera_centers: [C,3] camera centres.
+        count: how many views to choose (<= C).
+        center: [3] point the directions are taken from (default: the mean camera centre).
+
+    Returns:
+        `count` view indices in the order chosen (each set is a prefix of the next larger one).
+    """
+    center = camera_centers.mean(0) if center is None else np.asarray(center, dtype=np.float64)
+    directions = camera_centers - center
+    directions = directions / np.maximum(np.linalg.norm(directions, axis=1, keepdims=True), 1e-12)
+    chosen = [0]
+    angle_to_chosen = np.arccos(np.clip(directions @ directions[0], -1.0, 1.0))
+    while len(chosen) < count:
+        next_view = int(np.argmax(angle_to_chosen))
+        chosen.append(next_view)
+        angle_to_chosen = np.minimum(angle_to_chosen, np.arccos(np.clip(directions @ directions[next_view], -1, 1)))
+    return chosen

@@ -1,0 +1,394 @@
+"""A synthetic object-centric 360-degree scene with exact poses, masks and depth maps.
+
+A toy excavator (tracks, body, cab, boom, stick, bucket, counterweight) on a base slab, built from textured boxes,
+spheres and cylinders (textures: scikit-image's bundled photographs), rendered by an analytic ray caster in numpy
+(independent of the splatting kernels), Lambertian shading, white background. Cameras sit on a dome around the
+object. The scene is written in the MipNeRF360 / GaussianObject layout, so `load_scene` reads it like a capture:
+
+    images/view_XXX.png   masks/view_XXX.png   depths/view_XXX.npy (z-depth, world units, 0 = background)
+    sparse/0/{cameras,images,points3D}.bin     sparse_{4,6,9,test}.txt     synthetic.json
+
+Texture sources (all bundled with scikit-image): brick, grass, gravel (CC0), coffee, chelsea (CC0),
+astronaut (public domain, NASA).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import shutil
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from warpbags.data.colmap import write_model
+from warpbags.data.scene import farthest_views
+from warpbags.errors import WarpbagsError
+
+GENERATOR_VERSION = 2  # bump whenever the geometry or rendering changes: cache folders are keyed on it
+BACKGROUND = 1.0  # white
+LIGHT_DIRECTION = np.array([0.4, -0.3, 0.87]) / np.linalg.norm([0.4, -0.3, 0.87])
+
+
+@dataclass(frozen=True)
+class SyntheticOptions:
+    """Generator settings.
+
+    Attributes:
+        views: number of cameras on the dome (32-100 for real use; fewer is allowed for tests).
+        width, height: image size in pixels.
+        seed: seeds the texture crops and the sampled SfM points.
+        radius: camera distance from the object centre (world units; the loader normalizes it away).
+        fov_deg: horizontal field of view.
+        min_elevation_deg, max_elevation_deg: camera elevation range above the base plane.
+        supersample: colour is averaged over supersample^2 rays per pixel (masks and depth use the pixel centre).
+        num_points: SfM-like points written to points3D.bin (unprojected from the depth maps).
+    """
+
+    views: int = 48
+    width: int = 256
+    height: int = 256
+    seed: int = 0
+    radius: float = 3.6
+    fov_deg: float = 45.0
+    min_elevation_deg: float = 10.0
+    max_elevation_deg: float = 60.0
+    supersample: int = 2
+    num_points: int = 4000
+
+    def folder_name(self) -> str:
+        return f"synthetic-v{GENERATOR_VERSION}-{self.views}views-{self.width}x{self.height}-seed{self.seed}"
+
+
+OBJECT_CENTER = np.array([0.3, -0.2, 0.45])
+"""World position the cameras look at (deliberately off the origin so normalization has work to do)."""
+
+
+@dataclass
+class Primitive:
+    """A textured solid: kind "box" (size = half extents), "sphere" (size[0] = radius) or "cylinder" along local z
+    (size = radius, radius, half height). `rotation` maps local to world axes, `center` is in world."""
+
+    kind: str
+    center: np.ndarray
+    rotation: np.ndarray
+    size: np.ndarray
+    texture: np.ndarray  # [h,w,3] float32 RGB
+    tiles: float = 1.0
+
+
+def _rotation(axis: str, degrees: float) -> np.ndarray:
+    c, s = np.cos(np.radians(degrees)), np.sin(np.radians(degrees))
+    return {
+        "x": np.array([[1, 0, 0], [0, c, -s], [0, s, c]]),
+        "y": np.array([[c, 0, s], [0, 1, 0], [-s, 0, c]]),
+        "z": np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]]),
+    }[axis]
+
+
+def _textures(seed: int) -> dict[str, np.ndarray]:
+    from skimage import data
+
+    rng = np.random.default_rng(seed)
+
+    def prepare(image: np.ndarray, tint=(1.0, 1.0, 1.0), size: int = 128) -> np.ndarray:
+        image = image.astype(np.float32) / (255.0 if image.dtype == np.uint8 else 1.0)
+        if image.ndim == 2:
+            image = np.repeat(image[:, :, None], 3, axis=2)
+        image = image[:, :, :3]
+        side = min(image.shape[:2])
+        top = rng.integers(0, image.shape[0] - side + 1)
+        left = rng.integers(0, image.shape[1] - side + 1)
+        image = cv2.resize(image[top : top + side, left : left + side], (size, size), interpolation=cv2.INTER_AREA)
+        return np.clip(image * np.asarray(tint, np.float32), 0, 1)
+
+    return {
+        "yellow": prepare(data.brick(), (1.25, 1.0, 0.25)),
+        "tracks": prepare(data.gravel(), (0.5, 0.5, 0.55)),
+        "base": prepare(data.grass(), (0.7, 0.9, 0.6)),
+        "coffee": prepare(data.coffee()),
+        "cat": prepare(data.chelsea()),
+        "astronaut": prepare(data.astronaut()),
+    }
+
+
+def build_excavator(seed: int = 0) -> list[Primitive]:
+    """The primitives of the toy excavator, in world coordinates (base top at z = 0.1, about 1.4 units long)."""
+    textures = _textures(seed)
+    identity = np.eye(3)
+    offset = OBJECT_CENTER - np.array([0.0, 0.0, 0.45])
+
+    def make(kind, center, rotation, size, texture, tiles=1.0):
+        center = np.asarray(center, float) + offset
+        return Primitive(kind, center, rotation, np.asarray(size, float), textures[texture], tiles)
+
+    boom_rotation = _rotation("y", -35.0)  # up and forward from the body
+    stick_rotation = _rotation("y", -21.0)  # from the boom tip down to the bucket
+    return [
+        make("box", (0.0, 0.0, 0.05), identity, (0.9, 0.7, 0.05), "base", 2.0),
+        make("box", (0.0, 0.3, 0.2), identity, (0.5, 0.1, 0.1), "tracks", 2.0),
+        make("box", (0.0, -0.3, 0.2), identity, (0.5, 0.1, 0.1), "tracks", 2.0),
+        make("cylinder", (0.0, 0.0, 0.33), identity, (0.18, 0.18, 0.03), "tracks"),
+        make("box", (-0.05, 0.0, 0.48), _rotation("z", 10.0), (0.35, 0.25, 0.12), "yellow"),
+        make("box", (0.12, 0.12, 0.72), identity, (0.12, 0.11, 0.12), "astronaut"),
+        make("cylinder", (-0.38, 0.0, 0.5), _rotation("x", 90.0), (0.12, 0.12, 0.22), "coffee"),
+        make("box", (0.42, -0.08, 0.75), boom_rotation, (0.3, 0.05, 0.05), "yellow"),
+        make("box", (0.76, -0.08, 0.685), stick_rotation, (0.05, 0.05, 0.26), "yellow"),
+        make("sphere", (0.85, -0.08, 0.42), identity, (0.12, 0.12, 0.12), "cat"),
+    ]
+
+
+def _intersect(primitive: Primitive, origins: np.ndarray, directions: np.ndarray):
+    """Ray-solid intersection. Returns t [N] (inf where missed), local hit points [N,3], local normals [N,3]."""
+    local_origins = (origins - primitive.center) @ primitive.rotation
+    local_directions = directions @ primitive.rotation
+    count = len(origins)
+    t = np.full(count, np.inf)
+    normals = np.zeros((count, 3))
+    eps = 1e-9
+    if primitive.kind == "box":
+        half = primitive.size
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t1 = (-half - local_origins) / local_directions
+            t2 = (half - local_origins) / local_directions
+        t_near_axes = np.nan_to_num(np.minimum(t1, t2), nan=-np.inf)
+        t_far_axes = np.nan_to_num(np.maximum(t1, t2), nan=np.inf)
+        t_near, t_far = t_near_axes.max(1), t_far_axes.min(1)
+        hit = (t_near <= t_far) & (t_near > eps)
+        axis = t_near_axes.argmax(1)
+        t[hit] = t_near[hit]
+        rows = np.nonzero(hit)[0]
+        normals[rows, axis[rows]] = -np.sign(local_directions[rows, axis[rows]])
+    elif primitive.kind == "sphere":
+        radius = primitive.size[0]
+        b = np.einsum("ij,ij->i", local_origins, local_directions)
+        c = np.einsum("ij,ij->i", local_origins, local_origins) - radius**2
+        disc = b * b - c
+        root = -b - np.sqrt(np.maximum(disc, 0))
+        hit = (disc >= 0) & (root > eps)
+        t[hit] = root[hit]
+        normals = (local_origins + t[:, None] * local_directions) / radius
+    else:  # cylinder along local z
+        radius, half_height = primitive.size[0], primitive.size[2]
+        ox, oy, oz = local_origins.T
+        dx, dy, dz = local_directions.T
+        a = dx * dx + dy * dy
+        b = ox * dx + oy * dy
+        c = ox * ox + oy * oy - radius**2
+        disc = b * b - a * c
+        with np.errstate(divide="ignore", invalid="ignore"):
+            side = (-b - np.sqrt(np.maximum(disc, 0))) / a
+        side_ok = (disc >= 0) & (a > 1e-12) & (side > eps) & (np.abs(oz + side * dz) <= half_height)
+        t = np.where(side_ok, side, np.inf)
+        for cap in (-half_height, half_height):
+            with np.errstate(divide="ignore", invalid="ignore"):
+                t_cap = (cap - oz) / dz
+            x, y = ox + t_cap * dx, oy + t_cap * dy
+            cap_ok = (np.abs(dz) > 1e-12) & (t_cap > eps) & (x * x + y * y <= radius**2) & (t_cap < t)
+            t = np.where(cap_ok, t_cap, t)
+            normals[cap_ok] = (0.0, 0.0, np.sign(cap))
+        on_side = side_ok & (t == side)
+        points = local_origins + np.where(np.isfinite(t), t, 0)[:, None] * local_directions
+        normals[on_side] = np.stack([points[on_side, 0], points[on_side, 1], np.zeros(on_side.sum())], 1) / radius
+    points = local_origins + np.where(np.isfinite(t), t, 0)[:, None] * local_directions
+    return t, points, normals
+
+
+def _texture_coordinates(primitive: Primitive, points: np.ndarray, normals: np.ndarray) -> np.ndarray:
+    size = primitive.size
+    if primitive.kind == "box":
+        axis = np.abs(normals).argmax(1)
+        other = np.array([[1, 2], [0, 2], [0, 1]])[axis]
+        rows = np.arange(len(points))
+        u = points[rows, other[:, 0]] / size[other[:, 0]]
+        v = points[rows, other[:, 1]] / size[other[:, 1]]
+        uv = np.stack([u, v], 1) * 0.5 + 0.5
+    elif primitive.kind == "sphere":
+        unit = points / size[0]
+        longitude = np.arctan2(unit[:, 1], unit[:, 0]) / (2 * np.pi) + 0.5
+        uv = np.stack([longitude, np.arccos(np.clip(unit[:, 2], -1, 1)) / np.pi], 1)
+    else:
+        on_cap = np.abs(normals[:, 2]) > 0.5
+        angle = np.arctan2(points[:, 1], points[:, 0]) / (2 * np.pi) + 0.5
+        side_uv = np.stack([angle, points[:, 2] / (2 * size[2]) + 0.5], 1)
+        cap_uv = points[:, :2] / (2 * size[0]) + 0.5
+        uv = np.where(on_cap[:, None], cap_uv, side_uv)
+    return uv * primitive.tiles
+
+
+def _hits_bounding_sphere(primitive: Primitive, origins: np.ndarray, directions: np.ndarray) -> np.ndarray:
+    """[N] bool: the ray passes within the primitive's bounding sphere (a cheap pre-test)."""
+    size = primitive.size
+    bound = np.hypot(size[0], size[2]) if primitive.kind == "cylinder" else np.linalg.norm(size)
+    to_center = primitive.center - origins
+    along = to_center @ directions if to_center.ndim == 1 else np.einsum("ij,ij->i", to_center, directions)
+    squared_distance = np.einsum("ij,ij->i", to_center, to_center) - along**2
+    return (squared_distance <= bound**2 * 1.0001) & (along > -bound)
+
+
+def cast_rays(primitives: list[Primitive], origins: np.ndarray, directions: np.ndarray):
+    """First hit of each ray against the scene.
+
+    Args:
+        origins, directions: [N,3] world rays (directions unit length).
+
+    Returns:
+        t [N] (inf on a miss), colors [N,3] float shaded RGB (background where missed).
+    """
+    best_t = np.full(len(origins), np.inf)
+    colors = np.full((len(origins), 3), BACKGROUND)
+    for primitive in primitives:
+        candidates = np.nonzero(_hits_bounding_sphere(primitive, origins, directions))[0]
+        if not len(candidates):
+            continue
+        t, points, normals = _intersect(primitive, origins[candidates], directions[candidates])
+        closer = t < best_t[candidates]
+        if not closer.any():
+            continue
+        rays = candidates[closer]
+        best_t[rays] = t[closer]
+        uv = _texture_coordinates(primitive, points[closer], normals[closer]) % 1.0
+        texture = primitive.texture
+        rows = np.minimum((uv[:, 1] * texture.shape[0]).astype(int), texture.shape[0] - 1)
+        cols = np.minimum((uv[:, 0] * texture.shape[1]).astype(int), texture.shape[1] - 1)
+        world_normals = normals[closer] @ primitive.rotation.T
+        lambert = np.abs(world_normals @ LIGHT_DIRECTION)
+        colors[rays] = texture[rows, cols] * (0.35 + 0.65 * lambert)[:, None]
+    return best_t, np.clip(colors, 0, 1)
+
+
+def dome_viewmats(options: SyntheticOptions) -> np.ndarray:
+    """[C,4,4] world-to-camera poses (OpenCV axes) on a dome around `OBJECT_CENTER`, z up, looking at it."""
+    golden = (np.sqrt(5.0) - 1.0) / 2.0
+    viewmats = np.tile(np.eye(4), (options.views, 1, 1))
+    for index in range(options.views):
+        azimuth = 2 * np.pi * index / options.views
+        fraction = (index * golden) % 1.0
+        elevation_range = options.max_elevation_deg - options.min_elevation_deg
+        elevation = np.radians(options.min_elevation_deg + fraction * elevation_range)
+        eye = OBJECT_CENTER + options.radius * np.array(
+            [np.cos(elevation) * np.cos(azimuth), np.cos(elevation) * np.sin(azimuth), np.sin(elevation)]
+        )
+        forward = (OBJECT_CENTER - eye) / np.linalg.norm(OBJECT_CENTER - eye)
+        right = np.cross(forward, [0.0, 0.0, 1.0])
+        right /= np.linalg.norm(right)
+        down = np.cross(forward, right)
+        rotation = np.stack([right, down, forward])  # rows: camera axes in world
+        viewmats[index, :3, :3] = rotation
+        viewmats[index, :3, 3] = -rotation @ eye
+    return viewmats
+
+
+def intrinsics(options: SyntheticOptions) -> np.ndarray:
+    """[3,3] pinhole K, principal point at the image centre (pixel centres at +0.5)."""
+    focal = 0.5 * options.width / np.tan(np.radians(options.fov_deg) / 2)
+    return np.array([[focal, 0, options.width / 2], [0, focal, options.height / 2], [0, 0, 1.0]])
+
+
+def render_view(
+    primitives: list[Primitive], viewmat: np.ndarray, K: np.ndarray, width: int, height: int, supersample: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Render one view. Returns image [H,W,3] float32, mask [H,W] float32, z-depth [H,W] float32 (0 = background)."""
+    rotation, translation = viewmat[:3, :3], viewmat[:3, 3]
+    eye = -rotation.T @ translation
+
+    def rays(offsets: np.ndarray):
+        xs, ys = np.meshgrid(np.arange(width) + 0.0, np.arange(height) + 0.0)
+        pixels = np.stack([xs.ravel(), ys.ravel()], 1)[:, None, :] + offsets[None]
+        pixels = pixels.reshape(-1, 2)
+        camera = np.linalg.solve(K, np.concatenate([pixels, np.ones((len(pixels), 1))], 1).T).T
+        camera /= np.linalg.norm(camera, axis=1, keepdims=True)
+        return camera, camera @ rotation
+
+    centre_camera, centre_world = rays(np.array([[0.5, 0.5]]))
+    t, _ = cast_rays(primitives, np.broadcast_to(eye, centre_world.shape), centre_world)
+    hit = np.isfinite(t)
+    depth = np.where(hit, t * centre_camera[:, 2], 0.0).reshape(height, width)
+    steps = (np.arange(supersample) + 0.5) / supersample
+    offsets = np.stack(np.meshgrid(steps, steps), -1).reshape(-1, 2)
+    _, sample_world = rays(offsets)
+    _, colors = cast_rays(primitives, np.broadcast_to(eye, sample_world.shape), sample_world)
+    image = colors.reshape(height, width, len(offsets), 3).mean(2)
+    return image.astype(np.float32), hit.reshape(height, width).astype(np.float32), depth.astype(np.float32)
+
+
+def generate_synthetic_scene(out_dir: str | Path, options: SyntheticOptions = SyntheticOptions()) -> Path:
+    """Render the synthetic scene and write it to `out_dir` (MipNeRF360 layout). Returns `out_dir`.
+
+    Written to a temporary sibling folder first and renamed, so an interrupted run leaves no partial scene.
+    """
+    out_dir = Path(out_dir)
+    if options.views < 4 or options.width < 8 or options.height < 8:
+        raise WarpbagsError(
+            f"synthetic scene needs at least 4 views and 8x8 pixels, "
+            f"got {options.views} views of {options.width}x{options.height}"
+        )
+    if out_dir.exists() and any(out_dir.iterdir()):
+        raise WarpbagsError(f"{out_dir} exists and is not empty")
+    staging = out_dir.with_name(f".{out_dir.name}.partial-{os.getpid()}")
+    shutil.rmtree(staging, ignore_errors=True)
+    for folder in ("images", "masks", "depths"):
+        (staging / folder).mkdir(parents=True)
+    try:
+        primitives = build_excavator(options.seed)
+        viewmats = dome_viewmats(options)
+        K = intrinsics(options)
+        names = [f"view_{index:03d}.png" for index in range(options.views)]
+        rng = np.random.default_rng(options.seed)
+        points, colors = [], []
+        per_view = max(1, options.num_points // options.views)
+        for name, viewmat in zip(names, viewmats):
+            image, mask, depth = render_view(primitives, viewmat, K, options.width, options.height, options.supersample)
+            stem = Path(name).stem
+            image_bgr = cv2.cvtColor(np.round(image * 255).astype(np.uint8), cv2.COLOR_RGB2BGR)
+            cv2.imwrite(str(staging / "images" / name), image_bgr)
+            cv2.imwrite(str(staging / "masks" / name), (mask * 255).astype(np.uint8))
+            np.save(staging / "depths" / f"{stem}.npy", depth)
+            rows, cols = np.nonzero(mask > 0.5)
+            pick = rng.choice(len(rows), size=min(per_view, len(rows)), replace=False)
+            rows, cols = rows[pick], cols[pick]
+            camera = np.linalg.solve(K, np.stack([cols + 0.5, rows + 0.5, np.ones(len(rows))])) * depth[rows, cols]
+            points.append((viewmat[:3, :3].T @ (camera - viewmat[:3, 3:4])).T)
+            colors.append(np.round(image[rows, cols] * 255).astype(np.uint8))
+        write_model(
+            staging / "sparse" / "0", names, viewmats, np.tile(K, (options.views, 1, 1)), options.width, options.height,
+            np.concatenate(points), np.concatenate(colors),
+        )
+        centers = -np.einsum("cji,cj->ci", viewmats[:, :3, :3], viewmats[:, :3, 3])
+        train = set()
+        for size in (4, 6, 9):
+            if size < options.views:
+                chosen = sorted(farthest_views(centers, size))
+                train.update(chosen)
+                (staging / f"sparse_{size}.txt").write_text("".join(f"{index}\n" for index in chosen))
+        test = [index for index in range(options.views) if index % 8 == 4 and index not in train]
+        (staging / "sparse_test.txt").write_text("".join(f"{index}\n" for index in test))
+        record = {"generator_version": GENERATOR_VERSION, "object_center": OBJECT_CENTER.tolist(), **asdict(options)}
+        (staging / "synthetic.json").write_text(json.dumps(record, indent=2))
+        out_dir.parent.mkdir(parents=True, exist_ok=True)
+        if out_dir.exists():
+            out_dir.rmdir()
+        os.replace(staging, out_dir)
+    finally:
+        shutil.rmtree(staging, ignore_errors=True)
+    return out_dir
+
+
+def default_cache_dir() -> Path:
+    """`$WARPBAGS_CACHE`, else `$XDG_CACHE_HOME/warpbags`, else `~/.cache/warpbags`."""
+    if os.environ.get("WARPBAGS_CACHE"):
+        return Path(os.environ["WARPBAGS_CACHE"])
+    base = Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache")
+    return base / "warpbags"
+
+
+def ensure_synthetic_scene(options: SyntheticOptions = SyntheticOptions(), cache_dir: Path | None = None) -> Path:
+    """The cached synthetic scene folder for `options`, generated on first use."""
+    folder = (cache_dir or default_cache_dir()) / options.folder_name()
+    if (folder / "synthetic.json").is_file():
+        return folder
+    logging.getLogger("warpbags.data").warning("generating the synthetic scene into %s (first use)", folder)
+    return generate_synthetic_scene(folder, options)
