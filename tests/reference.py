@@ -52,57 +52,76 @@ def sh_reference(coeffs: torch.Tensor, dirs: torch.Tensor, degree: int) -> torch
     return torch.clamp_min((basis[..., None] * coeffs[:, : basis.shape[-1]]).sum(1) + 0.5, 0.0)
 
 
+def project_reference(means, quats, scales, opacities, colors, viewmat, K, width, height, *, sh_degree=None,
+                      cam=0, near_plane=0.01, far_plane=1e10, eps2d=0.3):
+    """One camera's Gaussians, depth-sorted: (mean2d [N,2], conic a/b/c [N] each, opacity [N], rgb [N,3], z [N],
+    valid [N])."""
+    rot_g = quat_to_rotmat_reference(quats)
+    m = rot_g * scales[:, None, :]
+    cov3d = m @ m.transpose(1, 2)
+    rot, trans = viewmat[:3, :3], viewmat[:3, 3]
+    p = means @ rot.T + trans
+    z = p[:, 2]
+    fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
+    lim_x_pos, lim_x_neg = (width - cx) / fx + 0.3 * width / fx, cx / fx + 0.3 * width / fx
+    lim_y_pos, lim_y_neg = (height - cy) / fy + 0.3 * height / fy, cy / fy + 0.3 * height / fy
+    tx = z * torch.minimum(lim_x_pos, torch.maximum(-lim_x_neg, p[:, 0] / z))
+    ty = z * torch.minimum(lim_y_pos, torch.maximum(-lim_y_neg, p[:, 1] / z))
+    zeros = torch.zeros_like(z)
+    jac = torch.stack([fx / z, zeros, -fx * tx / z**2, zeros, fy / z, -fy * ty / z**2], -1).reshape(-1, 2, 3)
+    cov2d = jac @ rot @ cov3d @ rot.T @ jac.transpose(1, 2) + eps2d * torch.eye(2, dtype=means.dtype, device=means.device)
+    a, b, c = cov2d[:, 0, 0], cov2d[:, 0, 1], cov2d[:, 1, 1]
+    det = a * c - b * b
+    mean2d = torch.stack([fx * p[:, 0] / z + cx, fy * p[:, 1] / z + cy], -1)
+    valid = (z >= near_plane) & (z <= far_plane) & (det > 0) & (opacities >= 1 / 255)
+    if sh_degree is None:
+        rgb = colors if colors.dim() == 2 else colors[cam]
+    else:
+        dirs = means + rot.T @ trans  # Gaussian minus camera centre (-R^T t)
+        rgb = sh_reference(colors, dirs / dirs.norm(dim=-1, keepdim=True), sh_degree)
+    order = torch.argsort(z.detach())
+    return (mean2d[order], (c / det)[order], (-b / det)[order], (a / det)[order], opacities[order], rgb[order],
+            z[order], valid[order])
+
+
+def composite_reference(projected, pixels):
+    """Front-to-back compositing of every Gaussian at every pixel centre [P, 2]: (rgb [P,3], depth [P,1],
+    alpha [P,1]), no background."""
+    mean2d, conic_a, conic_b, conic_c, opacity, rgb, z, valid = projected
+    d = pixels[:, None, :] - mean2d[None]  # [P, N, 2]
+    sigma = 0.5 * (conic_a * d[..., 0] ** 2 + conic_c * d[..., 1] ** 2) + conic_b * d[..., 0] * d[..., 1]
+    alpha = torch.clamp(opacity * torch.exp(-sigma), max=0.99)
+    keep = valid & (sigma >= 0) & (alpha >= 1 / 255)
+    alpha = torch.where(keep, alpha, torch.zeros_like(alpha))
+    # Compositing stops before a Gaussian that would bring T to 1e-4 or below (T only decreases).
+    alpha = torch.where(torch.cumprod(1 - alpha, dim=1) > 1e-4, alpha, torch.zeros_like(alpha))
+    t_before = torch.cumprod(torch.cat([torch.ones_like(alpha[:, :1]), 1 - alpha[:, :-1]], 1), dim=1)
+    weights = alpha * t_before  # [P, N]
+    return weights @ rgb, (weights @ z)[:, None], weights.sum(1, keepdim=True)
+
+
+def pixel_centers(width, height, dtype=torch.float64, device="cpu"):
+    ys, xs = torch.meshgrid(torch.arange(height, dtype=dtype, device=device),
+                            torch.arange(width, dtype=dtype, device=device), indexing="ij")
+    return torch.stack([xs, ys], -1).reshape(-1, 2) + 0.5
+
+
 def render_reference(means, quats, scales, opacities, colors, viewmats, Ks, width, height, *, sh_degree=None,
                      backgrounds=None, pose_deltas=None, near_plane=0.01, far_plane=1e10, eps2d=0.3):
     """Same contract as warpbags.rasterization (render_mode "RGB+D"); returns (rgb [C,H,W,3], depth [C,H,W,1],
     alpha [C,H,W,1])."""
     if pose_deltas is not None:
         viewmats = se3_exp_reference(pose_deltas) @ viewmats
-    ys, xs = torch.meshgrid(torch.arange(height, dtype=means.dtype), torch.arange(width, dtype=means.dtype), indexing="ij")
-    pixels = torch.stack([xs, ys], -1).reshape(-1, 2) + 0.5  # [P, 2]
-    rot_g = quat_to_rotmat_reference(quats)
-    m = rot_g * scales[:, None, :]
-    cov3d = m @ m.transpose(1, 2)
-    rgbs, depths_out, alphas_out = [], [], []
+    pixels = pixel_centers(width, height, means.dtype, means.device)
+    rgbs, depths, alphas = [], [], []
     for cam in range(viewmats.shape[0]):
-        rot, trans = viewmats[cam, :3, :3], viewmats[cam, :3, 3]
-        p = means @ rot.T + trans
-        z = p[:, 2]
-        fx, fy, cx, cy = Ks[cam, 0, 0], Ks[cam, 1, 1], Ks[cam, 0, 2], Ks[cam, 1, 2]
-        lim_x_pos, lim_x_neg = (width - cx) / fx + 0.3 * width / fx, cx / fx + 0.3 * width / fx
-        lim_y_pos, lim_y_neg = (height - cy) / fy + 0.3 * height / fy, cy / fy + 0.3 * height / fy
-        tx = z * torch.minimum(lim_x_pos, torch.maximum(-lim_x_neg, p[:, 0] / z))
-        ty = z * torch.minimum(lim_y_pos, torch.maximum(-lim_y_neg, p[:, 1] / z))
-        zeros = torch.zeros_like(z)
-        jac = torch.stack([fx / z, zeros, -fx * tx / z**2, zeros, fy / z, -fy * ty / z**2], -1).reshape(-1, 2, 3)
-        cov2d = jac @ rot @ cov3d @ rot.T @ jac.transpose(1, 2) + eps2d * torch.eye(2, dtype=means.dtype)
-        a, b, c = cov2d[:, 0, 0], cov2d[:, 0, 1], cov2d[:, 1, 1]
-        det = a * c - b * b
-        mean2d = torch.stack([fx * p[:, 0] / z + cx, fy * p[:, 1] / z + cy], -1)
-        valid = (z >= near_plane) & (z <= far_plane) & (det > 0) & (opacities >= 1 / 255)
-        if sh_degree is None:
-            rgb = colors if colors.dim() == 2 else colors[cam]
-        else:
-            center = -rot.T @ trans
-            dirs = means - center
-            rgb = sh_reference(colors, dirs / dirs.norm(dim=-1, keepdim=True), sh_degree)
-
-        order = torch.argsort(z.detach())
-        d = pixels[:, None, :] - mean2d[None, order]  # [P, N, 2]
-        conic_a, conic_b, conic_c = (c / det)[order], (-b / det)[order], (a / det)[order]
-        sigma = 0.5 * (conic_a * d[..., 0] ** 2 + conic_c * d[..., 1] ** 2) + conic_b * d[..., 0] * d[..., 1]
-        alpha = torch.clamp(opacities[order] * torch.exp(-sigma), max=0.99)
-        keep = valid[order] & (sigma >= 0) & (alpha >= 1 / 255)
-        alpha = torch.where(keep, alpha, torch.zeros_like(alpha))
-        # Compositing stops before a Gaussian that would bring T to 1e-4 or below (T only decreases).
-        alpha = torch.where(torch.cumprod(1 - alpha, dim=1) > 1e-4, alpha, torch.zeros_like(alpha))
-        t_before = torch.cumprod(torch.cat([torch.ones_like(alpha[:, :1]), 1 - alpha[:, :-1]], 1), dim=1)
-        weights = alpha * t_before  # [P, N]
-        image = weights @ rgb[order]
-        alpha_img = weights.sum(1, keepdim=True)
+        projected = project_reference(means, quats, scales, opacities, colors, viewmats[cam], Ks[cam], width, height,
+                                      sh_degree=sh_degree, cam=cam, near_plane=near_plane, far_plane=far_plane,
+                                      eps2d=eps2d)
+        image, depth, alpha = composite_reference(projected, pixels)
         if backgrounds is not None:
-            image = image + (1 - alpha_img) * backgrounds[cam]
+            image = image + (1 - alpha) * backgrounds[cam]
         rgbs.append(image.reshape(height, width, 3))
-        depths_out.append((weights @ z[order]).reshape(height, width, 1))
-        alphas_out.append(alpha_img.reshape(height, width, 1))
-    return torch.stack(rgbs), torch.stack(depths_out), torch.stack(alphas_out)
+        depths.append(depth.reshape(height, width, 1))
+        alphas.append(alpha.reshape(height, width, 1))
+    return torch.stack(rgbs), torch.stack(depths), torch.stack(alphas)
