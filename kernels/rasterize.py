@@ -53,6 +53,18 @@ def gaussian_falloff(mean2d: Any, conic: Any, px: Any, py: Any):
     return sigma, dx, dy
 
 
+@wp.func
+def splat_alpha(opacity: Any, sigma: Any):
+    """(alpha, exp(-sigma)) with alpha = min(0.99, opacity exp(-sigma)), or alpha = 0 where the Gaussian is skipped:
+    sigma < 0 (a numerically indefinite conic) or alpha below the 1/255 cut-off."""
+    zero = type(sigma)(0.0)
+    falloff = wp.exp(-sigma)
+    alpha = wp.min(type(sigma)(MAX_ALPHA), opacity * falloff)
+    if sigma < zero or alpha < type(sigma)(ALPHA_THRESHOLD):
+        alpha = zero
+    return alpha, falloff
+
+
 @wp.kernel(enable_backward=False)
 def rasterize_forward_kernel(
     means2d: wp.array(dtype=Any),
@@ -90,10 +102,8 @@ def rasterize_forward_kernel(
     for i in range(start, end):
         g = isect_ids[i]
         sigma, dx, dy = gaussian_falloff(means2d[g], conics[g], px, py)
-        if sigma < out_depths.dtype(0.0):
-            continue
-        alpha = wp.min(out_depths.dtype(MAX_ALPHA), opacities[g % num_gaussians] * wp.exp(-sigma))
-        if alpha < out_depths.dtype(ALPHA_THRESHOLD):
+        alpha, falloff = splat_alpha(opacities[g % num_gaussians], sigma)
+        if alpha == out_depths.dtype(0.0):
             continue
         next_transmittance = transmittance * (out_depths.dtype(1.0) - alpha)
         if next_transmittance <= out_depths.dtype(TRANSMITTANCE_MIN):
@@ -158,14 +168,11 @@ def rasterize_backward_kernel(
         i -= 1
         g = isect_ids[i]
         sigma, dx, dy = gaussian_falloff(means2d[g], conics[g], px, py)
-        if sigma < v_out_depths.dtype(0.0):
-            continue
         opacity = opacities[g % num_gaussians]
-        falloff = wp.exp(-sigma)
-        raw_alpha = opacity * falloff
-        alpha = wp.min(v_out_depths.dtype(MAX_ALPHA), raw_alpha)
-        if alpha < v_out_depths.dtype(ALPHA_THRESHOLD):
+        alpha, falloff = splat_alpha(opacity, sigma)
+        if alpha == v_out_depths.dtype(0.0):
             continue
+        raw_alpha = opacity * falloff
         one_minus_alpha_inv = v_out_depths.dtype(1.0) / (v_out_depths.dtype(1.0) - alpha)
         transmittance = transmittance * one_minus_alpha_inv
         weight = alpha * transmittance
