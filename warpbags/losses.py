@@ -1,0 +1,86 @@
+"""Training losses (GaussianObject's coarse stage): L1 + D-SSIM, mask BCE on alpha, scale-invariant depth."""
+
+from __future__ import annotations
+
+import functools
+
+import torch
+import torch.nn.functional as F
+
+
+@functools.lru_cache(maxsize=8)
+def _gaussian_window(size: int, sigma: float, device: str, dtype: torch.dtype) -> torch.Tensor:
+    coords = torch.arange(size, dtype=torch.float64) - (size - 1) / 2
+    g = torch.exp(-(coords**2) / (2 * sigma**2))
+    g = g / g.sum()
+    return (g[:, None] @ g[None, :]).to(device=device, dtype=dtype)
+
+
+def ssim(images: torch.Tensor, targets: torch.Tensor, window_size: int = 11, sigma: float = 1.5) -> torch.Tensor:
+    """Mean SSIM (Wang et al. 2004) with a Gaussian window, zero-padded as 3DGS's `ssim`; differentiable.
+
+    Args:
+        images, targets: [B, H, W, 3] in [0, 1].
+        window_size, sigma: the Gaussian window (11 x 11, sigma 1.5).
+
+    Returns:
+        [] mean SSIM over pixels, channels and batch.
+    """
+    x, y = images.permute(0, 3, 1, 2), targets.permute(0, 3, 1, 2)
+    channels = x.shape[1]
+    window = _gaussian_window(window_size, sigma, str(x.device), x.dtype).expand(channels, 1, -1, -1)
+    blur = functools.partial(F.conv2d, weight=window, padding=window_size // 2, groups=channels)
+    mu_x, mu_y = blur(x), blur(y)
+    sigma_x = blur(x * x) - mu_x**2
+    sigma_y = blur(y * y) - mu_y**2
+    sigma_xy = blur(x * y) - mu_x * mu_y
+    c1, c2 = 0.01**2, 0.03**2
+    ssim_map = ((2 * mu_x * mu_y + c1) * (2 * sigma_xy + c2)) / ((mu_x**2 + mu_y**2 + c1) * (sigma_x + sigma_y + c2))
+    return ssim_map.mean()
+
+
+def photometric_loss(images: torch.Tensor, targets: torch.Tensor, lambda_dssim: float = 0.2) -> tuple[torch.Tensor, dict]:
+    """``(1 - lambda_dssim) L1 + lambda_dssim (1 - SSIM)`` over [B, H, W, 3] images; returns (loss, terms)."""
+    l1 = (images - targets).abs().mean()
+    ssim_value = ssim(images, targets)
+    loss = (1 - lambda_dssim) * l1 + lambda_dssim * (1 - ssim_value)
+    return loss, {"l1": l1.item(), "ssim": ssim_value.item()}
+
+
+def mask_loss(alphas: torch.Tensor, masks: torch.Tensor) -> torch.Tensor:
+    """Binary cross-entropy between rendered opacity [B, H, W] and object masks [B, H, W] in {0, 1}."""
+    return F.binary_cross_entropy(alphas.clamp(1e-6, 1 - 1e-6), masks)
+
+
+def _normalized(values: torch.Tensor) -> torch.Tensor:
+    """Shift by the median and divide by the mean absolute deviation from it (scale/shift invariance)."""
+    median = values.median()
+    return (values - median) / (values - median).abs().mean().clamp_min(1e-6)
+
+
+def depth_loss(
+    depths: torch.Tensor, alphas: torch.Tensor, target_depths: torch.Tensor, masks: torch.Tensor | None
+) -> torch.Tensor | None:
+    """GaussianObject's default monocular-depth term: L1 between median/MAD-normalized disparities.
+
+    Compared per view inside ``mask & alpha > 0.5 & target > 0``, so the target may be metric or relative
+    (any positive scale and shift of disparity gives the same loss).
+
+    Args:
+        depths: [B, H, W] rendered expected depth. alphas: [B, H, W] rendered opacity.
+        target_depths: [B, H, W] depth maps (0 = no value). masks: [B, H, W] object masks, or None.
+
+    Returns:
+        [] mean over views with at least 16 valid pixels, or None when no view has enough.
+    """
+    losses = []
+    for index in range(len(depths)):
+        valid = (alphas[index] > 0.5) & (target_depths[index] > 0) & (depths[index] > 1e-6)
+        if masks is not None:
+            valid &= masks[index] > 0.5
+        if int(valid.sum()) < 16:
+            continue
+        rendered = _normalized(1.0 / depths[index][valid])
+        target = _normalized(1.0 / target_depths[index][valid])
+        losses.append((rendered - target).abs().mean())
+    return torch.stack(losses).mean() if losses else None

@@ -1,0 +1,166 @@
+"""Adaptive density control (3DGS): clone, split, prune, opacity reset, kept apart from rendering.
+
+The strategy sees a dict of Gaussian parameters (``torch.nn.Parameter``, 3DGS parameterization: log scales,
+logit opacities) and the one Adam optimizer holding them, one parameter group per name (``group["name"]``).
+Adding or removing Gaussians replaces the parameters and carries Adam's moments along (zeros for new rows).
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+
+from warpbags.configs.train import DensifyConfig
+
+
+def replace_rows(
+    params: dict[str, torch.nn.Parameter], optimizer: torch.optim.Optimizer, select: torch.Tensor, append: dict[str, torch.Tensor] | None = None
+) -> None:
+    """Keep the rows `select` ([N] bool) of every parameter and append rows `append[name]`, updating Adam state.
+
+    Args:
+        params: name -> [N, ...] parameters; replaced in place in the dict.
+        optimizer: Adam whose groups each hold one parameter and carry its name in ``group["name"]``.
+        select: [N] bool rows to keep.
+        append: name -> [M, ...] new rows (their Adam moments start at zero), or None.
+    """
+    for group in optimizer.param_groups:
+        name = group["name"]
+        old = group["params"][0]
+        extra = None if append is None else append[name].to(old)
+        new = torch.nn.Parameter(old.detach()[select] if extra is None else torch.cat([old.detach()[select], extra]))
+        state = optimizer.state.pop(old, None)
+        if state is not None:
+            for key in ("exp_avg", "exp_avg_sq"):
+                kept = state[key][select]
+                state[key] = kept if extra is None else torch.cat([kept, torch.zeros_like(extra)])
+            optimizer.state[new] = state
+        group["params"][0] = new
+        params[name] = new
+
+
+def quats_to_rotmats(quats: torch.Tensor) -> torch.Tensor:
+    """[N, 4] wxyz quaternions (any norm) -> [N, 3, 3] rotation matrices."""
+    w, x, y, z = torch.nn.functional.normalize(quats, dim=-1).unbind(-1)
+    return torch.stack(
+        [
+            1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
+            2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
+            2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
+        ],
+        dim=-1,
+    ).reshape(-1, 3, 3)
+
+
+class DensifyStrategy:
+    """3DGS's densification: accumulate view-space gradient norms, then clone / split / prune / reset.
+
+    Usage per iteration: render with ``meta["means2d"].retain_grad()``, backward, :meth:`accumulate`,
+    ``optimizer.step()``, then :meth:`step` (which may change the number of Gaussians).
+
+    Args:
+        config: thresholds and schedule.
+        scene_extent: scene size the percentages refer to (1.1 x camera-centre radius, as 3DGS).
+    """
+
+    def __init__(self, config: DensifyConfig, scene_extent: float):
+        self.config = config
+        self.scene_extent = scene_extent
+        self.grad_sum: torch.Tensor | None = None  # [N] accumulated NDC gradient norms
+        self.grad_count: torch.Tensor | None = None  # [N] how many times each Gaussian was visible
+
+    def state_dict(self) -> dict:
+        return {"grad_sum": self.grad_sum, "grad_count": self.grad_count}
+
+    def load_state_dict(self, state: dict) -> None:
+        self.grad_sum, self.grad_count = state["grad_sum"], state["grad_count"]
+
+    def _reset_stats(self, count: int, device: torch.device) -> None:
+        self.grad_sum = torch.zeros(count, device=device)
+        self.grad_count = torch.zeros(count, device=device)
+
+    @torch.no_grad()
+    def accumulate(self, iteration: int, meta: dict) -> None:
+        """Add this step's view-space positional gradient norms (needs ``meta["means2d"].grad``).
+
+        Pixel gradients are scaled to NDC (x W/2, y H/2) so the threshold means what it means in 3DGS.
+        """
+        if iteration >= self.config.stop:
+            return
+        means2d, radii = meta["means2d"], meta["radii"]  # [C,N,2], [C,N]
+        if means2d.grad is None:
+            return
+        count = means2d.shape[1]
+        if self.grad_sum is None or len(self.grad_sum) != count:
+            self._reset_stats(count, means2d.device)
+        grads = means2d.grad.clone()
+        grads[..., 0] *= meta["width"] / 2.0
+        grads[..., 1] *= meta["height"] / 2.0
+        visible = radii > 0
+        self.grad_sum += (grads.norm(dim=-1) * visible).sum(0)
+        self.grad_count += visible.sum(0)
+
+    @torch.no_grad()
+    def step(self, iteration: int, params: dict[str, torch.nn.Parameter], optimizer: torch.optim.Optimizer,
+             generator: torch.Generator) -> dict[str, int]:
+        """Run the scheduled operations after the optimizer step of `iteration` (1-based count of steps done).
+
+        Returns:
+            counts of cloned, split and pruned Gaussians (empty when nothing was scheduled).
+        """
+        config = self.config
+        report: dict[str, int] = {}
+        if config.start <= iteration < config.stop and iteration % config.every == 0 and self.grad_sum is not None:
+            report = self._densify_and_prune(params, optimizer, generator)
+            self._reset_stats(len(params["means"]), params["means"].device)
+        if config.opacity_reset_every and iteration % config.opacity_reset_every == 0 and iteration < config.stop:
+            self._reset_opacities(params, optimizer)
+            report["opacity_reset"] = 1
+        return report
+
+    def _densify_and_prune(self, params, optimizer, generator) -> dict[str, int]:
+        config = self.config
+        count = len(params["means"])
+        average = self.grad_sum / self.grad_count.clamp_min(1)
+        large_grad = average >= config.grad_threshold
+        max_scale = params["scales"].exp().max(dim=1).values
+        small = max_scale <= config.percent_dense * self.scene_extent
+        clone, split = large_grad & small, large_grad & ~small
+        if config.max_gaussians:
+            budget = max(config.max_gaussians - count, 0)
+            # Favour the largest gradients when the budget is short (a split adds one net Gaussian, as a clone).
+            candidates = torch.nonzero(clone | split).squeeze(1)
+            if len(candidates) > budget:
+                keep = candidates[average[candidates].argsort(descending=True)[:budget]]
+                chosen = torch.zeros(count, dtype=torch.bool, device=average.device)
+                chosen[keep] = True
+                clone, split = clone & chosen, split & chosen
+        new_rows = {name: param.detach()[clone] for name, param in params.items()}
+        # Split: two samples from each large Gaussian, scales / 1.6, originals removed.
+        stds = params["scales"].exp()[split].repeat(2, 1)
+        samples = torch.randn(stds.shape, generator=generator).to(stds) * stds
+        rotations = quats_to_rotmats(params["quats"][split]).repeat(2, 1, 1)
+        split_rows = {name: param.detach()[split].repeat(2, *([1] * (param.dim() - 1))) for name, param in params.items()}
+        split_rows["means"] = split_rows["means"] + (rotations @ samples[..., None])[..., 0]
+        split_rows["scales"] = torch.log(stds / 1.6)
+        append = {name: torch.cat([new_rows[name], split_rows[name]]) for name in params}
+        replace_rows(params, optimizer, ~split, append)
+        # Prune transparent and oversized Gaussians.
+        opacities = torch.sigmoid(params["opacities"])
+        max_scale = params["scales"].exp().max(dim=1).values
+        prune = (opacities < config.prune_opacity) | (max_scale > config.prune_scale * self.scene_extent)
+        if prune.all():  # never remove every Gaussian
+            prune[opacities.argmax()] = False
+        replace_rows(params, optimizer, ~prune)
+        return {"cloned": int(clone.sum()), "split": int(split.sum()), "pruned": int(prune.sum())}
+
+    def _reset_opacities(self, params, optimizer) -> None:
+        """Clamp opacities to at most 0.01 and zero their Adam moments (3DGS's `reset_opacity`)."""
+        ceiling = math.log(0.01 / 0.99)
+        opacities = params["opacities"]
+        opacities.data.clamp_(max=ceiling)
+        state = optimizer.state.get(opacities)
+        if state:
+            state["exp_avg"].zero_()
+            state["exp_avg_sq"].zero_()

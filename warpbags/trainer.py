@@ -1,0 +1,439 @@
+"""`Trainer`: joint optimization of 3D Gaussians and per-camera pose deltas (BAGS coarse stage).
+
+One class for every variant (pose optimization on/off, gauge choice, presets) chosen by `TrainConfig`.
+
+Run folder layout (`out_dir`):
+    config.json        the resolved TrainConfig plus scene/view information
+    poses_true.npy     [C,4,4] world-to-camera poses of the training views (normalized scene world)
+    poses_init.npy     [C,4,4] the (noisy) poses training starts from
+    log.jsonl          one JSON object per iteration
+    checkpoints/       checkpoint_XXXXXX.pt, written atomically (temp file + os.replace); the newest 3 kept
+    gaussians.ply      final Gaussians, standard 3DGS PLY layout
+    poses_final.npy    [C,4,4] optimized world-to-camera poses, exp(delta) @ poses_init
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import os
+import signal
+import time
+from pathlib import Path
+from typing import Callable
+
+import cv2
+import numpy as np
+import torch
+
+from warpbags.configs.train import TrainConfig
+from warpbags.data.noise import PoseNoise, noisy_viewmats
+from warpbags.data.scene import Scene
+from warpbags.errors import WarpbagsError
+from warpbags.init import hull_or_random_points, initial_gaussians
+from warpbags.losses import depth_loss, mask_loss, photometric_loss
+from warpbags.pose import apply_pose_deltas, camera_centers, pose_errors
+from warpbags.rendering import rasterization
+from warpbags.strategy import DensifyStrategy
+
+CHECKPOINTS_KEPT = 3
+
+
+def downscale_scene(scene: Scene, max_size: int) -> Scene:
+    """The scene with images, masks, depths and intrinsics downscaled so the longer side is <= `max_size`.
+
+    Images use area averaging; masks area averaging then a 0.5 threshold; depths nearest neighbour (0 stays
+    "no value"). Intrinsics scale with the image edges (pixel centres at +0.5 stay consistent).
+    """
+    if max_size <= 0 or max(scene.width, scene.height) <= max_size:
+        return scene
+    factor = max_size / max(scene.width, scene.height)
+    width, height = max(1, round(scene.width * factor)), max(1, round(scene.height * factor))
+    sx, sy = width / scene.width, height / scene.height
+
+    def resize(tensor, interpolation):
+        return torch.from_numpy(np.stack([cv2.resize(t.numpy(), (width, height), interpolation=interpolation) for t in tensor]))
+
+    Ks = scene.Ks.clone()
+    Ks[:, 0, :] *= sx
+    Ks[:, 1, :] *= sy
+    masks = None if scene.masks is None else (resize(scene.masks, cv2.INTER_AREA) > 0.5).float()
+    depths = None if scene.depths is None else resize(scene.depths, cv2.INTER_NEAREST)
+    return dataclasses.replace(
+        scene, images=resize(scene.images, cv2.INTER_AREA).clamp(0, 1), masks=masks, depths=depths, Ks=Ks,
+        width=width, height=height,
+    )
+
+
+def write_ply(path: Path, params: dict[str, torch.Tensor]) -> None:
+    """Write Gaussians as a binary little-endian PLY in the standard 3DGS layout.
+
+    Properties: x y z nx ny nz f_dc_0..2 f_rest_0..(3(K-1)-1) opacity scale_0..2 rot_0..3, with f_rest in 3DGS's
+    channel-major order, opacity as a logit and scales as logs (the raw parameters).
+    """
+    means = params["means"].detach().cpu().float()
+    count = len(means)
+    sh0 = params["sh0"].detach().cpu().float().transpose(1, 2).reshape(count, -1)
+    shN = params.get("shN")
+    rest = torch.zeros(count, 0) if shN is None else shN.detach().cpu().float().transpose(1, 2).reshape(count, -1)
+    columns = [means, torch.zeros(count, 3), sh0, rest, params["opacities"].detach().cpu().float()[:, None],
+               params["scales"].detach().cpu().float(), params["quats"].detach().cpu().float()]
+    names = ["x", "y", "z", "nx", "ny", "nz"] + [f"f_dc_{i}" for i in range(3)] + [f"f_rest_{i}" for i in range(rest.shape[1])]
+    names += ["opacity"] + [f"scale_{i}" for i in range(3)] + [f"rot_{i}" for i in range(4)]
+    data = torch.cat(columns, dim=1).numpy().astype("<f4")
+    header = "ply\nformat binary_little_endian 1.0\nelement vertex {}\n{}end_header\n".format(
+        count, "".join(f"property float {name}\n" for name in names)
+    )
+    temporary = path.with_name(path.name + ".tmp")
+    with open(temporary, "wb") as handle:
+        handle.write(header.encode("ascii"))
+        handle.write(data.tobytes())
+    os.replace(temporary, path)
+
+
+def _save_atomic(obj, path: Path) -> None:
+    temporary = path.with_name(path.name + ".tmp")
+    torch.save(obj, temporary)
+    os.replace(temporary, path)
+
+
+def _exponential(initial: float, final: float, fraction: float) -> float:
+    fraction = min(max(fraction, 0.0), 1.0)
+    return math.exp((1 - fraction) * math.log(initial) + fraction * math.log(final))
+
+
+class Trainer:
+    """Gaussians + pose deltas from the training views of one scene.
+
+    Args:
+        scene: the scene, already restricted to the training views (``Scene.subset``) and downscaled; its
+            ``viewmats`` are the true poses.
+        config: the training configuration.
+        out_dir: run folder (created).
+        device: "cpu" or "cuda".
+        viewmats_init: [C,4,4] starting poses; default: the true poses with the config's noise injected.
+        log: callable receiving a one-line notice (e.g. "no depth maps: depth term skipped").
+    """
+
+    def __init__(self, scene: Scene, config: TrainConfig, out_dir: str | Path, device: str = "cpu",
+                 viewmats_init: torch.Tensor | None = None, log: Callable[[str], None] = print):
+        if device == "cuda" and not torch.cuda.is_available():
+            raise WarpbagsError("--device cuda: no CUDA device is available")
+        if device not in ("cpu", "cuda"):
+            raise WarpbagsError(f"--device must be cpu or cuda, got {device!r}")
+        if device == "cpu":
+            # Warp runs its own host threads; torch's OpenMP workers would fight them.
+            torch.set_num_threads(1)
+        self.scene, self.config, self.device, self.log = scene, config, torch.device(device), log
+        self.out_dir = Path(out_dir)
+        self.checkpoint_dir = self.out_dir / "checkpoints"
+        self.num_cameras = scene.num_views
+        to = dict(device=self.device)
+        self.images = scene.images.to(**to)
+        self.masks = None if scene.masks is None else scene.masks.to(**to)
+        self.depths = None if scene.depths is None else scene.depths.to(**to)
+        self.Ks = scene.Ks.to(**to)
+        self.viewmats_true = scene.viewmats.to(**to)
+        if viewmats_init is None:
+            noise = PoseNoise(config.rot_noise_deg, config.trans_noise, config.noise_seed)
+            viewmats_init = noisy_viewmats(scene, noise)
+            if config.fix_first_camera:
+                # The gauge camera defines the world frame (as the first camera in bundle adjustment): it is
+                # taken as known, since its delta stays zero and its noise could never be corrected.
+                viewmats_init[0] = scene.viewmats[0]
+        self.viewmats_init = viewmats_init.to(**to).float()
+        background = 1.0 if config.background == "white" else 0.0
+        self.backgrounds = torch.full((self.num_cameras, 3), background, **to)
+        if self.masks is not None:  # GaussianObject: the object on a plain background
+            m = self.masks[..., None]
+            self.targets = self.images * m + background * (1 - m)
+        else:
+            self.targets = self.images
+        centers = camera_centers(self.viewmats_init)
+        self.scene_extent = 1.1 * float((centers - centers.mean(0)).norm(dim=-1).max())
+        if self.depths is None and config.depth_until > 0:
+            self.log("no depth maps in this scene: depth term skipped")
+
+        self.generator = torch.Generator().manual_seed(config.seed)
+        self.iteration = 0
+        self.params = self._initial_params()
+        self.optimizer = self._make_optimizer()
+        # Pose deltas and their optimizer are created exactly once; resume loads state into these objects.
+        self.pose_deltas = torch.nn.Parameter(torch.zeros(self.num_cameras, 6, **to))
+        self.pose_optimizer = torch.optim.Adam([self.pose_deltas], lr=config.lr.pose)
+        self.gauge_mask = torch.ones(self.num_cameras, 1, **to)
+        if config.fix_first_camera:
+            self.gauge_mask[0] = 0.0
+        self.strategy = DensifyStrategy(config.densify, self.scene_extent)
+        self._stop_requested = False
+
+    # ----------------------------------------------------------------------------------------------- setup
+    def _initial_params(self) -> dict[str, torch.nn.Parameter]:
+        config = self.config
+        points, colors, note = hull_or_random_points(
+            self.images.cpu(), None if self.masks is None else self.masks.cpu(), self.viewmats_init.cpu(),
+            self.Ks.cpu(), method=config.init, count=config.init_points, resolution=config.hull_resolution,
+            dilation_px=config.hull_dilation_px, missed_views=config.hull_missed_views, generator=self.generator,
+        )
+        self.log(f"initialization: {note}")
+        raw = initial_gaussians(points, colors, config.sh_degree)
+        return {name: torch.nn.Parameter(value.to(self.device)) for name, value in raw.items()}
+
+    def _make_optimizer(self) -> torch.optim.Adam:
+        lr = self.config.lr
+        rates = {"means": lr.means_init * self.scene_extent, "scales": lr.scales, "quats": lr.quats,
+                 "opacities": lr.opacities, "sh0": lr.sh_dc, "shN": lr.sh_rest}
+        groups = [{"params": [param], "lr": rates[name], "name": name} for name, param in self.params.items()]
+        return torch.optim.Adam(groups, lr=0.0, eps=lr.adam_eps)
+
+    # ----------------------------------------------------------------------------------------------- state
+    def sh_degree(self) -> int:
+        return min(self.config.sh_degree, self.iteration // max(self.config.sh_degree_every, 1))
+
+    def pose_active(self) -> bool:
+        return self.config.pose_opt and self.iteration >= self.config.pose_opt_start
+
+    def current_viewmats(self) -> torch.Tensor:
+        """[C,4,4] the poses as currently estimated: exp(delta) @ initial."""
+        with torch.no_grad():
+            return apply_pose_deltas(self.viewmats_init, self.pose_deltas * self.gauge_mask)
+
+    def pose_error(self, viewmats: torch.Tensor | None = None) -> dict[str, float]:
+        """Mean rotation (deg) and camera-centre errors of `viewmats` (default: current) against the truth."""
+        viewmats = self.current_viewmats() if viewmats is None else viewmats
+        if self.num_cameras < 3 and self.config.pose_alignment == "procrustes":
+            alignment = "pairwise"
+        else:
+            alignment = self.config.pose_alignment
+        errors = pose_errors(viewmats.double().cpu(), self.viewmats_true.double().cpu(), alignment=alignment)
+        return {"rot_err_deg": errors["rotation_error_deg_mean"], "trans_err": errors["translation_error_mean"]}
+
+    def _set_learning_rates(self) -> None:
+        config, fraction = self.config, self.iteration / max(self.config.iters - 1, 1)
+        for group in self.optimizer.param_groups:
+            if group["name"] == "means":
+                group["lr"] = _exponential(config.lr.means_init, config.lr.means_final, fraction) * self.scene_extent
+        pose_span = max(config.iters - config.pose_opt_start - 1, 1)
+        pose_fraction = (self.iteration - config.pose_opt_start) / pose_span
+        for group in self.pose_optimizer.param_groups:
+            group["lr"] = _exponential(config.lr.pose, config.lr.pose_final, pose_fraction)
+
+    # ----------------------------------------------------------------------------------------------- step
+    def _views(self) -> torch.Tensor:
+        per_step = self.config.views_per_step
+        if per_step == 0 or per_step >= self.num_cameras:
+            return torch.arange(self.num_cameras)
+        return torch.randperm(self.num_cameras, generator=self.generator)[:per_step]
+
+    def render(self, views: torch.Tensor, pose_grad: bool = True, sh_degree: int | None = None):
+        """Render training views `views` ([B] long) at the current poses; returns (colors, alphas, meta)."""
+        params = self.params
+        deltas = self.pose_deltas * self.gauge_mask
+        if not pose_grad:
+            deltas = deltas.detach()
+        colors = params["sh0"] if "shN" not in params else torch.cat([params["sh0"], params["shN"]], dim=1)
+        return rasterization(
+            params["means"], params["quats"], params["scales"].exp(), torch.sigmoid(params["opacities"]), colors,
+            self.viewmats_init[views], self.Ks[views], self.scene.width, self.scene.height,
+            sh_degree=self.sh_degree() if sh_degree is None else sh_degree, backgrounds=self.backgrounds[views],
+            pose_deltas=deltas[views], render_mode="RGB+ED",
+            cpu_threads=self.config.render_threads or None,
+        )
+
+    def _loss(self, views: torch.Tensor) -> tuple[torch.Tensor, dict, dict]:
+        config = self.config
+        renders, alphas, meta = self.render(views, pose_grad=self.pose_active())
+        meta["means2d"].retain_grad()
+        images, depths, alphas = renders[..., :3], renders[..., 3], alphas[..., 0]
+        photometric, terms = photometric_loss(images, self.targets[views], config.lambda_dssim)
+        loss = photometric
+        if self.masks is not None and config.lambda_mask > 0:
+            mask_term = mask_loss(alphas, self.masks[views])
+            loss = loss + config.lambda_mask * mask_term
+            terms["mask"] = mask_term.item()
+        if self.depths is not None and self.iteration < config.depth_until and config.lambda_depth > 0:
+            depth_term = depth_loss(depths, alphas, self.depths[views], None if self.masks is None else self.masks[views])
+            if depth_term is not None:
+                loss = loss + config.lambda_depth * depth_term - config.lambda_depth * photometric
+                terms["depth"] = depth_term.item()
+        return loss, terms, meta
+
+    def _check_finite(self, loss: torch.Tensor) -> None:
+        bad = None if torch.isfinite(loss) else f"loss is {loss.item()}"
+        if bad is None:
+            for name, param in [*self.params.items(), ("pose_deltas", self.pose_deltas)]:
+                if not torch.isfinite(param).all():
+                    bad = f"parameter {name} has NaN/inf values"
+                    break
+        if bad is not None:
+            last = self.latest_checkpoint()
+            kept = f"last good checkpoint: {last}" if last else "no checkpoint was written yet"
+            raise WarpbagsError(f"training diverged at iteration {self.iteration}: {bad}; {kept}")
+
+    def train_step(self) -> dict:
+        """One iteration; returns its log record."""
+        started = time.perf_counter()
+        self._set_learning_rates()
+        views = self._views()
+        loss, terms, meta = self._loss(views)
+        self._check_finite(loss)
+        loss.backward()
+        self.strategy.accumulate(self.iteration, meta)
+        self.optimizer.step()
+        self.optimizer.zero_grad(set_to_none=True)
+        if self.pose_active():
+            self.pose_deltas.grad.mul_(self.gauge_mask)
+            self.pose_optimizer.step()
+        self.pose_optimizer.zero_grad(set_to_none=True)
+        self.iteration += 1
+        densify = self.strategy.step(self.iteration, self.params, self.optimizer, self.generator)
+        record = {"iter": self.iteration, "loss": loss.item(), **terms, "num_gaussians": len(self.params["means"]),
+                  "sh_degree": self.sh_degree(), "pose_opt": self.pose_active(), **self.pose_error(), **densify,
+                  "seconds": time.perf_counter() - started}
+        return record
+
+    # ----------------------------------------------------------------------------------------------- files
+    def latest_checkpoint(self) -> Path | None:
+        found = sorted(self.checkpoint_dir.glob("checkpoint_*.pt"))
+        return found[-1] if found else None
+
+    def save_checkpoint(self) -> Path:
+        self.checkpoint_dir.mkdir(parents=True, exist_ok=True)
+        state = {
+            "iteration": self.iteration,
+            "config": self.config.to_dict(),
+            "params": {name: param.detach().cpu() for name, param in self.params.items()},
+            "optimizer": self.optimizer.state_dict(),
+            "pose_deltas": self.pose_deltas.detach().cpu(),
+            "pose_optimizer": self.pose_optimizer.state_dict(),
+            "strategy": self.strategy.state_dict(),
+            "generator": self.generator.get_state(),
+            "viewmats_init": self.viewmats_init.cpu(),
+        }
+        path = self.checkpoint_dir / f"checkpoint_{self.iteration:06d}.pt"
+        _save_atomic(state, path)
+        for old in sorted(self.checkpoint_dir.glob("checkpoint_*.pt"))[:-CHECKPOINTS_KEPT]:
+            old.unlink()
+        return path
+
+    def load_checkpoint(self, path: Path) -> None:
+        """Restore everything a checkpoint holds (into the existing pose parameter and optimizer objects)."""
+        state = torch.load(path, map_location=self.device, weights_only=False)
+        self.iteration = state["iteration"]
+        self.params = {name: torch.nn.Parameter(value.to(self.device)) for name, value in state["params"].items()}
+        self.optimizer = self._make_optimizer()
+        self.optimizer.load_state_dict(state["optimizer"])
+        with torch.no_grad():
+            self.pose_deltas.copy_(state["pose_deltas"])
+        self.pose_optimizer.load_state_dict(state["pose_optimizer"])
+        self.strategy.load_state_dict(state["strategy"])
+        self.generator.set_state(state["generator"])
+        self.viewmats_init = state["viewmats_init"].to(self.device)
+
+    def resume(self) -> bool:
+        """Load the newest checkpoint and cut log.jsonl back to it; False when there is none."""
+        path = self.latest_checkpoint()
+        if path is None:
+            return False
+        self.load_checkpoint(path)
+        log_path = self.out_dir / "log.jsonl"
+        if log_path.exists():
+            lines = [line for line in log_path.read_text().splitlines() if line.strip()]
+            kept = [line for line in lines if json.loads(line)["iter"] <= self.iteration]
+            log_path.write_text("".join(line + "\n" for line in kept))
+        self.log(f"resumed from {path} (iteration {self.iteration})")
+        return True
+
+    def write_run_files(self, extra: dict | None = None) -> None:
+        """config.json, poses_true.npy, poses_init.npy (at the start of a run)."""
+        self.out_dir.mkdir(parents=True, exist_ok=True)
+        info = {"config": self.config.to_dict(), "scene": self.scene.name, "image_names": self.scene.image_names,
+                "width": self.scene.width, "height": self.scene.height, "device": str(self.device), **(extra or {})}
+        (self.out_dir / "config.json").write_text(json.dumps(info, indent=2))
+        np.save(self.out_dir / "poses_true.npy", self.viewmats_true.cpu().numpy())
+        np.save(self.out_dir / "poses_init.npy", self.viewmats_init.cpu().numpy())
+
+    def write_results(self) -> None:
+        write_ply(self.out_dir / "gaussians.ply", self.params)
+        np.save(self.out_dir / "poses_final.npy", self.current_viewmats().cpu().numpy())
+
+    # ----------------------------------------------------------------------------------------------- loop
+    def _request_stop(self, signum, frame) -> None:
+        self._stop_requested = True
+
+    def train(self, stop_at: int | None = None, callback: Callable[[dict], None] | None = None) -> dict:
+        """Train until `stop_at` (default: config.iters) iterations are done; returns the last record.
+
+        Checkpoints every `checkpoint_every` iterations and at the end. Ctrl-C (SIGINT) finishes the current
+        iteration, saves a checkpoint and raises KeyboardInterrupt. Divergence raises WarpbagsError.
+        """
+        stop_at = self.config.iters if stop_at is None else min(stop_at, self.config.iters)
+        self.out_dir.mkdir(parents=True, exist_ok=True)
+        previous_handler = None
+        try:
+            previous_handler = signal.signal(signal.SIGINT, self._request_stop)
+        except ValueError:  # not the main thread: Ctrl-C is handled by the caller
+            pass
+        record: dict = {}
+        try:
+            with open(self.out_dir / "log.jsonl", "a") as log_file:
+                while self.iteration < stop_at:
+                    record = self.train_step()
+                    log_file.write(json.dumps(record) + "\n")
+                    log_file.flush()
+                    if callback is not None:
+                        callback(record)
+                    if self.iteration % self.config.checkpoint_every == 0 or self.iteration == stop_at:
+                        self.save_checkpoint()
+                    if self._stop_requested:
+                        self.save_checkpoint()
+                        raise KeyboardInterrupt
+        finally:
+            if previous_handler is not None:
+                signal.signal(signal.SIGINT, previous_handler)
+        if self.iteration >= self.config.iters:
+            self.write_results()
+        return record
+
+
+def training_scene(scene: Scene | str | Path, config: TrainConfig, data_root: str | Path | None = None) -> Scene:
+    """The training views of a scene (a loaded Scene, a preset name or a folder), downscaled per `config`.
+
+    Raises:
+        WarpbagsError: unknown scene, missing data, or fewer images than `config.views`.
+    """
+    if not isinstance(scene, Scene):
+        from warpbags.data import open_scene
+
+        scene = open_scene(scene, root=data_root, resolution=config.resolution)
+    return downscale_scene(scene.subset(scene.train_views(config.views)), config.max_image_size)
+
+
+def default_run_dir(scene_name: str, views: int, root: str | Path = "runs") -> Path:
+    """`runs/<scene>-<views>v-<YYYYmmdd-HHMMSS>`."""
+    return Path(root) / f"{scene_name}-{views}v-{time.strftime('%Y%m%d-%H%M%S')}"
+
+
+def start_or_resume(scene: Scene, config: TrainConfig, out_dir: str | Path, device: str = "cpu", resume: bool = False,
+                    log: Callable[[str], None] = print) -> Trainer:
+    """A Trainer for `out_dir`: fresh (run files written) or, with `resume`, continued from its last checkpoint.
+
+    Raises:
+        WarpbagsError: `resume` without a checkpoint in `out_dir`, or a fresh run into a folder that has one.
+    """
+    out_dir = Path(out_dir)
+    has_checkpoint = any((out_dir / "checkpoints").glob("checkpoint_*.pt"))
+    if resume:
+        if not has_checkpoint:
+            raise WarpbagsError(f"--resume: no checkpoint in {out_dir / 'checkpoints'}")
+        saved = json.loads((out_dir / "config.json").read_text())["config"]
+        config = TrainConfig.from_dict(saved)
+    elif has_checkpoint:
+        raise WarpbagsError(f"{out_dir} already holds a run; pass --resume to continue it or choose another --out")
+    trainer = Trainer(scene, config, out_dir, device=device, log=log)
+    if resume:
+        trainer.resume()
+    else:
+        trainer.write_run_files()
+    return trainer
