@@ -28,9 +28,10 @@ import torch
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "tests"))
 
-import warpbags  # noqa: E402
 from conftest import look_at  # noqa: E402
 from reference import composite_reference, pixel_centers, project_reference  # noqa: E402
+
+import warpbags  # noqa: E402
 
 
 def bench_scene(n: int, cams: int, size: int, seed: int = 0) -> dict:

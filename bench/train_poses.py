@@ -13,8 +13,8 @@ import tempfile
 import time
 
 import torch
-
 from warpbags.configs.train import load_preset
+
 from warpbags.data import SyntheticOptions, ensure_synthetic_scene, load_scene
 from warpbags.trainer import Trainer, training_scene
 

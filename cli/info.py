@@ -8,8 +8,8 @@ from typing import Optional
 import typer
 from rich.console import Console
 from rich.table import Table
-
 from warpbags.cli.main import app, clean_errors
+
 from warpbags.data import ORBIT_RADIUS, SyntheticOptions, generate_synthetic_scene, open_scene
 from warpbags.data.scene import Scene
 

@@ -8,9 +8,9 @@ from typing import Optional
 import typer
 from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
-
 from warpbags.cli.main import app, clean_errors
 from warpbags.configs.train import load_preset
+
 from warpbags.errors import WarpbagsError
 from warpbags.trainer import default_run_dir, start_or_resume, training_scene
 

@@ -12,9 +12,9 @@ import importlib
 import pytest
 import torch
 import warp as wp
+from conftest import random_scene
 
 import warpbags
-from conftest import random_scene
 
 KERNEL_MODULES = ["pose", "project", "sh", "bin", "rasterize"]
 

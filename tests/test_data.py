@@ -14,8 +14,8 @@ import pycolmap
 import pytest
 import torch
 from typer.testing import CliRunner
-
 from warpbags.cli.main import app
+
 from warpbags.data import (
     ORBIT_RADIUS,
     SceneNormalization,

@@ -4,10 +4,10 @@ from __future__ import annotations
 
 import pytest
 import torch
-
-import warpbags
 from conftest import DEVICES, random_scene
 from reference import render_reference
+
+import warpbags
 
 DIFFERENTIABLE = ("means", "quats", "scales", "opacities", "colors", "viewmats", "Ks", "backgrounds", "pose_deltas")
 

@@ -14,7 +14,6 @@ Run folder layout (`out_dir`):
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import math
 import os
@@ -23,7 +22,6 @@ import time
 from pathlib import Path
 from typing import Callable
 
-import cv2
 import numpy as np
 import torch
 
@@ -31,65 +29,13 @@ from warpbags.configs.train import TrainConfig
 from warpbags.data.noise import PoseNoise, noisy_viewmats
 from warpbags.data.scene import Scene
 from warpbags.errors import WarpbagsError
+from warpbags.gaussians import render_gaussians, write_ply
 from warpbags.init import hull_or_random_points, initial_gaussians
-from warpbags.losses import depth_loss, mask_loss, photometric_loss
+from warpbags.losses import depth_loss, gaussian_blur, mask_loss, photometric_loss
 from warpbags.pose import apply_pose_deltas, camera_centers, pose_errors
-from warpbags.rendering import rasterization
 from warpbags.strategy import DensifyStrategy
 
 CHECKPOINTS_KEPT = 3
-
-
-def downscale_scene(scene: Scene, max_size: int) -> Scene:
-    """The scene with images, masks, depths and intrinsics downscaled so the longer side is <= `max_size`.
-
-    Images use area averaging; masks area averaging then a 0.5 threshold; depths nearest neighbour (0 stays
-    "no value"). Intrinsics scale with the image edges (pixel centres at +0.5 stay consistent).
-    """
-    if max_size <= 0 or max(scene.width, scene.height) <= max_size:
-        return scene
-    factor = max_size / max(scene.width, scene.height)
-    width, height = max(1, round(scene.width * factor)), max(1, round(scene.height * factor))
-    sx, sy = width / scene.width, height / scene.height
-
-    def resize(tensor, interpolation):
-        return torch.from_numpy(np.stack([cv2.resize(t.numpy(), (width, height), interpolation=interpolation) for t in tensor]))
-
-    Ks = scene.Ks.clone()
-    Ks[:, 0, :] *= sx
-    Ks[:, 1, :] *= sy
-    masks = None if scene.masks is None else (resize(scene.masks, cv2.INTER_AREA) > 0.5).float()
-    depths = None if scene.depths is None else resize(scene.depths, cv2.INTER_NEAREST)
-    return dataclasses.replace(
-        scene, images=resize(scene.images, cv2.INTER_AREA).clamp(0, 1), masks=masks, depths=depths, Ks=Ks,
-        width=width, height=height,
-    )
-
-
-def write_ply(path: Path, params: dict[str, torch.Tensor]) -> None:
-    """Write Gaussians as a binary little-endian PLY in the standard 3DGS layout.
-
-    Properties: x y z nx ny nz f_dc_0..2 f_rest_0..(3(K-1)-1) opacity scale_0..2 rot_0..3, with f_rest in 3DGS's
-    channel-major order, opacity as a logit and scales as logs (the raw parameters).
-    """
-    means = params["means"].detach().cpu().float()
-    count = len(means)
-    sh0 = params["sh0"].detach().cpu().float().transpose(1, 2).reshape(count, -1)
-    shN = params.get("shN")
-    rest = torch.zeros(count, 0) if shN is None else shN.detach().cpu().float().transpose(1, 2).reshape(count, -1)
-    columns = [means, torch.zeros(count, 3), sh0, rest, params["opacities"].detach().cpu().float()[:, None],
-               params["scales"].detach().cpu().float(), params["quats"].detach().cpu().float()]
-    names = ["x", "y", "z", "nx", "ny", "nz"] + [f"f_dc_{i}" for i in range(3)] + [f"f_rest_{i}" for i in range(rest.shape[1])]
-    names += ["opacity"] + [f"scale_{i}" for i in range(3)] + [f"rot_{i}" for i in range(4)]
-    data = torch.cat(columns, dim=1).numpy().astype("<f4")
-    header = "ply\nformat binary_little_endian 1.0\nelement vertex {}\n{}end_header\n".format(
-        count, "".join(f"property float {name}\n" for name in names)
-    )
-    temporary = path.with_name(path.name + ".tmp")
-    with open(temporary, "wb") as handle:
-        handle.write(header.encode("ascii"))
-        handle.write(data.tobytes())
-    os.replace(temporary, path)
 
 
 def _save_atomic(obj, path: Path) -> None:
@@ -157,22 +103,36 @@ class Trainer:
 
         self.generator = torch.Generator().manual_seed(config.seed)
         self.iteration = 0
-        self.params = self._initial_params()
-        self.optimizer = self._make_optimizer()
-        # Pose deltas and their optimizer are created exactly once; resume loads state into these objects.
-        self.pose_deltas = torch.nn.Parameter(torch.zeros(self.num_cameras, 6, **to))
-        self.pose_optimizer = torch.optim.Adam([self.pose_deltas], lr=config.lr.pose)
+        # Pose deltas (rotation and translation parts, each with its own learning rate) and their optimizer are
+        # created exactly once; resume loads state into these objects.
+        self.pose_rotations = torch.nn.Parameter(torch.zeros(self.num_cameras, 3, **to))
+        self.pose_translations = torch.nn.Parameter(torch.zeros(self.num_cameras, 3, **to))
+        self.pose_optimizer = torch.optim.Adam([
+            {"params": [self.pose_rotations], "lr": config.lr.pose, "name": "rotation"},
+            {"params": [self.pose_translations], "lr": config.lr.pose * config.lr.pose_translation_scale,
+             "name": "translation"},
+        ])
         self.gauge_mask = torch.ones(self.num_cameras, 1, **to)
         if config.fix_first_camera:
             self.gauge_mask[0] = 0.0
-        self.strategy = DensifyStrategy(config.densify, self.scene_extent)
+        self._start_round()
         self._stop_requested = False
 
     # ----------------------------------------------------------------------------------------------- setup
+    def _start_round(self) -> None:
+        """Fresh Gaussians (visual hull carved with the current poses), their optimizer and densification state.
+
+        Called at iteration 0 and at each later round's first iteration: the poses carry over, the Gaussians
+        (which have partly absorbed the old pose errors) do not.
+        """
+        self.params = self._initial_params()
+        self.optimizer = self._make_optimizer()
+        self.strategy = DensifyStrategy(self.config.densify, self.scene_extent)
+
     def _initial_params(self) -> dict[str, torch.nn.Parameter]:
         config = self.config
         points, colors, note = hull_or_random_points(
-            self.images.cpu(), None if self.masks is None else self.masks.cpu(), self.viewmats_init.cpu(),
+            self.images.cpu(), None if self.masks is None else self.masks.cpu(), self.current_viewmats().cpu(),
             self.Ks.cpu(), method=config.init, count=config.init_points, resolution=config.hull_resolution,
             dilation_px=config.hull_dilation_px, missed_views=config.hull_missed_views, generator=self.generator,
         )
@@ -188,8 +148,29 @@ class Trainer:
         return torch.optim.Adam(groups, lr=0.0, eps=lr.adam_eps)
 
     # ----------------------------------------------------------------------------------------------- state
+    @property
+    def pose_deltas(self) -> torch.Tensor:
+        """[C,6] se(3) corrections [wx, wy, wz, vx, vy, vz] (camera 0's is zero with the fixed gauge)."""
+        return torch.cat([self.pose_rotations, self.pose_translations], dim=1) * self.gauge_mask
+
+    @property
+    def round_length(self) -> int:
+        return math.ceil(self.config.iters / self.config.rounds)
+
+    @property
+    def round_iteration(self) -> int:
+        """Iterations done in the current round (Gaussian schedules restart with each round)."""
+        return self.iteration % self.round_length
+
     def sh_degree(self) -> int:
-        return min(self.config.sh_degree, self.iteration // max(self.config.sh_degree_every, 1))
+        return min(self.config.sh_degree, self.round_iteration // max(self.config.sh_degree_every, 1))
+
+    def blur_sigma(self) -> float:
+        """Coarse-to-fine blur (pixels) at the current iteration."""
+        config = self.config
+        if config.blur_until <= 0:
+            return 0.0
+        return config.blur_sigma_px * max(0.0, 1.0 - self.round_iteration / config.blur_until)
 
     def pose_active(self) -> bool:
         return self.config.pose_opt and self.iteration >= self.config.pose_opt_start
@@ -197,7 +178,7 @@ class Trainer:
     def current_viewmats(self) -> torch.Tensor:
         """[C,4,4] the poses as currently estimated: exp(delta) @ initial."""
         with torch.no_grad():
-            return apply_pose_deltas(self.viewmats_init, self.pose_deltas * self.gauge_mask)
+            return apply_pose_deltas(self.viewmats_init, self.pose_deltas)
 
     def pose_error(self, viewmats: torch.Tensor | None = None) -> dict[str, float]:
         """Mean rotation (deg) and camera-centre errors of `viewmats` (default: current) against the truth."""
@@ -210,14 +191,19 @@ class Trainer:
         return {"rot_err_deg": errors["rotation_error_deg_mean"], "trans_err": errors["translation_error_mean"]}
 
     def _set_learning_rates(self) -> None:
-        config, fraction = self.config, self.iteration / max(self.config.iters - 1, 1)
+        config, fraction = self.config, self.round_iteration / max(self.round_length - 1, 1)
         for group in self.optimizer.param_groups:
             if group["name"] == "means":
                 group["lr"] = _exponential(config.lr.means_init, config.lr.means_final, fraction) * self.scene_extent
-        pose_span = max(config.iters - config.pose_opt_start - 1, 1)
-        pose_fraction = (self.iteration - config.pose_opt_start) / pose_span
+        # The pose lr decays within each round from the later of the round's start and pose_opt_start (a warm
+        # restart per round: each round is a fresh coarse-to-fine fit).
+        round_start = self.iteration - self.round_iteration
+        pose_start = max(round_start, config.pose_opt_start)
+        pose_end = min(round_start + self.round_length, config.iters)
+        pose_fraction = (self.iteration - pose_start) / max(pose_end - pose_start - 1, 1)
+        pose_lr = _exponential(config.lr.pose, config.lr.pose_final, pose_fraction)
         for group in self.pose_optimizer.param_groups:
-            group["lr"] = _exponential(config.lr.pose, config.lr.pose_final, pose_fraction)
+            group["lr"] = pose_lr * (config.lr.pose_translation_scale if group["name"] == "translation" else 1.0)
 
     # ----------------------------------------------------------------------------------------------- step
     def _views(self) -> torch.Tensor:
@@ -228,17 +214,13 @@ class Trainer:
 
     def render(self, views: torch.Tensor, pose_grad: bool = True, sh_degree: int | None = None):
         """Render training views `views` ([B] long) at the current poses; returns (colors, alphas, meta)."""
-        params = self.params
-        deltas = self.pose_deltas * self.gauge_mask
+        deltas = self.pose_deltas
         if not pose_grad:
             deltas = deltas.detach()
-        colors = params["sh0"] if "shN" not in params else torch.cat([params["sh0"], params["shN"]], dim=1)
-        return rasterization(
-            params["means"], params["quats"], params["scales"].exp(), torch.sigmoid(params["opacities"]), colors,
-            self.viewmats_init[views], self.Ks[views], self.scene.width, self.scene.height,
+        return render_gaussians(
+            self.params, self.viewmats_init[views], self.Ks[views], self.scene.width, self.scene.height,
             sh_degree=self.sh_degree() if sh_degree is None else sh_degree, backgrounds=self.backgrounds[views],
-            pose_deltas=deltas[views], render_mode="RGB+ED",
-            cpu_threads=self.config.render_threads or None,
+            pose_deltas=deltas[views], render_mode="RGB+ED", cpu_threads=self.config.render_threads or None,
         )
 
     def _loss(self, views: torch.Tensor) -> tuple[torch.Tensor, dict, dict]:
@@ -246,13 +228,22 @@ class Trainer:
         renders, alphas, meta = self.render(views, pose_grad=self.pose_active())
         meta["means2d"].retain_grad()
         images, depths, alphas = renders[..., :3], renders[..., 3], alphas[..., 0]
-        photometric, terms = photometric_loss(images, self.targets[views], config.lambda_dssim)
+        targets = self.targets[views]
+        blur = self.blur_sigma()
+        if blur > 0:
+            images, targets = gaussian_blur(images, blur), gaussian_blur(targets, blur)
+        photometric, terms = photometric_loss(images, targets, config.lambda_dssim)
         loss = photometric
         if self.masks is not None and config.lambda_mask > 0:
-            mask_term = mask_loss(alphas, self.masks[views])
+            masks = self.masks[views]
+            if blur > 0:
+                alphas_blurred = gaussian_blur(alphas[..., None], blur)[..., 0]
+                mask_term = mask_loss(alphas_blurred, gaussian_blur(masks[..., None], blur)[..., 0].clamp(0, 1))
+            else:
+                mask_term = mask_loss(alphas, masks)
             loss = loss + config.lambda_mask * mask_term
             terms["mask"] = mask_term.item()
-        if self.depths is not None and self.iteration < config.depth_until and config.lambda_depth > 0:
+        if self.depths is not None and self.round_iteration < config.depth_until and config.lambda_depth > 0:
             depth_term = depth_loss(depths, alphas, self.depths[views], None if self.masks is None else self.masks[views])
             if depth_term is not None:
                 loss = loss + config.lambda_depth * depth_term - config.lambda_depth * photometric
@@ -262,7 +253,7 @@ class Trainer:
     def _check_finite(self, loss: torch.Tensor) -> None:
         bad = None if torch.isfinite(loss) else f"loss is {loss.item()}"
         if bad is None:
-            for name, param in [*self.params.items(), ("pose_deltas", self.pose_deltas)]:
+            for name, param in [*self.params.items(), ("pose_deltas", self.pose_deltas.detach())]:
                 if not torch.isfinite(param).all():
                     bad = f"parameter {name} has NaN/inf values"
                     break
@@ -274,20 +265,23 @@ class Trainer:
     def train_step(self) -> dict:
         """One iteration; returns its log record."""
         started = time.perf_counter()
+        if self.iteration > 0 and self.round_iteration == 0:
+            self._start_round()
+            self.pose_optimizer.state.clear()
         self._set_learning_rates()
         views = self._views()
         loss, terms, meta = self._loss(views)
         self._check_finite(loss)
         loss.backward()
-        self.strategy.accumulate(self.iteration, meta)
+        self.strategy.accumulate(self.round_iteration, meta)
         self.optimizer.step()
         self.optimizer.zero_grad(set_to_none=True)
-        if self.pose_active():
-            self.pose_deltas.grad.mul_(self.gauge_mask)
+        if self.pose_active():  # the gauge camera's gradient is already zero (pose_deltas is masked)
             self.pose_optimizer.step()
         self.pose_optimizer.zero_grad(set_to_none=True)
         self.iteration += 1
-        densify = self.strategy.step(self.iteration, self.params, self.optimizer, self.generator)
+        densify = self.strategy.step(self.round_iteration or self.round_length, self.params, self.optimizer,
+                                     self.generator)
         record = {"iter": self.iteration, "loss": loss.item(), **terms, "num_gaussians": len(self.params["means"]),
                   "sh_degree": self.sh_degree(), "pose_opt": self.pose_active(), **self.pose_error(), **densify,
                   "seconds": time.perf_counter() - started}
@@ -305,7 +299,8 @@ class Trainer:
             "config": self.config.to_dict(),
             "params": {name: param.detach().cpu() for name, param in self.params.items()},
             "optimizer": self.optimizer.state_dict(),
-            "pose_deltas": self.pose_deltas.detach().cpu(),
+            "pose_rotations": self.pose_rotations.detach().cpu(),
+            "pose_translations": self.pose_translations.detach().cpu(),
             "pose_optimizer": self.pose_optimizer.state_dict(),
             "strategy": self.strategy.state_dict(),
             "generator": self.generator.get_state(),
@@ -325,7 +320,8 @@ class Trainer:
         self.optimizer = self._make_optimizer()
         self.optimizer.load_state_dict(state["optimizer"])
         with torch.no_grad():
-            self.pose_deltas.copy_(state["pose_deltas"])
+            self.pose_rotations.copy_(state["pose_rotations"])
+            self.pose_translations.copy_(state["pose_translations"])
         self.pose_optimizer.load_state_dict(state["pose_optimizer"])
         self.strategy.load_state_dict(state["strategy"])
         self.generator.set_state(state["generator"])
@@ -348,7 +344,10 @@ class Trainer:
     def write_run_files(self, extra: dict | None = None) -> None:
         """config.json, poses_true.npy, poses_init.npy (at the start of a run)."""
         self.out_dir.mkdir(parents=True, exist_ok=True)
+        normalization = self.scene.normalization
         info = {"config": self.config.to_dict(), "scene": self.scene.name, "image_names": self.scene.image_names,
+                "scene_root": str(Path(self.scene.root).resolve()), "resolution": self.scene.resolution,
+                "normalization": {"center": list(normalization.center), "scale": normalization.scale},
                 "width": self.scene.width, "height": self.scene.height, "device": str(self.device), **(extra or {})}
         (self.out_dir / "config.json").write_text(json.dumps(info, indent=2))
         np.save(self.out_dir / "poses_true.npy", self.viewmats_true.cpu().numpy())
@@ -407,7 +406,7 @@ def training_scene(scene: Scene | str | Path, config: TrainConfig, data_root: st
         from warpbags.data import open_scene
 
         scene = open_scene(scene, root=data_root, resolution=config.resolution)
-    return downscale_scene(scene.subset(scene.train_views(config.views)), config.max_image_size)
+    return scene.subset(scene.train_views(config.views)).downscaled(config.max_image_size)
 
 
 def default_run_dir(scene_name: str, views: int, root: str | Path = "runs") -> Path:

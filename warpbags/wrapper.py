@@ -13,7 +13,7 @@ import math
 import os
 from concurrent.futures import ThreadPoolExecutor
 from contextlib import ExitStack
-from typing import NamedTuple, Sequence
+from typing import NamedTuple
 
 import torch
 import warp as wp

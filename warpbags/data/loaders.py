@@ -154,6 +154,7 @@ def load_scene(
         points=points,
         point_colors=colors,
         normalization=normalization,
+        resolution=resolution,
     )
     scene.splits, scene.split_sources = _read_splits(root, scene, default_splits, cameras.test_names)
     return scene

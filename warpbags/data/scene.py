@@ -12,6 +12,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
+import cv2
 import numpy as np
 import torch
 
@@ -97,6 +98,7 @@ class Scene:
         points: [P,3] float32 SfM points in normalized world, or None.
         point_colors: [P,3] float32 RGB in [0,1], or None.
         normalization: the source-to-normalized similarity (invert it for export).
+        resolution: the image pyramid level read (images_{resolution}; 1 = full size).
     """
 
     name: str
@@ -116,6 +118,7 @@ class Scene:
     points: torch.Tensor | None = None
     point_colors: torch.Tensor | None = None
     normalization: SceneNormalization = field(default_factory=SceneNormalization)
+    resolution: int = 1
 
     @property
     def num_views(self) -> int:
@@ -159,6 +162,29 @@ class Scene:
             splits={},
             split_sources={},
         )
+
+
+    def downscaled(self, max_size: int) -> Scene:
+        """The scene with images, masks, depths and intrinsics downscaled so the longer side is <= `max_size`.
+
+        Images use area averaging; masks area averaging then a 0.5 threshold; depths nearest neighbour (0 stays
+        "no value"). Intrinsics scale with the image edges (pixel centres at +0.5 stay consistent).
+        """
+        if max_size <= 0 or max(self.width, self.height) <= max_size:
+            return self
+        factor = max_size / max(self.width, self.height)
+        width, height = max(1, round(self.width * factor)), max(1, round(self.height * factor))
+
+        def resize(tensor: torch.Tensor, interpolation: int) -> torch.Tensor:
+            return torch.from_numpy(np.stack([cv2.resize(t.numpy(), (width, height), interpolation=interpolation) for t in tensor]))
+
+        Ks = self.Ks.clone()
+        Ks[:, 0, :] *= width / self.width
+        Ks[:, 1, :] *= height / self.height
+        masks = None if self.masks is None else (resize(self.masks, cv2.INTER_AREA) > 0.5).float()
+        depths = None if self.depths is None else resize(self.depths, cv2.INTER_NEAREST)
+        return replace(self, images=resize(self.images, cv2.INTER_AREA).clamp(0, 1), masks=masks, depths=depths,
+                       Ks=Ks, width=width, height=height)
 
 
 def farthest_views(camera_centers: np.ndarray, count: int, center: np.ndarray | None = None) -> list[int]:
