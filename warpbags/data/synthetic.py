@@ -28,7 +28,7 @@ from warpbags.data.colmap import write_model
 from warpbags.data.scene import farthest_views
 from warpbags.errors import WarpbagsError
 
-GENERATOR_VERSION = 2  # bump whenever the geometry or rendering changes: cache folders are keyed on it
+GENERATOR_VERSION = 3  # bump whenever the geometry or rendering changes: cache folders are keyed on it
 BACKGROUND = 1.0  # white
 LIGHT_DIRECTION = np.array([0.4, -0.3, 0.87]) / np.linalg.norm([0.4, -0.3, 0.87])
 
@@ -364,7 +364,10 @@ def generate_synthetic_scene(out_dir: str | Path, options: SyntheticOptions = Sy
                 chosen = sorted(farthest_views(centers, size))
                 train.update(chosen)
                 (staging / f"sparse_{size}.txt").write_text("".join(f"{index}\n" for index in chosen))
-        test = [index for index in range(options.views) if index % 8 == 4 and index not in train]
+        # Held-out views: about one in eight, never a training view of any split, at least two.
+        held_out = [index for index in range(options.views) if index not in train]
+        count = min(len(held_out), max(2, options.views // 8))
+        test = [held_out[round(k * len(held_out) / count)] for k in range(count)]
         (staging / "sparse_test.txt").write_text("".join(f"{index}\n" for index in test))
         record = {"generator_version": GENERATOR_VERSION, "object_center": OBJECT_CENTER.tolist(), **asdict(options)}
         (staging / "synthetic.json").write_text(json.dumps(record, indent=2))

@@ -1,0 +1,58 @@
+"""`warpbags eval [RUN_DIR]`: novel-view metrics and pose accuracy of a finished run (see warpbags.evaluation)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Optional
+
+import typer
+from rich.console import Console
+from rich.table import Table
+
+from warpbags.cli.main import app, clean_errors
+from warpbags.evaluation import evaluate_run, latest_run
+
+stdout = Console(highlight=False)
+
+
+def _fmt(value, digits: int) -> str:
+    return "n/a" if value is None else f"{value:.{digits}f}"
+
+
+@app.command("eval")
+@clean_errors
+def evaluate(
+    run_dir: Optional[Path] = typer.Argument(None, help="Run folder (default: the newest under runs/)."),
+    procrustes: bool = typer.Option(
+        True, "--procrustes/--pairwise",
+        help="Map test cameras into the model's frame with sim(3) Procrustes (BARF) or SPARF's pairwise alignment.",
+    ),
+    refine_iters: int = typer.Option(100, "--refine-iters", help="Test-time pose refinement iterations (0 = off)."),
+) -> None:
+    """Render held-out views, compare with ground truth (PSNR/SSIM/LPIPS) and measure camera-pose errors."""
+    run_dir = run_dir or latest_run()
+    alignment = "procrustes" if procrustes else "pairwise"
+    result = evaluate_run(run_dir, alignment=alignment, refine_iters=refine_iters, log=stdout.print)
+
+    poses = Table(title=f"training-camera pose error ({result['views']} views)", title_justify="left")
+    for column in ("alignment", "stage", "rotation mean (deg)", "rotation median", "translation mean",
+                   "% of orbit"):
+        poses.add_column(column)
+    for name, entry in result["poses"].items():
+        for stage in ("initial", "final"):
+            e = entry[stage]
+            poses.add_row(name, stage, f"{e['rotation_deg_mean']:.3f}", f"{e['rotation_deg_median']:.3f}",
+                          f"{e['translation_mean']:.4f}", f"{e['translation_percent_of_orbit']:.2f}")
+    stdout.print(poses)
+
+    images = Table(title=f"held-out views ({result['test_views']}, {alignment} alignment)", title_justify="left")
+    for column in ("test poses", "PSNR", "SSIM", "LPIPS"):
+        images.add_column(column)
+    rows = [("aligned", result["images"])]
+    if "images_after_test_pose_refinement" in result:
+        rows.append((f"+ {refine_iters} refinement its", result["images_after_test_pose_refinement"]))
+    for label, metrics in rows:
+        mean = metrics["mean"]
+        images.add_row(label, _fmt(mean["psnr"], 2), _fmt(mean["ssim"], 4), _fmt(mean["lpips"], 4))
+    stdout.print(images)
+    stdout.print(f"wrote {Path(result['run']) / 'eval.json'} and {Path(result['run']) / 'eval'}/")

@@ -1,0 +1,95 @@
+"""`warpbags eval`: pose accuracy and held-out image metrics of a finished run."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import torch
+from skimage.metrics import peak_signal_noise_ratio, structural_similarity
+from typer.testing import CliRunner
+
+from warpbags.cli.main import app
+from warpbags.data import SyntheticOptions, ensure_synthetic_scene
+from warpbags.evaluation import LpipsMetric, image_metrics, load_run, pose_accuracy
+from warpbags.gaussians import read_ply, write_ply
+
+runner = CliRunner()
+
+
+@pytest.fixture(scope="module")
+def finished_run(tmp_path_factory):
+    scene = ensure_synthetic_scene(SyntheticOptions(views=16, width=64, height=64),
+                                   cache_dir=tmp_path_factory.mktemp("cache"))
+    out = tmp_path_factory.mktemp("runs") / "run"
+    result = runner.invoke(app, ["train", str(scene), "--iters", "8", "--rot-noise-deg", "4", "--trans-noise", "0.05",
+                                 "--out", str(out)])
+    assert result.exit_code == 0, result.output
+    return out
+
+
+def test_eval_writes_metrics_and_pictures(finished_run):
+    result = runner.invoke(app, ["eval", str(finished_run), "--refine-iters", "3"])
+    assert result.exit_code == 0, result.output
+    report = json.loads((finished_run / "eval.json").read_text())
+    assert report["test_views"] >= 2 and report["alignment"] == "procrustes"
+    for name in ("procrustes", "pairwise"):
+        for stage in ("initial", "final"):
+            entry = report["poses"][name][stage]
+            assert len(entry["rotation_deg"]) == 4 and entry["rotation_deg_mean"] >= 0
+    # camera 0 is the noise-free gauge; the other three carry the injected 4 deg noise
+    initial = report["poses"]["procrustes"]["initial"]["rotation_deg"]
+    assert 0.5 < float(np.mean(initial)) < 8.0
+    for key in ("images", "images_after_test_pose_refinement"):
+        mean = report[key]["mean"]
+        assert 5.0 < mean["psnr"] < 60.0 and 0.0 < mean["ssim"] <= 1.0
+        assert len(report[key]["per_view"]) == report["test_views"]
+    assert report["lpips_unavailable"] is None or mean["lpips"] is None  # never a made-up number
+    pictures = sorted((finished_run / "eval").glob("*.png"))
+    assert len(pictures) == report["test_views"]
+
+
+def test_pose_accuracy_is_zero_for_true_poses(finished_run):
+    run = load_run(finished_run)
+    run.poses_final = run.poses_true.clone()
+    report = pose_accuracy(run)
+    assert report["procrustes"]["final"]["rotation_deg_mean"] < 1e-4
+    assert report["procrustes"]["final"]["translation_mean"] < 1e-5
+
+
+def test_image_metrics_match_scikit_image():
+    g = torch.Generator().manual_seed(0)
+    target = torch.rand(2, 24, 20, 3, generator=g)
+    image = (target + 0.05 * torch.randn(2, 24, 20, 3, generator=g)).clamp(0, 1)
+    metrics = image_metrics(image, target, LpipsMetric())
+    for view in range(2):
+        t, i = target[view].double().numpy(), image[view].double().numpy()
+        assert metrics["per_view"][view]["psnr"] == pytest.approx(peak_signal_noise_ratio(t, i, data_range=1.0))
+        assert metrics["per_view"][view]["ssim"] == pytest.approx(
+            structural_similarity(t, i, channel_axis=-1, data_range=1.0))
+    mse = ((image - target) ** 2).mean(dim=(1, 2, 3))
+    assert metrics["mean"]["psnr"] == pytest.approx(float((-10 * torch.log10(mse)).mean()), rel=1e-5)
+
+
+def test_ply_round_trip(finished_run, tmp_path):
+    params = read_ply(finished_run / "gaussians.ply")
+    write_ply(tmp_path / "copy.ply", params)
+    again = read_ply(tmp_path / "copy.ply")
+    assert set(again) == set(params)
+    for name in params:
+        torch.testing.assert_close(again[name], params[name], rtol=0, atol=0)
+
+
+def test_eval_of_a_folder_that_is_not_a_run_is_one_line(tmp_path):
+    result = runner.invoke(app, ["eval", str(tmp_path)])
+    assert result.exit_code == 2
+    assert len(result.output.strip().splitlines()) == 1 and "not a training run" in result.output
+
+
+def test_eval_of_an_unfinished_run_names_the_missing_file(finished_run, tmp_path):
+    partial = tmp_path / "partial"
+    partial.mkdir()
+    (partial / "config.json").write_text((finished_run / "config.json").read_text())
+    result = runner.invoke(app, ["eval", str(partial)])
+    assert result.exit_code == 2 and "gaussians.ply is missing" in result.output

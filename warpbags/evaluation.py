@@ -1,0 +1,259 @@
+"""Evaluation of a training run: novel-view image metrics and camera-pose accuracy, measured as the field does.
+
+Image metrics (GaussianObject's protocol): held-out views (`sparse_test` split) rendered on a white background and
+compared with the ground truth masked onto white: PSNR, SSIM (scikit-image) and LPIPS-VGG (the `lpips` package)
+when it and its weights are available offline; otherwise LPIPS is reported as unavailable, never guessed.
+
+The held-out poses are true poses, while the Gaussians live in the frame of the optimized training poses. The
+test cameras are therefore mapped through the sim(3) that aligns the optimized training cameras to the true ones
+(BARF's protocol), and optionally refined photometrically with the Gaussians frozen (BARF: 100 iterations),
+since a residual alignment error of a fraction of a degree already costs dBs.
+
+Pose accuracy: rotation error (geodesic, degrees) and camera-centre error (scene units, and % of the orbit radius)
+after sim(3) Procrustes (Umeyama on camera centres, BARF) and after SPARF's pairwise alignment, which does not
+overfit with 4-9 cameras; both are reported and labelled.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+import torch
+from skimage.metrics import peak_signal_noise_ratio, structural_similarity
+
+from warpbags.configs.train import TrainConfig
+from warpbags.data import ORBIT_RADIUS, Scene, SceneNormalization, load_scene
+from warpbags.errors import WarpbagsError
+from warpbags.gaussians import read_ply, render_gaussians, sh_degree_of
+from warpbags.losses import photometric_loss
+from warpbags.pose import align_viewmats, apply_pose_deltas, pose_errors
+
+ALIGNMENTS = ("procrustes", "pairwise")
+
+
+@dataclass
+class TrainingRun:
+    """What a finished run folder holds (see `warpbags.trainer` for the layout)."""
+
+    path: Path
+    info: dict
+    config: TrainConfig
+    params: dict[str, torch.Tensor]
+    poses_true: torch.Tensor
+    poses_init: torch.Tensor
+    poses_final: torch.Tensor
+
+
+def latest_run(root: str | Path = "runs") -> Path:
+    """The most recently modified run folder under `root` that holds a config.json.
+
+    Raises:
+        WarpbagsError: no run there.
+    """
+    runs = [p.parent for p in Path(root).glob("*/config.json")]
+    if not runs:
+        raise WarpbagsError(f"no training run under {Path(root).resolve()}; pass RUN_DIR or train first")
+    return max(runs, key=lambda p: (p / "config.json").stat().st_mtime)
+
+
+def load_run(path: str | Path) -> TrainingRun:
+    """Read a finished run folder.
+
+    Raises:
+        WarpbagsError: a missing or unreadable file, named.
+    """
+    path = Path(path)
+    if not (path / "config.json").is_file():
+        raise WarpbagsError(f"{path} is not a training run (no config.json)")
+    try:
+        info = json.loads((path / "config.json").read_text())
+        config = TrainConfig.from_dict(info["config"])
+    except (json.JSONDecodeError, KeyError, TypeError) as error:
+        raise WarpbagsError(f"{path / 'config.json'}: unreadable ({error})") from None
+    for name in ("gaussians.ply", "poses_true.npy", "poses_init.npy", "poses_final.npy"):
+        if not (path / name).is_file():
+            raise WarpbagsError(f"{path / name} is missing: the run has not finished (continue it with --resume)")
+    poses = {}
+    for name in ("poses_true", "poses_init", "poses_final"):
+        try:
+            poses[name] = torch.from_numpy(np.load(path / f"{name}.npy")).double()
+        except (OSError, ValueError) as error:
+            raise WarpbagsError(f"{path / name}.npy: unreadable ({error})") from None
+    return TrainingRun(path, info, config, read_ply(path / "gaussians.ply"), **poses)
+
+
+def held_out_views(run: TrainingRun) -> Scene:
+    """The run's scene restricted to its test split, in the run's normalized frame and training resolution.
+
+    Raises:
+        WarpbagsError: the scene folder is gone, has no test split, or no longer matches the run's frame.
+    """
+    info, config = run.info, run.config
+    for key in ("scene_root", "resolution", "normalization"):
+        if key not in info:
+            raise WarpbagsError(f"{run.path / 'config.json'} has no {key!r}: written by an older warpbags")
+    scene = load_scene(info["scene_root"], resolution=info["resolution"], name=info["scene"])
+    stored = SceneNormalization(tuple(info["normalization"]["center"]), info["normalization"]["scale"])
+    if not np.allclose(scene.normalization.matrix(), stored.matrix(), atol=1e-5):
+        raise WarpbagsError(f"{info['scene_root']} no longer matches the run's normalization: was the scene changed?")
+    test = scene.splits.get("test")
+    if not test:
+        raise WarpbagsError(f"{info['scene_root']} has no test split (sparse_test.txt)")
+    return scene.subset(test).downscaled(config.max_image_size)
+
+
+def pose_accuracy(run: TrainingRun) -> dict:
+    """Initial and final pose errors of the training cameras under each alignment."""
+    report = {}
+    for alignment in ALIGNMENTS:
+        entry = {}
+        for stage, poses in (("initial", run.poses_init), ("final", run.poses_final)):
+            errors = pose_errors(poses, run.poses_true, alignment=alignment)
+            entry[stage] = {
+                "rotation_deg": errors["rotation_errors_deg"].tolist(),
+                "translation": errors["translation_errors"].tolist(),
+                "rotation_deg_mean": errors["rotation_error_deg_mean"],
+                "rotation_deg_median": errors["rotation_error_deg_median"],
+                "translation_mean": errors["translation_error_mean"],
+                "translation_median": errors["translation_error_median"],
+                "translation_percent_of_orbit": 100 * errors["translation_error_mean"] / ORBIT_RADIUS,
+            }
+        report[alignment] = entry
+    return report
+
+
+def refine_poses(params, viewmats, Ks, targets, width, height, sh_degree, iters: int, lr: float = 1e-3):
+    """Photometric pose refinement of each view with the Gaussians frozen (BARF's test-time optimization).
+
+    Returns:
+        [C,4,4] refined world-to-camera matrices.
+    """
+    frozen = {name: value.detach() for name, value in params.items()}
+    deltas = torch.zeros(len(viewmats), 6, dtype=viewmats.dtype, requires_grad=True)
+    optimizer = torch.optim.Adam([deltas], lr=lr)
+    backgrounds = torch.ones(len(viewmats), 3)
+    for _ in range(iters):
+        images, _, _ = render_gaussians(frozen, viewmats, Ks, width, height, sh_degree=sh_degree,
+                                        backgrounds=backgrounds, pose_deltas=deltas)
+        loss, _ = photometric_loss(images, targets)
+        optimizer.zero_grad()
+        loss.backward()
+        optimizer.step()
+    with torch.no_grad():
+        return apply_pose_deltas(viewmats, deltas)
+
+
+class LpipsMetric:
+    """LPIPS-VGG through the `lpips` package, or a reason why it is unavailable (no package, no weights offline)."""
+
+    def __init__(self) -> None:
+        self.model, self.unavailable = None, None
+        try:
+            import lpips  # noqa: PLC0415 - optional dependency
+
+            self.model = lpips.LPIPS(net="vgg", verbose=False)
+        except Exception as error:  # noqa: BLE001 - any failure to build it means "unavailable", with the reason
+            self.unavailable = f"{type(error).__name__}: {str(error).splitlines()[0] if str(error) else ''}"[:200]
+
+    def __call__(self, image: np.ndarray, target: np.ndarray) -> float | None:
+        if self.model is None:
+            return None
+        to_tensor = lambda a: torch.from_numpy(a).permute(2, 0, 1)[None].float() * 2 - 1  # noqa: E731
+        with torch.no_grad():
+            return float(self.model(to_tensor(image), to_tensor(target)))
+
+
+def image_metrics(images: torch.Tensor, targets: torch.Tensor, lpips_metric: LpipsMetric) -> dict:
+    """Per-view and mean PSNR, SSIM, LPIPS of [C,H,W,3] renders against targets (both on the same background)."""
+    per_view = []
+    for image, target in zip(images.clamp(0, 1).double().numpy(), targets.double().numpy()):
+        per_view.append({
+            "psnr": float(peak_signal_noise_ratio(target, image, data_range=1.0)),
+            "ssim": float(structural_similarity(target, image, channel_axis=-1, data_range=1.0)),
+            "lpips": lpips_metric(image, target),
+        })
+    mean = {key: (None if per_view[0][key] is None else float(np.mean([v[key] for v in per_view])))
+            for key in ("psnr", "ssim", "lpips")}
+    return {"mean": mean, "per_view": per_view}
+
+
+def _save_comparison(path: Path, target: torch.Tensor, image: torch.Tensor) -> None:
+    """truth | render | 4x absolute error, side by side, as PNG."""
+    error = ((image - target).abs() * 4).clamp(0, 1)
+    strip = torch.cat([target, image.clamp(0, 1), error], dim=1).numpy()
+    cv2.imwrite(str(path), cv2.cvtColor((strip * 255 + 0.5).astype(np.uint8), cv2.COLOR_RGB2BGR))
+
+
+def evaluate_run(path: str | Path, *, alignment: str = "procrustes", refine_iters: int = 100,
+                 log=print) -> dict:
+    """Evaluate a run folder; writes eval.json and eval/<view>.png (truth | render | error) into it.
+
+    Args:
+        path: the run folder.
+        alignment: how test cameras are mapped into the model's frame: "procrustes" or "pairwise".
+        refine_iters: test-time pose refinement iterations per held-out view (0 = none).
+
+    Returns:
+        The eval.json content.
+    """
+    if alignment not in ALIGNMENTS:
+        raise WarpbagsError(f"alignment must be one of {', '.join(ALIGNMENTS)}, got {alignment!r}")
+    if refine_iters < 0:
+        raise WarpbagsError(f"--refine-iters must be >= 0, got {refine_iters}")
+    torch.set_num_threads(1)  # Warp's host threads render; torch's OpenMP workers would fight them
+    run = load_run(path)
+    test = held_out_views(run)
+    poses = pose_accuracy(run)
+    sim3 = pose_errors(run.poses_final, run.poses_true, alignment=alignment)["sim3"]
+    test_viewmats = align_viewmats(test.viewmats.double(), sim3.inverse()).float()
+
+    masks = test.masks[..., None] if test.masks is not None else torch.ones_like(test.images[..., :1])
+    targets = test.images * masks + (1 - masks)  # object on white, as GaussianObject evaluates
+    sh_degree = sh_degree_of(run.params)
+    lpips_metric = LpipsMetric()
+    if lpips_metric.unavailable:
+        log(f"LPIPS unavailable ({lpips_metric.unavailable}); reported as null")
+
+    def render(viewmats):
+        with torch.no_grad():
+            images, _, _ = render_gaussians(run.params, viewmats, test.Ks, test.width, test.height,
+                                            sh_degree=sh_degree, backgrounds=torch.ones(len(viewmats), 3))
+        return images
+
+    images = render(test_viewmats)
+    result = {
+        "run": str(run.path),
+        "scene": run.info["scene"],
+        "views": run.config.views,
+        "test_views": len(test.image_names),
+        "image_size": [test.width, test.height],
+        "alignment": alignment,
+        "lpips_unavailable": lpips_metric.unavailable,
+        "poses": poses,
+        "images": image_metrics(images, targets, lpips_metric),
+    }
+    if refine_iters > 0:
+        refined = refine_poses(run.params, test_viewmats, test.Ks, targets, test.width, test.height, sh_degree,
+                               refine_iters)
+        images = render(refined)
+        result["images_after_test_pose_refinement"] = {"iters": refine_iters,
+                                                        **image_metrics(images, targets, lpips_metric)}
+    out = run.path / "eval"
+    out.mkdir(exist_ok=True)
+    for name, target, image in zip(test.image_names, targets, images):
+        _save_comparison(out / f"{Path(name).stem}.png", target, image)
+    temporary = run.path / "eval.json.tmp"
+    temporary.write_text(json.dumps(result, indent=2, default=_json_default))
+    temporary.replace(run.path / "eval.json")
+    return result
+
+
+def _json_default(value):
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    raise TypeError(f"not JSON serializable: {type(value).__name__}")
