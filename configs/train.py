@@ -94,8 +94,8 @@ class TrainConfig:
         views_per_step: views rendered per iteration (0 = all training views; 1 = one random view, as 3DGS).
         background: "white" or "black"; the ground truth is masked onto it.
         sh_degree: final SH degree; one degree is added every `sh_degree_every` iterations.
-        init: "hull" (visual hull from masks and the initial poses) or "random" (uniform in the camera frusta's
-            common bounds).
+        init: "hull" (visual hull from masks and the current poses), "sfm" (the scene's SfM points, e.g. COLMAP's
+            points3D) or "random" (uniform in the camera frusta's common bounds).
         init_points: number of initial Gaussians (hull voxels are subsampled / random points drawn to this).
         hull_resolution: voxels per axis of the carving grid.
         hull_dilation_px: masks are dilated by this many pixels (at the training resolution) before carving.
@@ -129,7 +129,7 @@ class TrainConfig:
     background: Literal["white", "black"] = "white"
     sh_degree: int = 2
     sh_degree_every: int = 1000
-    init: Literal["hull", "random"] = "hull"
+    init: Literal["hull", "sfm", "random"] = "hull"
     init_points: int = 20000
     hull_resolution: int = 64
     hull_dilation_px: int = 0
@@ -164,7 +164,7 @@ class TrainConfig:
             (self.views_per_step >= 0, f"views_per_step must be >= 0, got {self.views_per_step}"),
             (self.background in ("white", "black"), f"background must be white or black, got {self.background!r}"),
             (0 <= self.sh_degree <= 3, f"sh_degree must be 0-3, got {self.sh_degree}"),
-            (self.init in ("hull", "random"), f"init must be hull or random, got {self.init!r}"),
+            (self.init in ("hull", "sfm", "random"), f"--init must be hull, sfm or random, got {self.init!r}"),
             (self.init_points >= 1, f"init_points must be >= 1, got {self.init_points}"),
             (self.checkpoint_every >= 1, f"checkpoint_every must be >= 1, got {self.checkpoint_every}"),
             (0 <= self.lambda_depth < 1, f"lambda_depth must be in [0, 1), got {self.lambda_depth}"),

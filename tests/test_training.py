@@ -110,6 +110,14 @@ def test_rounds_restart_gaussians_and_keep_poses(scene_dir, tmp_path):
     assert 0 < moved < 0.05  # one more pose step from where round one ended, not a restart from the noisy poses
 
 
+@pytest.mark.parametrize("init, note", [("sfm", "SfM points"), ("random", "random points"), ("hull", "visual hull")])
+def test_initializations(scene_dir, tmp_path, init, note):
+    notes = []
+    config = tiny_config(init=init, init_points=500)
+    Trainer(training_scene(load_scene(scene_dir, name="tiny"), config), config, tmp_path, log=notes.append)
+    assert any(note in line for line in notes), notes
+
+
 def test_no_pose_opt_keeps_poses(scene_dir, tmp_path):
     trainer = make_trainer(scene_dir, tmp_path, pose_opt=False, iters=12, rot_noise_deg=5.0)
     trainer.train()
@@ -193,6 +201,8 @@ def test_cli_smoke_writes_run_files(scene_dir, tmp_path):
         (["--iters", "0"], "--iters must be >= 1"),
         (["--rot-noise-deg", "-1"], "--rot-noise-deg must be >= 0"),
         (["--preset", "fast"], "--preset must be one of"),
+        (["--init", "mesh"], "--init must be hull, sfm or random"),
+        (["--rounds", "0"], "--rounds must be in [1, iters]"),
         (["--device", "tpu"], "--device must be cpu or cuda"),
         (["--resume"], "--resume: no checkpoint"),
     ],

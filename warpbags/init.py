@@ -164,8 +164,18 @@ def initial_gaussians(
 def hull_or_random_points(
     images: torch.Tensor, masks: torch.Tensor | None, viewmats: torch.Tensor, Ks: torch.Tensor, *, method: str,
     count: int, resolution: int, dilation_px: int, missed_views: int, generator: torch.Generator, min_voxels: int = 100,
+    sfm_points: torch.Tensor | None = None, sfm_colors: torch.Tensor | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor, str]:
-    """Initial points [N,3] and colours [N,3], and a one-line note on how they were made."""
+    """Initial points [N,3] and colours [N,3], and a one-line note on how they were made.
+
+    method: "hull" (visual hull from the masks; random points when there are no masks or the hull is nearly
+    empty), "sfm" (the scene's SfM points, subsampled to `count`; random points when it has none) or "random".
+    """
+    if method == "sfm":
+        if sfm_points is not None and len(sfm_points) > 0:
+            pick = torch.randperm(len(sfm_points), generator=generator)[:count]
+            return sfm_points[pick].float(), sfm_colors[pick].float(), f"SfM points: {len(pick)} of {len(sfm_points)}"
+        method = "random-fallback"
     num_cameras, height, width, _ = images.shape
     if method == "hull" and masks is not None:
         voxels, voxel = visual_hull(masks, viewmats, Ks, resolution=resolution, dilation_px=dilation_px, missed_views=missed_views)
@@ -176,7 +186,8 @@ def hull_or_random_points(
             return points, point_colors(points, images, masks, viewmats, Ks), f"visual hull: {len(voxels)} voxels, {len(points)} points"
         note = f"visual hull had only {len(voxels)} voxels; random points instead"
     else:
-        note = "random points" if method == "random" else "no masks: random points"
+        note = {"random": "random points", "random-fallback": "no SfM points: random points"}.get(
+            method, "no masks: random points")
     points = random_points(count, viewmats, Ks, width, height, generator)
     colors = torch.rand(len(points), 3, generator=generator)
     return points, colors, f"{note} ({len(points)})"

@@ -135,6 +135,7 @@ class Trainer:
             self.images.cpu(), None if self.masks is None else self.masks.cpu(), self.current_viewmats().cpu(),
             self.Ks.cpu(), method=config.init, count=config.init_points, resolution=config.hull_resolution,
             dilation_px=config.hull_dilation_px, missed_views=config.hull_missed_views, generator=self.generator,
+            sfm_points=self.scene.points, sfm_colors=self.scene.point_colors,
         )
         self.log(f"initialization: {note}")
         raw = initial_gaussians(points, colors, config.sh_degree)
