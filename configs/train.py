@@ -203,7 +203,7 @@ def quick() -> TrainConfig:
     """CPU-sized: ~128 px images, <= 6000 Gaussians, all views every step, 600 iterations in 3 rounds.
 
     The paper's schedule compressed for 2 cores, plus the two changes that made pose recovery work on the 4-view
-    synthetic scene (96 px, 10 deg rotation noise, bench/train_poses.py):
+    synthetic scene (96 px, 10 deg rotation noise, bench/pose_recovery.py):
     - poses optimized from the start with a 10x slower translation (rotation lr 1e-2 -> 1e-3, translation 1e-3
       -> 1e-4): one 600-iteration run then reaches 5.74 -> 0.99 deg (equal rates: 5.74 -> 2.74);
     - three rounds of 200 iterations, each re-carving the hull with the improved poses and starting fresh

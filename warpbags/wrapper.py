@@ -111,13 +111,13 @@ class _TapedKernel(torch.autograd.Function):
         for grad in ctx.input_grads:
             if grad is not None:
                 grad.zero_()
-        cotangents = {}
-        for wp_out, v_out in zip(ctx.wp_outputs, v_outputs):
-            if wp_out.requires_grad and v_out is not None:
-                wp.copy(wp_out.grad, wp.from_torch(v_out.contiguous(), dtype=wp_out.dtype))
-                cotangents[wp_out] = wp_out.grad
-        if cotangents:
-            with _launch_scope(ctx.device):
+        with _launch_scope(ctx.device):  # on CUDA the copies and the adjoint launch stay on torch's stream
+            cotangents = {}
+            for wp_out, v_out in zip(ctx.wp_outputs, v_outputs):
+                if wp_out.requires_grad and v_out is not None:
+                    wp.copy(wp_out.grad, wp.from_torch(v_out.contiguous(), dtype=wp_out.dtype))
+                    cotangents[wp_out] = wp_out.grad
+            if cotangents:
                 ctx.tape.backward(grads=cotangents)
         input_grads = [None if grad is None else grad.clone() for grad in ctx.input_grads]
         return (None, None, None, None, *input_grads)
