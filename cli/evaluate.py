@@ -1,4 +1,4 @@
-"""`warpbags eval [RUN_DIR]`: novel-view metrics and pose accuracy of a finished run (see warpbags.evaluation)."""
+"""`warpbags eval` and `warpbags export`: metrics, pose accuracy and export of a finished run."""
 
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ from rich.console import Console
 from rich.table import Table
 
 from warpbags.cli.main import app, clean_errors
-from warpbags.evaluation import evaluate_run, latest_run
+from warpbags.evaluation import evaluate_run, export_run, latest_run
 
 stdout = Console(highlight=False)
 
@@ -56,3 +56,14 @@ def evaluate(
         images.add_row(label, _fmt(mean["psnr"], 2), _fmt(mean["ssim"], 4), _fmt(mean["lpips"], 4))
     stdout.print(images)
     stdout.print(f"wrote {Path(result['run']) / 'eval.json'} and {Path(result['run']) / 'eval'}/")
+
+
+@app.command("export")
+@clean_errors
+def export(
+    run_dir: Optional[Path] = typer.Argument(None, help="Run folder (default: the newest under runs/)."),
+    out: Optional[Path] = typer.Option(None, "--out", help="Output folder (default: RUN_DIR/export)."),
+) -> None:
+    """Write the Gaussians (standard 3DGS PLY) and final poses in the input scene's frame."""
+    folder = export_run(run_dir or latest_run(), out)
+    stdout.print(f"wrote {folder / 'gaussians.ply'} and {folder / 'poses_final.npy'} (input scene frame)")

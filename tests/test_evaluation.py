@@ -81,6 +81,24 @@ def test_ply_round_trip(finished_run, tmp_path):
         torch.testing.assert_close(again[name], params[name], rtol=0, atol=0)
 
 
+def test_export_is_in_the_source_frame(finished_run, tmp_path):
+    result = runner.invoke(app, ["export", str(finished_run), "--out", str(tmp_path / "export")])
+    assert result.exit_code == 0, result.output
+    info = json.loads((finished_run / "config.json").read_text())
+    center, scale = np.array(info["normalization"]["center"]), info["normalization"]["scale"]
+    normalized, exported = read_ply(finished_run / "gaussians.ply"), read_ply(tmp_path / "export" / "gaussians.ply")
+    np.testing.assert_allclose(scale * (exported["means"].numpy() - center), normalized["means"].numpy(), atol=1e-4)
+    np.testing.assert_allclose(exported["scales"].exp().numpy() * scale, normalized["scales"].exp().numpy(), rtol=1e-4)
+    torch.testing.assert_close(exported["quats"], normalized["quats"])
+    # The exported cameras see the exported Gaussians where the normalized cameras see the normalized ones.
+    poses_norm = np.load(finished_run / "poses_final.npy")
+    poses_src = np.load(tmp_path / "export" / "poses_final.npy")
+    point_norm, point_src = normalized["means"][0].numpy(), exported["means"][0].numpy()
+    cam_norm = poses_norm[1, :3, :3] @ point_norm + poses_norm[1, :3, 3]
+    cam_src = poses_src[1, :3, :3] @ point_src + poses_src[1, :3, 3]
+    np.testing.assert_allclose(cam_src * scale, cam_norm, atol=1e-4)
+
+
 def test_eval_of_a_folder_that_is_not_a_run_is_one_line(tmp_path):
     result = runner.invoke(app, ["eval", str(tmp_path)])
     assert result.exit_code == 2

@@ -29,7 +29,7 @@ from skimage.metrics import peak_signal_noise_ratio, structural_similarity
 from warpbags.configs.train import TrainConfig
 from warpbags.data import ORBIT_RADIUS, Scene, SceneNormalization, load_scene
 from warpbags.errors import WarpbagsError
-from warpbags.gaussians import read_ply, render_gaussians, sh_degree_of
+from warpbags.gaussians import read_ply, render_gaussians, sh_degree_of, to_source_frame, write_ply
 from warpbags.losses import photometric_loss
 from warpbags.pose import align_viewmats, apply_pose_deltas, pose_errors
 
@@ -257,3 +257,23 @@ def _json_default(value):
     if isinstance(value, float) and not math.isfinite(value):
         return None
     raise TypeError(f"not JSON serializable: {type(value).__name__}")
+
+
+def export_run(path: str | Path, out: str | Path | None = None) -> Path:
+    """Write the run's Gaussians and final poses in the input scene's own frame (not the normalized one).
+
+    Writes `<out>/gaussians.ply` (standard 3DGS PLY) and `<out>/poses_final.npy` ([C,4,4] world-to-camera,
+    OpenCV axes, the training views in `config.json`'s image order). Default `out`: `<run>/export`.
+    """
+    run = load_run(path)
+    if "normalization" not in run.info:
+        raise WarpbagsError(f"{run.path / 'config.json'} has no normalization: written by an older warpbags")
+    normalization = SceneNormalization(tuple(run.info["normalization"]["center"]), run.info["normalization"]["scale"])
+    out = Path(out) if out is not None else run.path / "export"
+    out.mkdir(parents=True, exist_ok=True)
+    write_ply(out / "gaussians.ply", to_source_frame(run.params, normalization.center, normalization.scale))
+    poses = normalization.invert_viewmats(run.poses_final)
+    temporary = out / "poses_final.tmp.npy"
+    np.save(temporary, poses.numpy())
+    temporary.replace(out / "poses_final.npy")
+    return out

@@ -7,6 +7,7 @@ Raw parameters (what the optimizer sees), N Gaussians:
 
 from __future__ import annotations
 
+import math
 import os
 from pathlib import Path
 
@@ -124,3 +125,15 @@ def sh_degree_of(params: dict[str, torch.Tensor]) -> int:
     """The highest SH degree the parameters hold."""
     count = 1 + (params["shN"].shape[1] if "shN" in params else 0)
     return int(round(count**0.5)) - 1
+
+
+def to_source_frame(params: dict[str, torch.Tensor], center, scale: float) -> dict[str, torch.Tensor]:
+    """Parameters moved from the normalized world (x' = scale (x - center)) back to the scene's source frame.
+
+    Means are un-normalized and log-scales shifted by -log(scale); rotations, opacities and SH are unchanged (a
+    uniform scale and a translation keep view directions).
+    """
+    out = dict(params)
+    out["means"] = params["means"] / scale + torch.as_tensor(center, dtype=params["means"].dtype)
+    out["scales"] = params["scales"] - math.log(scale)
+    return out
