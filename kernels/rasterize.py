@@ -20,6 +20,7 @@ from typing import Any
 import warp as wp
 
 ALPHA_THRESHOLD = 1.0 / 255.0
+SIGMA_CUTOFF = 5.545177444479562  # ln(255)
 MAX_ALPHA = 0.99
 TRANSMITTANCE_MIN = 1.0e-4
 
@@ -54,13 +55,20 @@ def gaussian_falloff(mean2d: Any, conic: Any, px: Any, py: Any):
 
 
 @wp.func
+def out_of_reach(sigma: Any):
+    """True where no opacity can make the Gaussian count: sigma < 0 (a numerically indefinite conic) or
+    sigma > ln(255), where even opacity 1 gives alpha < 1/255. Most visits of a tile's list end here, before
+    the opacity is read or the exponential computed."""
+    return sigma < type(sigma)(0.0) or sigma > type(sigma)(SIGMA_CUTOFF)
+
+
+@wp.func
 def splat_alpha(opacity: Any, sigma: Any):
-    """(alpha, exp(-sigma)) with alpha = min(0.99, opacity exp(-sigma)), or alpha = 0 where the Gaussian is skipped:
-    sigma < 0 (a numerically indefinite conic) or alpha below the 1/255 cut-off."""
+    """(alpha, exp(-sigma)) with alpha = min(0.99, opacity exp(-sigma)), or alpha = 0 below the 1/255 cut-off."""
     zero = type(sigma)(0.0)
     falloff = wp.exp(-sigma)
     alpha = wp.min(type(sigma)(MAX_ALPHA), opacity * falloff)
-    if sigma < zero or alpha < type(sigma)(ALPHA_THRESHOLD):
+    if alpha < type(sigma)(ALPHA_THRESHOLD):
         alpha = zero
     return alpha, falloff
 
@@ -102,6 +110,8 @@ def rasterize_forward_kernel(
     for i in range(start, end):
         g = isect_ids[i]
         sigma, dx, dy = gaussian_falloff(means2d[g], conics[g], px, py)
+        if out_of_reach(sigma):
+            continue
         alpha, falloff = splat_alpha(opacities[g % num_gaussians], sigma)
         if alpha == out_depths.dtype(0.0):
             continue
@@ -168,6 +178,8 @@ def rasterize_backward_kernel(
         i -= 1
         g = isect_ids[i]
         sigma, dx, dy = gaussian_falloff(means2d[g], conics[g], px, py)
+        if out_of_reach(sigma):
+            continue
         opacity = opacities[g % num_gaussians]
         alpha, falloff = splat_alpha(opacity, sigma)
         if alpha == v_out_depths.dtype(0.0):

@@ -122,6 +122,22 @@ def test_cpu_threads_give_identical_results():
             torch.testing.assert_close(a, b, rtol=1e-12, atol=1e-12)
 
 
+def test_per_camera_parallel_sort_equals_one_sort():
+    from warpbags.wrapper import _sort_per_camera
+
+    g = torch.Generator().manual_seed(0)
+    cams, n = 3, 50
+    counts = torch.randint(0, 40, (cams * n,), generator=g, dtype=torch.int32)
+    ends = torch.cumsum(counts, 0)
+    write_offsets = (ends - counts).to(torch.int32)
+    # every key of camera c below every key of camera c + 1, as bin_gaussians emits them
+    camera_of_key = torch.repeat_interleave(torch.arange(cams * n) // n, counts.long())
+    keys = (camera_of_key << 40) + torch.randint(0, 2**40, (int(ends[-1]),), generator=g)
+    expected_keys, expected_order = torch.sort(keys)
+    got_keys, got_order = _sort_per_camera(keys, write_offsets, n, torch.device("cpu"), min_parallel_keys=0)
+    assert torch.equal(got_keys, expected_keys) and torch.equal(keys[got_order], expected_keys)
+
+
 @pytest.mark.parametrize("render_mode,channels", [("RGB", 3), ("D", 1), ("ED", 1), ("RGB+D", 4), ("RGB+ED", 4)])
 def test_render_modes(render_mode, channels):
     scene = random_scene(n=20, cams=2, width=16, height=12, seed=2)

@@ -246,11 +246,32 @@ def bin_gaussians(means2d: torch.Tensor, radii: torch.Tensor, depths: torch.Tens
                 ],
                 outputs=[_to_warp(keys, "int64"), _to_warp(ids, "int32")],
             )
-    keys, order = torch.sort(keys)
+    keys, order = _sort_per_camera(keys, write_offsets, n, device)
     num_tiles = cams * tiles_x * tiles_y
     tile_of_isect = keys >> 32
     tile_offsets = torch.searchsorted(tile_of_isect, torch.arange(num_tiles + 1, device=device)).to(torch.int32)
     return TileBins(tile_size, tiles_x, tiles_y, tile_offsets, ids[order].contiguous())
+
+
+def _sort_per_camera(keys: torch.Tensor, write_offsets: torch.Tensor, n: int, device: torch.device,
+                     min_parallel_keys: int = 65536):
+    """torch.sort of the intersection keys. Keys are emitted camera by camera and every key of camera c sorts
+    before those of camera c + 1, so on the CPU the cameras' segments are sorted in parallel host threads (torch
+    releases the GIL) and simply concatenated."""
+    cams = len(write_offsets) // max(n, 1)
+    if device.type == "cuda" or cams < 2 or len(keys) < min_parallel_keys:
+        return torch.sort(keys)
+    starts = write_offsets[::n].tolist() + [len(keys)]
+    segments = [(a, b) for a, b in zip(starts[:-1], starts[1:])]
+
+    def sort_segment(bounds):
+        a, b = bounds
+        values, order = torch.sort(keys[a:b])
+        return values, order + a
+
+    with ThreadPoolExecutor(max_workers=min(cams, _default_cpu_threads())) as pool:
+        parts = list(pool.map(sort_segment, segments))
+    return torch.cat([p[0] for p in parts]), torch.cat([p[1] for p in parts])
 
 
 def _default_cpu_threads() -> int:
@@ -258,9 +279,13 @@ def _default_cpu_threads() -> int:
 
 
 def _pixel_ranges(num_tiles: int, pixels_per_tile: int, num_chunks: int) -> list[tuple[int, int]]:
-    """Split the tile-major pixel index space into `num_chunks` tile-aligned [start, stop) ranges."""
-    bounds = torch.linspace(0, num_tiles, num_chunks + 1).round().long().tolist()
-    return [(a * pixels_per_tile, b * pixels_per_tile) for a, b in zip(bounds[:-1], bounds[1:]) if b > a]
+    """Split the tile-major pixel index space into tile-aligned [start, stop) ranges: the first tile alone (it
+    runs before the threads start, see `_for_each_worker`), then `num_chunks` ranges over the rest."""
+    if num_tiles == 0:
+        return []
+    bounds = torch.linspace(1, num_tiles, num_chunks + 1).round().long().tolist()
+    tiles = [(0, 1)] + [(a, b) for a, b in zip(bounds[:-1], bounds[1:]) if b > a]
+    return [(a * pixels_per_tile, b * pixels_per_tile) for a, b in tiles]
 
 
 def _for_each_worker(work, ranges: list[tuple[int, int]], workers: int) -> None:
