@@ -26,6 +26,9 @@ def train(
     iters: Optional[int] = typer.Option(None, "--iters", help="Total iterations (default: the preset's)."),
     rounds: Optional[int] = typer.Option(None, "--rounds", help="Re-initialization rounds (default: the preset's)."),
     init: Optional[str] = typer.Option(None, "--init", help="Initial Gaussians: hull, sfm or random."),
+    depth_loss: Optional[str] = typer.Option(None, "--depth-loss", help="Depth prior: mad (default) or pearson."),
+    blur_px: Optional[float] = typer.Option(None, "--blur-px", help="Coarse-to-fine: initial blur sigma in pixels."),
+    blur_until: Optional[int] = typer.Option(None, "--blur-until", help="Coarse-to-fine: round iteration where blur ends."),
     pose_opt_start: Optional[int] = typer.Option(None, "--pose-opt-start", help="First iteration with pose updates."),
     rot_noise_deg: float = typer.Option(0.0, "--rot-noise-deg", help="Injected rotation noise, std in degrees."),
     trans_noise: float = typer.Option(0.0, "--trans-noise", help="Injected camera-centre noise, std (orbit radius 4)."),
@@ -46,7 +49,8 @@ def train(
     if resume and out is None:
         raise WarpbagsError("--resume needs --out (the run folder to continue)")
     config = load_preset(
-        preset, views=views, iters=iters, rounds=rounds, init=init, pose_opt_start=pose_opt_start,
+        preset, views=views, iters=iters, rounds=rounds, init=init, depth_loss=depth_loss, blur_sigma_px=blur_px,
+        blur_until=blur_until, pose_opt_start=pose_opt_start,
         rot_noise_deg=rot_noise_deg, trans_noise=trans_noise, pose_opt=not no_pose_opt, fix_first_camera=not free_gauge, seed=seed,
         noise_seed=seed if noise_seed is None else noise_seed, resolution=resolution, max_image_size=max_image_size,
     )

@@ -58,6 +58,9 @@ class DensifyConfig:
         prune_scale: Gaussians whose largest scale exceeds this fraction of the scene extent are removed.
         opacity_reset_every: every this many iterations opacities are clamped to 0.01 (0 = never).
         max_gaussians: no cloning/splitting beyond this count (0 = unlimited).
+        floater_every: every this many iterations, Gaussians far from their K = sqrt(N) nearest neighbours are
+            removed (GaussianObject's floater removal; 0 = never).
+        floater_std_ratio: "far" = mean neighbour distance above average + this many standard deviations.
     """
 
     start: int = 500
@@ -69,6 +72,8 @@ class DensifyConfig:
     prune_scale: float = 0.1
     opacity_reset_every: int = 1000
     max_gaussians: int = 0
+    floater_every: int = 500
+    floater_std_ratio: float = 3.0
 
 
 @dataclass(frozen=True)
@@ -106,6 +111,7 @@ class TrainConfig:
             (0 = off; measured 2.74 -> 2.60 deg on the 4-view synthetic scene at 10 deg, so off by default).
         lambda_dssim, lambda_mask, lambda_depth: loss weights (photometric weight is 1 - lambda_depth while
             the depth term is active).
+        depth_loss: "mad" (GaussianObject's median/MAD-normalized disparity L1) or "pearson" (1 - correlation).
         checkpoint_every: checkpoint interval in iterations.
         pose_alignment: alignment used for the logged pose error ("procrustes", "pairwise").
         render_threads: host threads for CPU rendering (0 = the renderer's default: all cores).
@@ -139,6 +145,7 @@ class TrainConfig:
     lambda_dssim: float = 0.2
     lambda_mask: float = 0.01
     lambda_depth: float = 0.05
+    depth_loss: Literal["mad", "pearson"] = "mad"
     checkpoint_every: int = 500
     pose_alignment: Literal["procrustes", "pairwise"] = "procrustes"
     render_threads: int = 0
@@ -167,7 +174,10 @@ class TrainConfig:
             (self.init in ("hull", "sfm", "random"), f"--init must be hull, sfm or random, got {self.init!r}"),
             (self.init_points >= 1, f"init_points must be >= 1, got {self.init_points}"),
             (self.checkpoint_every >= 1, f"checkpoint_every must be >= 1, got {self.checkpoint_every}"),
+            (self.blur_sigma_px >= 0, f"--blur-px must be >= 0, got {self.blur_sigma_px}"),
+            (self.blur_until >= 0, f"--blur-until must be >= 0, got {self.blur_until}"),
             (0 <= self.lambda_depth < 1, f"lambda_depth must be in [0, 1), got {self.lambda_depth}"),
+            (self.depth_loss in ("mad", "pearson"), f"--depth-loss must be mad or pearson, got {self.depth_loss!r}"),
             (self.pose_alignment in ("procrustes", "pairwise"), f"pose_alignment: {self.pose_alignment!r}"),
         ]
         for ok, message in checks:
@@ -226,7 +236,8 @@ def quick() -> TrainConfig:
         hull_dilation_px=2,
         lr=LearningRates(means_init=1.6e-3, means_final=1.6e-5, pose=1e-2, pose_final=1e-3,
                          pose_translation_scale=0.1),
-        densify=DensifyConfig(start=100, stop=201, every=50, opacity_reset_every=0, max_gaussians=6000),
+        densify=DensifyConfig(start=100, stop=201, every=50, opacity_reset_every=0, max_gaussians=6000,
+                              floater_every=0),
     )
 
 

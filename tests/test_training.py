@@ -48,13 +48,14 @@ def test_ssim_identical_is_one_and_differentiable():
     torch.autograd.gradcheck(lambda x: ssim(x, small), (images[:1, :12, :12].detach().requires_grad_(),))
 
 
-def test_depth_loss_is_scale_and_shift_invariant_in_disparity():
+@pytest.mark.parametrize("mode", ["mad", "pearson"])
+def test_depth_loss_is_scale_and_shift_invariant_in_disparity(mode):
     depth = 1.0 + torch.rand(1, 16, 16)
     alphas = torch.ones(1, 16, 16)
     target = 1.0 / (3.0 / depth + 0.5)  # disparity scaled by 3 and shifted by 0.5
-    assert depth_loss(depth, alphas, target, None).item() == pytest.approx(0.0, abs=1e-5)
-    assert depth_loss(depth, alphas, 1.0 + torch.rand(1, 16, 16), None).item() > 0.1
-    assert depth_loss(depth, torch.zeros(1, 16, 16), target, None) is None
+    assert depth_loss(depth, alphas, target, None, mode=mode).item() == pytest.approx(0.0, abs=1e-5)
+    assert depth_loss(depth, alphas, 1.0 + torch.rand(1, 16, 16), None, mode=mode).item() > 0.1
+    assert depth_loss(depth, torch.zeros(1, 16, 16), target, None, mode=mode) is None
 
 
 def test_replace_rows_carries_adam_state():
@@ -67,6 +68,22 @@ def test_replace_rows_carries_adam_state():
     state = optimizer.state[params["a"]]
     assert params["a"].shape == (5, 1) and optimizer.param_groups[0]["params"][0] is params["a"]
     assert torch.equal(state["exp_avg"][:3], moments[[0, 2, 3]]) and torch.all(state["exp_avg"][3:] == 0)
+
+
+def test_floater_removal_drops_an_isolated_gaussian():
+    from warpbags.configs.train import DensifyConfig
+    from warpbags.strategy import DensifyStrategy
+
+    g = torch.Generator().manual_seed(0)
+    means = torch.randn(400, 3, generator=g) * 0.2
+    means[7] = torch.tensor([5.0, 5.0, 5.0])  # far from everything
+    params = {"means": torch.nn.Parameter(means), "opacities": torch.nn.Parameter(torch.zeros(400))}
+    optimizer = torch.optim.Adam([{"params": [p], "name": n} for n, p in params.items()])
+    strategy = DensifyStrategy(DensifyConfig(floater_every=10, opacity_reset_every=0), scene_extent=1.0)
+    report = strategy.step(10, params, optimizer, g)
+    assert report["floaters"] >= 1 and len(params["means"]) == 400 - report["floaters"]
+    assert not torch.any((params["means"] == torch.tensor([5.0, 5.0, 5.0])).all(1))
+    assert report["floaters"] <= 4  # a Gaussian cloud is not eroded
 
 
 # ------------------------------------------------------------------------------------------------ trainer
@@ -202,6 +219,8 @@ def test_cli_smoke_writes_run_files(scene_dir, tmp_path):
         (["--rot-noise-deg", "-1"], "--rot-noise-deg must be >= 0"),
         (["--preset", "fast"], "--preset must be one of"),
         (["--init", "mesh"], "--init must be hull, sfm or random"),
+        (["--depth-loss", "l2"], "--depth-loss must be mad or pearson"),
+        (["--blur-px", "-2"], "--blur-px must be >= 0"),
         (["--rounds", "0"], "--rounds must be in [1, iters]"),
         (["--device", "tpu"], "--device must be cpu or cuda"),
         (["--resume"], "--resume: no checkpoint"),

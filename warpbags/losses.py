@@ -76,20 +76,25 @@ def _normalized(values: torch.Tensor) -> torch.Tensor:
 
 
 def depth_loss(
-    depths: torch.Tensor, alphas: torch.Tensor, target_depths: torch.Tensor, masks: torch.Tensor | None
+    depths: torch.Tensor, alphas: torch.Tensor, target_depths: torch.Tensor, masks: torch.Tensor | None,
+    mode: str = "mad",
 ) -> torch.Tensor | None:
-    """GaussianObject's default monocular-depth term: L1 between median/MAD-normalized disparities.
+    """GaussianObject's monocular-depth term on disparities, invariant to their scale and shift.
 
-    Compared per view inside ``mask & alpha > 0.5 & target > 0``, so the target may be metric or relative
-    (any positive scale and shift of disparity gives the same loss).
+    mode "mad" (GaussianObject's default): L1 between median/MAD-normalized disparities; "pearson":
+    1 - Pearson correlation of the disparities. Compared per view inside ``mask & alpha > 0.5 & target > 0``, so
+    the target may be metric or relative (any positive scale and shift of disparity gives the same loss).
 
     Args:
         depths: [B, H, W] rendered expected depth. alphas: [B, H, W] rendered opacity.
         target_depths: [B, H, W] depth maps (0 = no value). masks: [B, H, W] object masks, or None.
+        mode: "mad" or "pearson".
 
     Returns:
         [] mean over views with at least 16 valid pixels, or None when no view has enough.
     """
+    if mode not in ("mad", "pearson"):
+        raise ValueError(f"depth loss mode must be mad or pearson, got {mode!r}")
     losses = []
     for index in range(len(depths)):
         valid = (alphas[index] > 0.5) & (target_depths[index] > 0) & (depths[index] > 1e-6)
@@ -97,7 +102,11 @@ def depth_loss(
             valid &= masks[index] > 0.5
         if int(valid.sum()) < 16:
             continue
-        rendered = _normalized(1.0 / depths[index][valid])
-        target = _normalized(1.0 / target_depths[index][valid])
-        losses.append((rendered - target).abs().mean())
+        rendered, target = 1.0 / depths[index][valid], 1.0 / target_depths[index][valid]
+        if mode == "mad":
+            losses.append((_normalized(rendered) - _normalized(target)).abs().mean())
+        else:
+            rendered, target = rendered - rendered.mean(), target - target.mean()
+            correlation = (rendered * target).sum() / (rendered.norm() * target.norm()).clamp_min(1e-12)
+            losses.append(1.0 - correlation)
     return torch.stack(losses).mean() if losses else None

@@ -114,6 +114,10 @@ class DensifyStrategy:
         if config.start <= iteration < config.stop and iteration % config.every == 0 and self.grad_sum is not None:
             report = self._densify_and_prune(params, optimizer, generator)
             self._reset_stats(len(params["means"]), params["means"].device)
+        if config.floater_every and iteration % config.floater_every == 0:
+            removed = self._remove_floaters(params, optimizer)
+            if removed:
+                report["floaters"] = removed
         if config.opacity_reset_every and iteration % config.opacity_reset_every == 0 and iteration < config.stop:
             self._reset_opacities(params, optimizer)
             report["opacity_reset"] = 1
@@ -154,6 +158,23 @@ class DensifyStrategy:
             prune[opacities.argmax()] = False
         replace_rows(params, optimizer, ~prune)
         return {"cloned": int(clone.sum()), "split": int(split.sum()), "pruned": int(prune.sum())}
+
+    def _remove_floaters(self, params, optimizer) -> int:
+        """Remove statistical outliers: Gaussians whose mean distance to their K = sqrt(N) nearest neighbours is
+        more than `floater_std_ratio` standard deviations above the average (GaussianObject's kNN floater
+        removal, with Open3D's outlier rule). Returns how many were removed."""
+        means = params["means"].detach()
+        count = len(means)
+        k = int(math.isqrt(count))
+        if k < 2:
+            return 0
+        mean_distance = torch.cat([
+            torch.cdist(chunk, means).topk(k + 1, largest=False).values[:, 1:].mean(1) for chunk in means.split(2048)
+        ])
+        floaters = mean_distance > mean_distance.mean() + self.config.floater_std_ratio * mean_distance.std()
+        if floaters.any():
+            replace_rows(params, optimizer, ~floaters)
+        return int(floaters.sum())
 
     def _reset_opacities(self, params, optimizer) -> None:
         """Clamp opacities to at most 0.01 and zero their Adam moments (3DGS's `reset_opacity`)."""

@@ -245,7 +245,8 @@ class Trainer:
             loss = loss + config.lambda_mask * mask_term
             terms["mask"] = mask_term.item()
         if self.depths is not None and self.round_iteration < config.depth_until and config.lambda_depth > 0:
-            depth_term = depth_loss(depths, alphas, self.depths[views], None if self.masks is None else self.masks[views])
+            depth_term = depth_loss(depths, alphas, self.depths[views], None if self.masks is None else self.masks[views],
+                                    mode=config.depth_loss)
             if depth_term is not None:
                 loss = loss + config.lambda_depth * depth_term - config.lambda_depth * photometric
                 terms["depth"] = depth_term.item()
