@@ -1,4 +1,4 @@
-"""`warpbags eval` and `warpbags export`: metrics, pose accuracy and export of a finished run."""
+"""`warpbags eval`, `render` and `export`: metrics, pose accuracy, novel views and export of a finished run."""
 
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ from rich.console import Console
 from rich.table import Table
 
 from warpbags.cli.main import app, clean_errors
-from warpbags.evaluation import evaluate_run, export_run, latest_run
+from warpbags.evaluation import evaluate_run, export_run, latest_run, render_turntable
 
 stdout = Console(highlight=False)
 
@@ -67,3 +67,15 @@ def export(
     """Write the Gaussians (standard 3DGS PLY) and final poses in the input scene's frame."""
     folder = export_run(run_dir or latest_run(), out)
     stdout.print(f"wrote {folder / 'gaussians.ply'} and {folder / 'poses_final.npy'} (input scene frame)")
+
+
+@app.command("render")
+@clean_errors
+def render(
+    run_dir: Optional[Path] = typer.Argument(None, help="Run folder (default: the newest under runs/)."),
+    frames: int = typer.Option(36, "--frames", help="Views on the orbit."),
+    video: bool = typer.Option(True, "--video/--no-video", help="Also write RUN_DIR/turntable.mp4."),
+) -> None:
+    """Render a turntable of novel views around the object (PNG frames, and an MP4 through OpenCV)."""
+    folder = render_turntable(run_dir or latest_run(), frames=frames, video=video)
+    stdout.print(f"wrote {frames} frames to {folder}" + (f" and {folder.parent / 'turntable.mp4'}" if video else ""))

@@ -99,6 +99,35 @@ def test_export_is_in_the_source_frame(finished_run, tmp_path):
     np.testing.assert_allclose(cam_src * scale, cam_norm, atol=1e-4)
 
 
+def test_turntable_frames_and_video(finished_run):
+    result = runner.invoke(app, ["render", str(finished_run), "--frames", "6"])
+    assert result.exit_code == 0, result.output
+    frames = sorted((finished_run / "turntable").glob("frame_*.png"))
+    assert len(frames) == 6 and (finished_run / "turntable.mp4").stat().st_size > 1000
+    import cv2
+
+    first = cv2.imread(str(frames[0]))
+    assert first.shape[:2] == (64, 64) and first.min() < 200  # the object is in view, not just white background
+    capture = cv2.VideoCapture(str(finished_run / "turntable.mp4"))
+    assert int(capture.get(cv2.CAP_PROP_FRAME_COUNT)) == 6
+
+
+def test_turntable_orbits_about_the_up_axis():
+    from warpbags.pose import camera_centers, turntable_viewmats
+    from conftest import look_at
+
+    eye = torch.tensor([4.0, 0.0, 1.0], dtype=torch.float64)
+    # training cameras around the object at one height: their tilts cancel and the mean up is world z
+    eyes = [eye, torch.tensor([0.0, 4.0, 1.0]), torch.tensor([-4.0, 0.0, 1.0]), torch.tensor([0.0, -4.0, 1.0])]
+    viewmats = torch.stack([look_at(e.double(), torch.zeros(3, dtype=torch.float64)) for e in eyes])
+    orbit = turntable_viewmats(viewmats, 4)
+    centers = camera_centers(orbit)
+    torch.testing.assert_close(centers[0], eye)
+    torch.testing.assert_close(centers.norm(dim=1), torch.full((4,), eye.norm().item(), dtype=torch.float64))
+    torch.testing.assert_close(centers[:, 2], torch.full((4,), 1.0, dtype=torch.float64))  # same height (z up)
+    torch.testing.assert_close(centers[2, :2], -eye[:2])  # half a turn later: the opposite side
+
+
 def test_eval_of_a_folder_that_is_not_a_run_is_one_line(tmp_path):
     result = runner.invoke(app, ["eval", str(tmp_path)])
     assert result.exit_code == 2

@@ -31,7 +31,7 @@ from warpbags.data import ORBIT_RADIUS, Scene, SceneNormalization, load_scene
 from warpbags.errors import WarpbagsError
 from warpbags.gaussians import read_ply, render_gaussians, sh_degree_of, to_source_frame, write_ply
 from warpbags.losses import photometric_loss
-from warpbags.pose import align_viewmats, apply_pose_deltas, pose_errors
+from warpbags.pose import align_viewmats, apply_pose_deltas, pose_errors, turntable_viewmats
 
 ALIGNMENTS = ("procrustes", "pairwise")
 
@@ -276,4 +276,36 @@ def export_run(path: str | Path, out: str | Path | None = None) -> Path:
     temporary = out / "poses_final.tmp.npy"
     np.save(temporary, poses.numpy())
     temporary.replace(out / "poses_final.npy")
+    return out
+
+
+def render_turntable(path: str | Path, frames: int = 36, video: bool = True) -> Path:
+    """Novel views on a full orbit of the object: `<run>/turntable/frame_XXX.png` and, with `video`,
+    `<run>/turntable.mp4` (OpenCV, mp4v, 12 fps). The orbit starts at training camera 0 and turns about the
+    training cameras' mean up axis through the object centre. Returns the frame folder."""
+    if frames < 1:
+        raise WarpbagsError(f"--frames must be >= 1, got {frames}")
+    torch.set_num_threads(1)
+    run = load_run(path)
+    width, height = run.info["width"], run.info["height"]
+    if not (run.path / "intrinsics.npy").is_file():
+        raise WarpbagsError(f"{run.path / 'intrinsics.npy'} is missing: written by an older warpbags")
+    camera_0 = torch.from_numpy(np.load(run.path / "intrinsics.npy"))[0].float()
+    viewmats = turntable_viewmats(run.poses_final, frames).float()
+    Ks = camera_0.expand(frames, 3, 3).contiguous()
+    out = run.path / "turntable"
+    out.mkdir(exist_ok=True)
+    with torch.no_grad():
+        images, _, _ = render_gaussians(run.params, viewmats, Ks, width, height, sh_degree=sh_degree_of(run.params),
+                                        backgrounds=torch.ones(frames, 3))
+    pixels = (images.clamp(0, 1).numpy() * 255 + 0.5).astype(np.uint8)
+    for index, image in enumerate(pixels):
+        cv2.imwrite(str(out / f"frame_{index:03d}.png"), cv2.cvtColor(image, cv2.COLOR_RGB2BGR))
+    if video:
+        temporary = run.path / "turntable.tmp.mp4"
+        writer = cv2.VideoWriter(str(temporary), cv2.VideoWriter_fourcc(*"mp4v"), 12, (width, height))
+        for image in pixels:
+            writer.write(cv2.cvtColor(image, cv2.COLOR_RGB2BGR))
+        writer.release()
+        temporary.replace(run.path / "turntable.mp4")
     return out

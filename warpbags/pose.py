@@ -548,3 +548,28 @@ def pose_errors(
         "translation_error_median": torch.quantile(translation_errors, 0.5).item(),
         "sim3": sim3,
     }
+
+
+def turntable_viewmats(viewmats: torch.Tensor, frames: int, center: torch.Tensor | None = None) -> torch.Tensor:
+    """A turntable of `frames` cameras: camera 0 of `viewmats` orbited about the cameras' mean up axis.
+
+    The up axis is the mean of the cameras' "up" directions (-y of OpenCV axes, in world coordinates); the
+    rotation is about the line through `center` (default: the origin, the object centre of a normalized scene).
+
+    Args:
+        viewmats: [C, 4, 4] world-to-camera matrices (e.g. the training cameras).
+        frames: number of views, evenly spaced over 360 degrees.
+        center: [3] point the orbit turns about.
+
+    Returns:
+        [frames, 4, 4] world-to-camera matrices; frame 0 is camera 0.
+    """
+    up = -viewmats[:, 1, :3].mean(0)  # rows of R are the camera axes in world coordinates
+    up = up / up.norm().clamp_min(1e-12)
+    center = torch.zeros(3, dtype=viewmats.dtype, device=viewmats.device) if center is None else center
+    angles = torch.arange(frames, dtype=viewmats.dtype, device=viewmats.device) * (2 * math.pi / frames)
+    world_turn = so3_exp(angles[:, None] * up)  # [F, 3, 3] turns the world; the camera orbits the other way
+    to_center = torch.eye(4, dtype=viewmats.dtype, device=viewmats.device).repeat(frames, 1, 1)
+    to_center[:, :3, :3] = world_turn
+    to_center[:, :3, 3] = center - world_turn @ center
+    return viewmats[0] @ to_center

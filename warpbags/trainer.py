@@ -6,6 +6,7 @@ Run folder layout (`out_dir`):
     config.json        the resolved TrainConfig plus scene/view information
     poses_true.npy     [C,4,4] world-to-camera poses of the training views (normalized scene world)
     poses_init.npy     [C,4,4] the (noisy) poses training starts from
+    intrinsics.npy     [C,3,3] the training views' intrinsics at the training resolution
     log.jsonl          one JSON object per iteration
     checkpoints/       checkpoint_XXXXXX.pt, written atomically (temp file + os.replace); the newest 3 kept
     gaussians.ply      final Gaussians, standard 3DGS PLY layout
@@ -354,6 +355,7 @@ class Trainer:
         (self.out_dir / "config.json").write_text(json.dumps(info, indent=2))
         np.save(self.out_dir / "poses_true.npy", self.viewmats_true.cpu().numpy())
         np.save(self.out_dir / "poses_init.npy", self.viewmats_init.cpu().numpy())
+        np.save(self.out_dir / "intrinsics.npy", self.Ks.cpu().numpy())
 
     def write_results(self) -> None:
         write_ply(self.out_dir / "gaussians.ply", self.params)
