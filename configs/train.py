@@ -217,7 +217,8 @@ def quick() -> TrainConfig:
     - poses optimized from the start with a 10x slower translation (rotation lr 1e-2 -> 1e-3, translation 1e-3
       -> 1e-4): one 600-iteration run then reaches 5.74 -> 0.99 deg (equal rates: 5.74 -> 2.74);
     - three rounds of 200 iterations, each re-carving the hull with the improved poses and starting fresh
-      Gaussians: 5.74 -> 3.13 -> 1.05 -> 0.37 deg.
+      Gaussians: 5.74 -> 3.13 -> 1.05 -> 0.37 deg in the first experiment; 5.74 -> 0.63 deg with this preset as
+      shipped (bench/pose_recovery.py synthetic-small --rot 10 --trans 0).
     Starting poses late (iteration 60, lr 3e-3) made them worse (7.9 -> 9.0 deg): the Gaussians absorb the
     misalignment first.
     """
