@@ -21,6 +21,14 @@ app = typer.Typer(
 console = Console(stderr=True)
 
 
+@app.callback()
+def configure() -> None:
+    """Bundle-Adjusting Gaussian Splatting with NVIDIA Warp kernels."""
+    import warp as wp  # noqa: PLC0415 - only the command line silences Warp; library users keep its defaults
+
+    wp.config.quiet = True  # no init banner or per-module load lines between the progress bars
+
+
 def clean_errors(command: Callable) -> Callable:
     """Turn a WarpbagsError into one red line on stderr and exit code 2, never a traceback."""
 
