@@ -1,4 +1,4 @@
-"""`warpbags eval`, `render` and `export`: metrics, pose accuracy, novel views and export of a finished run."""
+"""`warpbags eval`, `render`, `export` and `sweep`: metrics, pose accuracy, novel views, export, experiments."""
 
 from __future__ import annotations
 
@@ -10,7 +10,9 @@ from rich.console import Console
 from rich.table import Table
 
 from warpbags.cli.main import app, clean_errors
+from warpbags.errors import WarpbagsError
 from warpbags.evaluation import evaluate_run, export_run, latest_run, render_turntable
+from warpbags.sweep import SweepSpec, run_sweep
 
 stdout = Console(highlight=False)
 
@@ -79,3 +81,40 @@ def render(
     """Render a turntable of novel views around the object (PNG frames, and an MP4 through OpenCV)."""
     folder = render_turntable(run_dir or latest_run(), frames=frames, video=video)
     stdout.print(f"wrote {frames} frames to {folder}" + (f" and {folder.parent / 'turntable.mp4'}" if video else ""))
+
+
+def _numbers(text: str, kind=float) -> tuple:
+    try:
+        return tuple(kind(item) for item in text.split(",") if item.strip())
+    except ValueError:
+        raise WarpbagsError(f"expected comma-separated numbers, got {text!r}") from None
+
+
+@app.command("sweep")
+@clean_errors
+def sweep(
+    scene: str = typer.Argument(..., help="Preset name or scene folder."),
+    rot_noises: str = typer.Option("0,5,10,15,20,30", "--rot-noises", help="Rotation noise levels (deg std)."),
+    views: str = typer.Option("4,6,9", "--views", help="View counts."),
+    seeds: str = typer.Option("0", "--seeds", help="Seeds (noise and initialization)."),
+    trans_noise: float = typer.Option(0.0, "--trans-noise", help="Camera-centre noise std for every run."),
+    preset: str = typer.Option("quick", "--preset", help="Training preset for every run."),
+    iters: Optional[int] = typer.Option(None, "--iters", help="Iterations per run (default: the preset's)."),
+    out: Optional[Path] = typer.Option(None, "--out", help="Sweep folder (default runs/sweep-<scene>)."),
+    data_root: Optional[Path] = typer.Option(None, "--data-root", help="Folder holding datasets."),
+) -> None:
+    """BAGS vs the fixed-pose baseline over noise, views and seeds; resumable; sweep.csv/json and plots."""
+    overrides = (("iters", iters),) if iters is not None else ()
+    spec = SweepSpec(scene=scene, out=out or Path("runs") / f"sweep-{Path(scene).name}",
+                     rot_noises=_numbers(rot_noises), views=_numbers(views, int), seeds=_numbers(seeds, int),
+                     trans_noise=trans_noise, preset=preset, overrides=overrides)
+    rows = run_sweep(spec, data_root=data_root, log=stdout.print)
+    table = Table(title=f"sweep {scene}", title_justify="left")
+    for column in ("method", "views", "noise", "seed", "rot init", "rot final", "PSNR", "PSNR refined"):
+        table.add_column(column)
+    for r in rows:
+        table.add_row(r["method"], str(r["views"]), f"{r['rot_noise_deg']:g}", str(r["seed"]),
+                      f"{r['rot_err_initial']:.2f}", f"{r['rot_err_final']:.2f}", f"{r['psnr']:.2f}",
+                      f"{r['psnr_refined']:.2f}")
+    stdout.print(table)
+    stdout.print(f"wrote {spec.out / 'sweep.csv'}, {spec.out / 'sweep.json'} and plots in {spec.out}")

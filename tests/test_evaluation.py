@@ -140,3 +140,39 @@ def test_eval_of_an_unfinished_run_names_the_missing_file(finished_run, tmp_path
     (partial / "config.json").write_text((finished_run / "config.json").read_text())
     result = runner.invoke(app, ["eval", str(partial)])
     assert result.exit_code == 2 and "gaussians.ply is missing" in result.output
+
+
+def test_sweep_runs_every_combination_once_and_skips_finished_runs(finished_run, tmp_path):
+    from warpbags.sweep import SweepSpec, run_sweep
+
+    info = json.loads((finished_run / "config.json").read_text())
+    spec = SweepSpec(scene=info["scene_root"], out=tmp_path / "sweep", rot_noises=(0, 5), views=(4,), seeds=(0,),
+                     refine_iters=2, overrides=(("iters", 4),))
+    messages = []
+    rows = run_sweep(spec, log=messages.append)
+    assert len(rows) == 4 and {r["method"] for r in rows} == {"bags", "baseline"}
+    assert sum(m.startswith("train ") for m in messages) == 4
+    noisy = [r for r in rows if r["rot_noise_deg"] == 5]
+    assert all(r["rot_err_initial"] > 0.5 for r in noisy)
+    assert all(r["rot_err_final"] == pytest.approx(r["rot_err_initial"]) for r in noisy if r["method"] == "baseline")
+    for name in ("sweep.csv", "sweep.json", "psnr_vs_noise.png", "pose_error_vs_noise.png"):
+        assert (spec.out / name).stat().st_size > 100, name
+    assert (spec.out / "bags-4v-rot5-seed0" / "report.md").is_file()
+    messages.clear()
+    again = run_sweep(spec, log=messages.append)
+    assert messages == [f"skip {r['run']} (done)" for r in rows] and again == rows
+
+
+def test_report_has_the_metrics_and_pictures(finished_run):
+    assert runner.invoke(app, ["eval", str(finished_run), "--refine-iters", "0"]).exit_code == 0
+    report = (finished_run / "report.md").read_text()
+    assert "| procrustes | final |" in report and "PSNR" in report
+    assert "![loss and pose error](curves.png)" in report and (finished_run / "curves.png").stat().st_size > 1000
+    assert "eval/" in report
+
+
+def test_sweep_bad_values_one_line(tmp_path):
+    result = runner.invoke(app, ["sweep", str(tmp_path), "--rot-noises", "a,b"])
+    assert result.exit_code == 2 and "comma-separated numbers" in result.output
+    result = runner.invoke(app, ["sweep", "maryrose", "--views", "5", "--out", str(tmp_path / "s")])
+    assert result.exit_code == 2 and "--views must be 4, 6 or 9" in result.output

@@ -31,6 +31,7 @@ from warpbags.data import ORBIT_RADIUS, Scene, SceneNormalization, load_scene
 from warpbags.errors import WarpbagsError
 from warpbags.gaussians import read_ply, render_gaussians, sh_degree_of, to_source_frame, write_ply
 from warpbags.losses import photometric_loss
+from warpbags.report import write_run_report
 from warpbags.pose import align_viewmats, apply_pose_deltas, pose_errors, turntable_viewmats
 
 ALIGNMENTS = ("procrustes", "pairwise")
@@ -191,7 +192,7 @@ def _save_comparison(path: Path, target: torch.Tensor, image: torch.Tensor) -> N
 
 def evaluate_run(path: str | Path, *, alignment: str = "procrustes", refine_iters: int = 100,
                  log=print) -> dict:
-    """Evaluate a run folder; writes eval.json and eval/<view>.png (truth | render | error) into it.
+    """Evaluate a run folder; writes eval.json, eval/<view>.png (truth | render | error) and report.md into it.
 
     Args:
         path: the run folder.
@@ -250,6 +251,7 @@ def evaluate_run(path: str | Path, *, alignment: str = "procrustes", refine_iter
     temporary = run.path / "eval.json.tmp"
     temporary.write_text(json.dumps(result, indent=2, default=_json_default))
     temporary.replace(run.path / "eval.json")
+    write_run_report(run.path, result)
     return result
 
 

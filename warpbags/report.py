@@ -1,0 +1,114 @@
+"""Pictures and a Markdown report for a run (next to its eval.json), and the plots of a sweep.
+
+Plots use matplotlib's Agg backend (files only, no display).
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import cv2
+import matplotlib
+import numpy as np
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+
+
+def read_log(run_dir: Path) -> list[dict]:
+    """The per-iteration records of a run's log.jsonl."""
+    path = Path(run_dir) / "log.jsonl"
+    return [json.loads(line) for line in path.read_text().splitlines() if line.strip()] if path.is_file() else []
+
+
+def plot_training_curves(records: list[dict], path: Path) -> None:
+    """Total loss and pose errors over iterations (the report's Figs. 6 and 7 for one run)."""
+    iters = [r["iter"] for r in records]
+    figure, (loss_axis, pose_axis) = plt.subplots(1, 2, figsize=(10, 3.6))
+    loss_axis.plot(iters, [r["loss"] for r in records])
+    loss_axis.set(xlabel="iteration", ylabel="total loss", yscale="log", title="loss")
+    pose_axis.plot(iters, [r["rot_err_deg"] for r in records], label="rotation (deg)")
+    twin = pose_axis.twinx()
+    twin.plot(iters, [r["trans_err"] for r in records], color="tab:orange", label="translation")
+    pose_axis.set(xlabel="iteration", ylabel="rotation error (deg)", title="pose error (Procrustes-aligned)")
+    twin.set_ylabel("translation error")
+    figure.tight_layout()
+    figure.savefig(path, dpi=110)
+    plt.close(figure)
+
+
+def image_strip(paths: list[Path], out: Path, height: int = 128) -> None:
+    """Images side by side, each scaled to `height` pixels."""
+    images = []
+    for path in paths:
+        image = cv2.imread(str(path))
+        images.append(cv2.resize(image, (round(image.shape[1] * height / image.shape[0]), height),
+                                 interpolation=cv2.INTER_AREA))
+    cv2.imwrite(str(out), np.concatenate(images, axis=1))
+
+
+def write_run_report(run_dir: Path, result: dict) -> Path:
+    """report.md: the metrics table, training curves, held-out comparisons and (if rendered) a turntable strip."""
+    run_dir = Path(run_dir)
+    records = read_log(run_dir)
+    lines = [f"# {result['scene']}: {result['views']} views", "", f"Run folder: `{run_dir}`", ""]
+    lines += ["## Camera poses (training views)", "",
+              "| alignment | stage | rotation mean (deg) | rotation median (deg) | translation mean | % of orbit |",
+              "|---|---|---|---|---|---|"]
+    for name, entry in result["poses"].items():
+        for stage in ("initial", "final"):
+            e = entry[stage]
+            lines.append(f"| {name} | {stage} | {e['rotation_deg_mean']:.3f} | {e['rotation_deg_median']:.3f} | "
+                         f"{e['translation_mean']:.4f} | {e['translation_percent_of_orbit']:.2f} |")
+    lines += ["", f"## Held-out views ({result['test_views']}, test cameras aligned by {result['alignment']})", "",
+              "| test poses | PSNR | SSIM | LPIPS |", "|---|---|---|---|"]
+    rows = [("aligned", result["images"])]
+    if "images_after_test_pose_refinement" in result:
+        refined = result["images_after_test_pose_refinement"]
+        rows.append((f"+ {refined['iters']} refinement iterations", refined))
+    for label, metrics in rows:
+        mean = metrics["mean"]
+        lpips = "n/a" if mean["lpips"] is None else f"{mean['lpips']:.4f}"
+        lines.append(f"| {label} | {mean['psnr']:.2f} | {mean['ssim']:.4f} | {lpips} |")
+    if result.get("lpips_unavailable"):
+        lines += ["", f"LPIPS unavailable: {result['lpips_unavailable']}"]
+    if records:
+        plot_training_curves(records, run_dir / "curves.png")
+        lines += ["", "## Training", "", "![loss and pose error](curves.png)"]
+    comparisons = sorted((run_dir / "eval").glob("*.png"))
+    if comparisons:
+        lines += ["", "## Held-out views: truth | render | 4x error", ""]
+        lines += [f"![{path.stem}](eval/{path.name})" for path in comparisons]
+    frames = sorted((run_dir / "turntable").glob("frame_*.png"))
+    if frames:
+        picks = frames[:: max(1, len(frames) // 6)][:6]
+        image_strip(picks, run_dir / "turntable_strip.png")
+        lines += ["", "## Novel views (turntable)", "", "![turntable](turntable_strip.png)"]
+    path = run_dir / "report.md"
+    temporary = run_dir / "report.md.tmp"
+    temporary.write_text("\n".join(lines) + "\n")
+    temporary.replace(path)
+    return path
+
+
+def plot_sweep(rows: list[dict], out_dir: Path) -> list[Path]:
+    """PSNR against rotation noise for BAGS and the fixed-pose baseline, one line per view count (Fig. 5), and
+    final rotation error against noise."""
+    written = []
+    for key, ylabel, name in (("psnr", "held-out PSNR (dB)", "psnr_vs_noise.png"),
+                              ("rot_err_final", "final rotation error (deg)", "pose_error_vs_noise.png")):
+        figure, axis = plt.subplots(figsize=(5.5, 3.8))
+        for method, style in (("bags", "-o"), ("baseline", "--s")):
+            for views in sorted({r["views"] for r in rows}):
+                selected = [r for r in rows if r["method"] == method and r["views"] == views]
+                noises = sorted({r["rot_noise_deg"] for r in selected})
+                means = [np.mean([r[key] for r in selected if r["rot_noise_deg"] == n]) for n in noises]
+                axis.plot(noises, means, style, label=f"{method}, {views} views")
+        axis.set(xlabel="rotation noise (deg)", ylabel=ylabel)
+        axis.legend(fontsize=8)
+        figure.tight_layout()
+        figure.savefig(out_dir / name, dpi=110)
+        plt.close(figure)
+        written.append(out_dir / name)
+    return written
