@@ -155,7 +155,7 @@ def test_sweep_runs_every_combination_once_and_skips_finished_runs(finished_run,
     noisy = [r for r in rows if r["rot_noise_deg"] == 5]
     assert all(r["rot_err_initial"] > 0.5 for r in noisy)
     assert all(r["rot_err_final"] == pytest.approx(r["rot_err_initial"]) for r in noisy if r["method"] == "baseline")
-    for name in ("sweep.csv", "sweep.json", "psnr_vs_noise.png", "pose_error_vs_noise.png"):
+    for name in ("sweep.csv", "sweep.json", "psnr_vs_noise.png", "pose_error_vs_noise.png", "curves.png"):
         assert (spec.out / name).stat().st_size > 100, name
     assert (spec.out / "bags-4v-rot5-seed0" / "report.md").is_file()
     messages.clear()

@@ -93,9 +93,27 @@ def write_run_report(run_dir: Path, result: dict) -> Path:
 
 
 def plot_sweep(rows: list[dict], out_dir: Path) -> list[Path]:
-    """PSNR against rotation noise for BAGS and the fixed-pose baseline, one line per view count (Fig. 5), and
-    final rotation error against noise."""
+    """The report's figures for a sweep: PSNR against rotation noise for BAGS and the fixed-pose baseline (Fig. 5),
+    final rotation error against noise, and per-run curves over iterations of the total loss (Fig. 6) and of the
+    rotation error (Fig. 7), read from each run's log.jsonl."""
     written = []
+    figure, (loss_axis, pose_axis) = plt.subplots(1, 2, figsize=(11, 3.8))
+    for row in rows:
+        records = read_log(out_dir / row["run"])
+        if not records:
+            continue
+        iters = [r["iter"] for r in records]
+        label = f"{row['method']}, {row['views']}v, {row['rot_noise_deg']:g} deg"
+        style = "-" if row["method"] == "bags" else "--"
+        loss_axis.plot(iters, [r["loss"] for r in records], style, label=label, linewidth=1)
+        pose_axis.plot(iters, [r["rot_err_deg"] for r in records], style, label=label, linewidth=1)
+    loss_axis.set(xlabel="iteration", ylabel="total loss", yscale="log", title="loss (Fig. 6)")
+    pose_axis.set(xlabel="iteration", ylabel="rotation error (deg)", title="pose error (Fig. 7)")
+    pose_axis.legend(fontsize=7)
+    figure.tight_layout()
+    figure.savefig(out_dir / "curves.png", dpi=110)
+    plt.close(figure)
+    written.append(out_dir / "curves.png")
     for key, ylabel, name in (("psnr", "held-out PSNR (dB)", "psnr_vs_noise.png"),
                               ("rot_err_final", "final rotation error (deg)", "pose_error_vs_noise.png")):
         figure, axis = plt.subplots(figsize=(5.5, 3.8))
