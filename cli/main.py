@@ -26,7 +26,7 @@ def configure() -> None:
     """Bundle-Adjusting Gaussian Splatting with NVIDIA Warp kernels."""
     import warp as wp  # noqa: PLC0415 - only the command line silences Warp; library users keep its defaults
 
-    wp.config.quiet = True  # no init banner or per-module load lines between the progress bars
+    wp.config.log_level = wp.LOG_WARNING  # no init banner or per-module load lines between the progress bars
 
 
 def clean_errors(command: Callable) -> Callable:
