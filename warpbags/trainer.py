@@ -270,6 +270,8 @@ class Trainer:
         started = time.perf_counter()
         if self.iteration > 0 and self.round_iteration == 0:
             self._start_round()
+            # Same optimizer object, moments cleared on purpose: the pose lr restarts with the round, and Adam's
+            # second moments from the converged end of the last round would turn its first steps into jumps.
             self.pose_optimizer.state.clear()
         self._set_learning_rates()
         views = self._views()
