@@ -86,7 +86,8 @@ class TrainConfig:
         iters: total iterations.
         rounds: the iterations are split into this many rounds; each round starts from fresh Gaussians (visual
             hull carved with the current poses) while the poses carry over, so Gaussians that absorbed pose
-            errors are discarded and the hull sharpens as the poses improve (1 = the paper's single run).
+            errors are discarded and the hull sharpens as the poses improve (1 = the paper's single run). Ignored
+            without pose optimization: the baseline trains one round with all the iterations.
         pose_opt: optimize per-camera pose deltas (False = GaussianObject's fixed-pose baseline).
         pose_opt_start: first iteration at which pose deltas are updated.
         fix_first_camera: gauge choice; keep camera 0's delta at zero (False = all free, rely on alignment).

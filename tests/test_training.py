@@ -135,10 +135,11 @@ def test_initializations(scene_dir, tmp_path, init, note):
     assert any(note in line for line in notes), notes
 
 
-def test_no_pose_opt_keeps_poses(scene_dir, tmp_path):
-    trainer = make_trainer(scene_dir, tmp_path, pose_opt=False, iters=12, rot_noise_deg=5.0)
+def test_no_pose_opt_keeps_poses_and_trains_one_round(scene_dir, tmp_path):
+    trainer = make_trainer(scene_dir, tmp_path, pose_opt=False, iters=12, rounds=3, rot_noise_deg=5.0)
     trainer.train()
     assert torch.all(trainer.pose_deltas == 0)
+    assert trainer.round_length == 12  # one round: no re-initialization throws the trained Gaussians away
 
 
 @pytest.mark.parametrize("rounds", [1, 2])

@@ -157,7 +157,10 @@ class Trainer:
 
     @property
     def round_length(self) -> int:
-        return math.ceil(self.config.iters / self.config.rounds)
+        # Rounds re-carve the hull with improved poses; with frozen poses (the baseline) they would only throw
+        # trained Gaussians away, so the baseline trains one round with the whole budget.
+        rounds = self.config.rounds if self.config.pose_opt else 1
+        return math.ceil(self.config.iters / rounds)
 
     @property
     def round_iteration(self) -> int:
