@@ -20,6 +20,18 @@ ALPHA_THRESHOLD = 1.0 / 255.0
 
 
 @wp.func
+def view_rotation_translation(viewmat: Any):
+    """(R [3,3], t [3]) of a world-to-camera matrix [R | t]."""
+    rot = wp.matrix(
+        viewmat[0, 0], viewmat[0, 1], viewmat[0, 2],
+        viewmat[1, 0], viewmat[1, 1], viewmat[1, 2],
+        viewmat[2, 0], viewmat[2, 1], viewmat[2, 2],
+        shape=(3, 3),
+    )
+    return rot, wp.vector(viewmat[0, 3], viewmat[1, 3], viewmat[2, 3])
+
+
+@wp.func
 def quat_to_rotmat(quat: Any):
     """Rotation matrix of a (w, x, y, z) quaternion, normalized here so any non-zero quaternion is valid."""
     q = wp.normalize(quat)
@@ -87,13 +99,8 @@ def project_gaussians_kernel(
     viewmat = viewmats[cam]
     mean = means[gid]
 
-    rot = wp.matrix(
-        viewmat[0, 0], viewmat[0, 1], viewmat[0, 2],
-        viewmat[1, 0], viewmat[1, 1], viewmat[1, 2],
-        viewmat[2, 0], viewmat[2, 1], viewmat[2, 2],
-        shape=(3, 3),
-    )
-    p_cam = rot @ mean + wp.vector(viewmat[0, 3], viewmat[1, 3], viewmat[2, 3])
+    rot, trans = view_rotation_translation(viewmat)
+    p_cam = rot @ mean + trans
     depth = p_cam[2]
     radii[cam, gid] = 0
     if depth < near_plane or depth > far_plane:

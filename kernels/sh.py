@@ -9,6 +9,8 @@ from typing import Any
 
 import warp as wp
 
+from warpbags.kernels.project import view_rotation_translation
+
 SH_C0 = 0.28209479177387814
 SH_C1 = 0.4886025119029199
 SH_C2_0 = 1.0925484305920792
@@ -28,13 +30,8 @@ SH_C3_6 = -0.5900435899266435
 @wp.func
 def camera_center(viewmat: Any):
     """-R^T t of a world-to-camera matrix."""
-    rot = wp.matrix(
-        viewmat[0, 0], viewmat[0, 1], viewmat[0, 2],
-        viewmat[1, 0], viewmat[1, 1], viewmat[1, 2],
-        viewmat[2, 0], viewmat[2, 1], viewmat[2, 2],
-        shape=(3, 3),
-    )
-    return -(wp.transpose(rot) @ wp.vector(viewmat[0, 3], viewmat[1, 3], viewmat[2, 3]))
+    rot, trans = view_rotation_translation(viewmat)
+    return -(wp.transpose(rot) @ trans)
 
 
 @wp.func
