@@ -13,7 +13,7 @@ import math
 import os
 from concurrent.futures import ThreadPoolExecutor
 from contextlib import ExitStack
-from typing import NamedTuple
+from typing import NamedTuple, Sequence
 
 import torch
 import warp as wp
@@ -310,6 +310,17 @@ def _for_each_worker(work, ranges: list[tuple[int, int]], workers: int) -> None:
         list(pool.map(run, range(workers)))
 
 
+# Per-Gaussian rasterizer inputs in kernel argument order (means2d, conics, colors, opacities, depths), flattened
+# over cameras; the backward kernel's gradient outputs come in the same order.
+_SPLAT_KINDS = ("vec2", "vec3", "vec3", "scalar", "scalar")
+
+
+def _splat_arguments(splats: Sequence[torch.Tensor], bins: TileBins, geometry: tuple) -> list:
+    """The arguments both rasterizer kernels start with: the splats, the tile bins and the image geometry."""
+    return [*(_to_warp(t, kind) for t, kind in zip(splats, _SPLAT_KINDS)), _to_warp(bins.tile_offsets, "int32"),
+            _to_warp(bins.isect_ids, "int32"), *geometry]
+
+
 class _RasterizeToPixels(torch.autograd.Function):
     """Forward and hand-written backward rasterization kernels; see kernels/rasterize.py."""
 
@@ -317,12 +328,12 @@ class _RasterizeToPixels(torch.autograd.Function):
     def forward(ctx, means2d, conics, colors, opacities, depths, bins: TileBins, width, height, cpu_threads):
         cams, n = depths.shape
         device, scalar = means2d.device, means2d.dtype
-        flat = dict(
-            means2d=means2d.detach().reshape(-1, 2).contiguous(),
-            conics=conics.detach().reshape(-1, 3).contiguous(),
-            colors=colors.detach().reshape(-1, 3).contiguous(),
-            opacities=opacities.detach().contiguous(),
-            depths=depths.detach().reshape(-1).contiguous(),
+        splats = (
+            means2d.detach().reshape(-1, 2).contiguous(),
+            conics.detach().reshape(-1, 3).contiguous(),
+            colors.detach().reshape(-1, 3).contiguous(),
+            opacities.detach().contiguous(),
+            depths.detach().reshape(-1).contiguous(),
         )
         pixels = cams * height * width
         out_colors = torch.zeros(cams, height, width, 3, dtype=scalar, device=device)
@@ -332,11 +343,7 @@ class _RasterizeToPixels(torch.autograd.Function):
         isect_end = torch.zeros(cams, height, width, dtype=torch.int32, device=device)
 
         ctx.geometry = (n, width, height, bins.tile_size, bins.tiles_x, bins.tiles_y)
-        common = [
-            _to_warp(flat["means2d"], "vec2"), _to_warp(flat["conics"], "vec3"), _to_warp(flat["colors"], "vec3"),
-            _to_warp(flat["opacities"], "scalar"), _to_warp(flat["depths"], "scalar"),
-            _to_warp(bins.tile_offsets, "int32"), _to_warp(bins.isect_ids, "int32"), *ctx.geometry,
-        ]
+        common = _splat_arguments(splats, bins, ctx.geometry)
         outputs = [
             _to_warp(out_colors.view(pixels, 3), "vec3"), _to_warp(out_depths.view(pixels), "scalar"),
             _to_warp(out_alphas.view(pixels), "scalar"), _to_warp(final_transmittance.view(pixels), "scalar"),
@@ -352,41 +359,31 @@ class _RasterizeToPixels(torch.autograd.Function):
             _for_each_worker(work, ranges, workers)
 
         ctx.bins, ctx.workers, ctx.ranges = bins, workers, ranges
-        ctx.save_for_backward(*flat.values(), final_transmittance, isect_end)
+        ctx.save_for_backward(*splats, final_transmittance, isect_end)
         ctx.mark_non_differentiable(final_transmittance, isect_end)
         return out_colors, out_depths, out_alphas, final_transmittance, isect_end
 
     @staticmethod
     def backward(ctx, v_out_colors, v_out_depths, v_out_alphas, _v_transmittance, _v_isect_end):
-        means2d, conics, colors, opacities, depths, final_transmittance, isect_end = ctx.saved_tensors
+        *splats, final_transmittance, isect_end = ctx.saved_tensors
         bins, workers = ctx.bins, ctx.workers
         pixels = final_transmittance.numel()
-        device, scalar = means2d.device, means2d.dtype
+        device, scalar = final_transmittance.device, final_transmittance.dtype
 
         def cotangent(v, *shape):
             if v is None:
                 return torch.zeros(*shape, dtype=scalar, device=device)
             return v.contiguous().view(*shape)
 
-        common = [
-            _to_warp(means2d, "vec2"), _to_warp(conics, "vec3"), _to_warp(colors, "vec3"),
-            _to_warp(opacities, "scalar"), _to_warp(depths, "scalar"),
-            _to_warp(bins.tile_offsets, "int32"), _to_warp(bins.isect_ids, "int32"), *ctx.geometry,
-        ]
+        common = _splat_arguments(splats, bins, ctx.geometry)
         saved = [
             _to_warp(final_transmittance.view(pixels), "scalar"), _to_warp(isect_end.view(pixels), "int32"),
             _to_warp(cotangent(v_out_colors, pixels, 3), "vec3"), _to_warp(cotangent(v_out_depths, pixels), "scalar"),
             _to_warp(cotangent(v_out_alphas, pixels), "scalar"),
         ]
         # One private set of gradient buffers per worker: CPU atomics are plain adds.
-        buffers = [
-            [torch.zeros_like(means2d), torch.zeros_like(conics), torch.zeros_like(colors), torch.zeros_like(opacities), torch.zeros_like(depths)]
-            for _ in range(workers)
-        ]
-        wp_buffers = [
-            [_to_warp(b[0], "vec2"), _to_warp(b[1], "vec3"), _to_warp(b[2], "vec3"), _to_warp(b[3], "scalar"), _to_warp(b[4], "scalar")]
-            for b in buffers
-        ]
+        buffers = [[torch.zeros_like(t) for t in splats] for _ in range(workers)]
+        wp_buffers = [[_to_warp(t, kind) for t, kind in zip(b, _SPLAT_KINDS)] for b in buffers]
 
         def work(worker, start, stop):
             wp.launch(rasterize_backward_kernel, dim=stop - start, inputs=[*common, start, *saved], outputs=wp_buffers[worker])
