@@ -120,16 +120,17 @@ def random_points(count: int, viewmats: torch.Tensor, Ks: torch.Tensor, width: i
     return (seen if len(seen) >= count else points)[:count]
 
 
-def nearest_neighbour_distance(points: torch.Tensor, k: int = 3, chunk: int = 1024) -> torch.Tensor:
-    """[P] mean distance of each point to its k nearest other points (3DGS's initial scale)."""
+def mean_neighbour_distance(points: torch.Tensor, k: int, chunk: int = 1024) -> torch.Tensor:
+    """[P] mean distance of each point to its k nearest other points (k < P), in chunks of rows."""
+    return torch.cat([torch.cdist(rows, points).topk(k + 1, largest=False).values[:, 1:].mean(1)
+                      for rows in points.split(chunk)])
+
+
+def nearest_neighbour_distance(points: torch.Tensor, k: int = 3) -> torch.Tensor:
+    """[P] mean distance of each point to its k nearest other points, at least 1e-7 (3DGS's initial scale)."""
     if len(points) <= 1:
         return torch.full((len(points),), 0.01)
-    k = min(k, len(points) - 1)
-    result = []
-    for start in range(0, len(points), chunk):
-        distances = torch.cdist(points[start : start + chunk], points)
-        result.append(distances.topk(k + 1, largest=False).values[:, 1:].mean(1))
-    return torch.cat(result).clamp_min(1e-7)
+    return mean_neighbour_distance(points, min(k, len(points) - 1)).clamp_min(1e-7)
 
 
 def initial_gaussians(

@@ -12,6 +12,7 @@ import math
 import torch
 
 from warpbags.configs.train import DensifyConfig
+from warpbags.init import mean_neighbour_distance
 
 
 def replace_rows(
@@ -168,9 +169,7 @@ class DensifyStrategy:
         k = int(math.isqrt(count))
         if k < 2:
             return 0
-        mean_distance = torch.cat([
-            torch.cdist(chunk, means).topk(k + 1, largest=False).values[:, 1:].mean(1) for chunk in means.split(2048)
-        ])
+        mean_distance = mean_neighbour_distance(means, k)
         floaters = mean_distance > mean_distance.mean() + self.config.floater_std_ratio * mean_distance.std()
         if floaters.any():
             replace_rows(params, optimizer, ~floaters)
