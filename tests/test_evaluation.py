@@ -176,3 +176,19 @@ def test_sweep_bad_values_one_line(tmp_path):
     assert result.exit_code == 2 and "comma-separated numbers" in result.output
     result = runner.invoke(app, ["sweep", "maryrose", "--views", "5", "--out", str(tmp_path / "s")])
     assert result.exit_code == 2 and "--views must be 4, 6 or 9" in result.output
+
+
+def test_atomic_output_replaces_only_on_success(tmp_path):
+    from warpbags.files import atomic_output
+
+    target = tmp_path / "table.json"
+    target.write_text("old")
+    with pytest.raises(RuntimeError):
+        with atomic_output(target) as temporary:
+            temporary.write_text("half")
+            raise RuntimeError("writer failed")
+    assert target.read_text() == "old" and sorted(p.name for p in tmp_path.iterdir()) == ["table.json"]
+    with atomic_output(target) as temporary:
+        assert temporary.suffix == ".json"
+        temporary.write_text("new")
+    assert target.read_text() == "new" and sorted(p.name for p in tmp_path.iterdir()) == ["table.json"]

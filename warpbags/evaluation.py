@@ -29,6 +29,7 @@ from skimage.metrics import peak_signal_noise_ratio, structural_similarity
 from warpbags.configs.train import TrainConfig
 from warpbags.data import ORBIT_RADIUS, Scene, SceneNormalization, load_scene
 from warpbags.errors import WarpbagsError
+from warpbags.files import atomic_output
 from warpbags.gaussians import read_ply, render_gaussians, sh_degree_of, to_source_frame, write_ply
 from warpbags.losses import photometric_loss
 from warpbags.report import write_run_report
@@ -248,9 +249,8 @@ def evaluate_run(path: str | Path, *, alignment: str = "procrustes", refine_iter
     out.mkdir(exist_ok=True)
     for name, target, image in zip(test.image_names, targets, images):
         _save_comparison(out / f"{Path(name).stem}.png", target, image)
-    temporary = run.path / "eval.json.tmp"
-    temporary.write_text(json.dumps(result, indent=2, default=_json_default))
-    temporary.replace(run.path / "eval.json")
+    with atomic_output(run.path / "eval.json") as temporary:
+        temporary.write_text(json.dumps(result, indent=2, default=_json_default))
     write_run_report(run.path, result)
     return result
 
@@ -275,9 +275,8 @@ def export_run(path: str | Path, out: str | Path | None = None) -> Path:
     out.mkdir(parents=True, exist_ok=True)
     write_ply(out / "gaussians.ply", to_source_frame(run.params, normalization.center, normalization.scale))
     poses = normalization.invert_viewmats(run.poses_final)
-    temporary = out / "poses_final.tmp.npy"
-    np.save(temporary, poses.numpy())
-    temporary.replace(out / "poses_final.npy")
+    with atomic_output(out / "poses_final.npy") as temporary:
+        np.save(temporary, poses.numpy())
     return out
 
 
@@ -304,10 +303,9 @@ def render_turntable(path: str | Path, frames: int = 36, video: bool = True) -> 
     for index, image in enumerate(pixels):
         cv2.imwrite(str(out / f"frame_{index:03d}.png"), cv2.cvtColor(image, cv2.COLOR_RGB2BGR))
     if video:
-        temporary = run.path / "turntable.tmp.mp4"
-        writer = cv2.VideoWriter(str(temporary), cv2.VideoWriter_fourcc(*"mp4v"), 12, (width, height))
-        for image in pixels:
-            writer.write(cv2.cvtColor(image, cv2.COLOR_RGB2BGR))
-        writer.release()
-        temporary.replace(run.path / "turntable.mp4")
+        with atomic_output(run.path / "turntable.mp4") as temporary:
+            writer = cv2.VideoWriter(str(temporary), cv2.VideoWriter_fourcc(*"mp4v"), 12, (width, height))
+            for image in pixels:
+                writer.write(cv2.cvtColor(image, cv2.COLOR_RGB2BGR))
+            writer.release()
     return out

@@ -8,13 +8,13 @@ Raw parameters (what the optimizer sees), N Gaussians:
 from __future__ import annotations
 
 import math
-import os
 from pathlib import Path
 
 import numpy as np
 import torch
 
 from warpbags.errors import WarpbagsError
+from warpbags.files import atomic_output
 from warpbags.rendering import rasterization
 
 PARAMETER_NAMES = ("means", "scales", "quats", "opacities", "sh0", "shN")
@@ -70,11 +70,9 @@ def write_ply(path: str | Path, params: dict[str, torch.Tensor]) -> None:
     header = "ply\nformat binary_little_endian 1.0\nelement vertex {}\n{}end_header\n".format(
         count, "".join(f"property float {name}\n" for name in _ply_names(rest.shape[1]))
     )
-    temporary = path.with_name(path.name + ".tmp")
-    with open(temporary, "wb") as handle:
+    with atomic_output(path) as temporary, open(temporary, "wb") as handle:
         handle.write(header.encode("ascii"))
         handle.write(data.tobytes())
-    os.replace(temporary, path)
 
 
 def read_ply(path: str | Path) -> dict[str, torch.Tensor]:

@@ -12,6 +12,8 @@ import cv2
 import matplotlib
 import numpy as np
 
+from warpbags.files import atomic_output
+
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 
@@ -86,9 +88,8 @@ def write_run_report(run_dir: Path, result: dict) -> Path:
         image_strip(picks, run_dir / "turntable_strip.png")
         lines += ["", "## Novel views (turntable)", "", "![turntable](turntable_strip.png)"]
     path = run_dir / "report.md"
-    temporary = run_dir / "report.md.tmp"
-    temporary.write_text("\n".join(lines) + "\n")
-    temporary.replace(path)
+    with atomic_output(path) as temporary:
+        temporary.write_text("\n".join(lines) + "\n")
     return path
 
 

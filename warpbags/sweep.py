@@ -17,6 +17,7 @@ from warpbags.configs.train import load_preset
 from warpbags.data import open_scene
 from warpbags.errors import WarpbagsError
 from warpbags.evaluation import evaluate_run
+from warpbags.files import atomic_output
 from warpbags.report import plot_sweep
 from warpbags.trainer import start_or_resume, training_scene
 
@@ -84,10 +85,9 @@ def _row(run_dir: Path, method: str, views: int, noise: float, seed: int) -> dic
 
 
 def _write_tables(rows: list[dict], out: Path) -> None:
-    (out / "sweep.json.tmp").write_text(json.dumps(rows, indent=2))
-    (out / "sweep.json.tmp").replace(out / "sweep.json")
-    with open(out / "sweep.csv.tmp", "w", newline="") as handle:
+    with atomic_output(out / "sweep.json") as temporary:
+        temporary.write_text(json.dumps(rows, indent=2))
+    with atomic_output(out / "sweep.csv") as temporary, open(temporary, "w", newline="") as handle:
         writer = csv.DictWriter(handle, fieldnames=list(rows[0]))
         writer.writeheader()
         writer.writerows(rows)
-    (out / "sweep.csv.tmp").replace(out / "sweep.csv")

@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import json
 import math
-import os
 import signal
 import time
 from pathlib import Path
@@ -30,6 +29,7 @@ from warpbags.configs.train import TrainConfig
 from warpbags.data.noise import PoseNoise, noisy_viewmats
 from warpbags.data.scene import Scene
 from warpbags.errors import WarpbagsError
+from warpbags.files import atomic_output
 from warpbags.gaussians import render_gaussians, write_ply
 from warpbags.init import hull_or_random_points, initial_gaussians
 from warpbags.losses import depth_loss, gaussian_blur, mask_loss, photometric_loss
@@ -40,9 +40,8 @@ CHECKPOINTS_KEPT = 3
 
 
 def _save_atomic(obj, path: Path) -> None:
-    temporary = path.with_name(path.name + ".tmp")
-    torch.save(obj, temporary)
-    os.replace(temporary, path)
+    with atomic_output(path) as temporary:
+        torch.save(obj, temporary)
 
 
 def _exponential(initial: float, final: float, fraction: float) -> float:
