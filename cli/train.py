@@ -2,8 +2,9 @@
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
-from typing import Optional
+from typing import Any, Optional
 
 import typer
 from rich.console import Console
@@ -17,13 +18,35 @@ from warpbags.trainer import default_run_dir, start_or_resume, training_scene
 stdout = Console(highlight=False)
 
 
+def parse_settings(settings: list[str]) -> dict[str, Any]:
+    """`--set` items as load_preset overrides: "a=1" -> {"a": 1}, "group.b=2" -> {"group": {"b": 2}}.
+
+    Values are JSON (numbers, true/false, lists); anything else is taken as a string.
+    """
+    overrides: dict[str, Any] = {}
+    for item in settings:
+        key, separator, text = item.partition("=")
+        if not separator or not key:
+            raise WarpbagsError(f"--set {item!r}: expected name=value or group.name=value")
+        try:
+            value = json.loads(text)
+        except json.JSONDecodeError:
+            value = text
+        group, _, name = key.rpartition(".")
+        if group:
+            overrides.setdefault(group, {})[name] = value
+        else:
+            overrides[key] = value
+    return overrides
+
+
 @app.command()
 @clean_errors
 def train(
     scene: str = typer.Argument(..., help="Preset name (kitchen, maryrose, synthetic) or a scene folder."),
     views: int = typer.Option(4, "--views", help="Training views: 4, 6 or 9 (the scene's sparse_N split)."),
     preset: str = typer.Option("quick", "--preset", help="paper (the report's schedule) or quick (CPU-sized)."),
-    iters: Optional[int] = typer.Option(None, "--iters", help="Total iterations (default: the preset's)."),
+    iters: Optional[int] = typer.Option(None, "--iters", help="Coarse-stage iterations (default: the preset's)."),
     rounds: Optional[int] = typer.Option(None, "--rounds", help="Re-initialization rounds (default: the preset's)."),
     init: Optional[str] = typer.Option(None, "--init", help="Initial Gaussians: hull, sfm or random."),
     depth_loss: Optional[str] = typer.Option(None, "--depth-loss", help="Depth prior: mad (default) or pearson."),
@@ -34,6 +57,9 @@ def train(
     trans_noise: float = typer.Option(0.0, "--trans-noise", help="Injected camera-centre noise, std (orbit radius 4)."),
     no_pose_opt: bool = typer.Option(False, "--no-pose-opt", help="Keep poses fixed (GaussianObject baseline)."),
     free_gauge: bool = typer.Option(False, "--free-gauge", help="Optimize every camera (default: camera 0 fixed)."),
+    repair_iters: Optional[int] = typer.Option(None, "--repair-iters", help="Repair-stage iterations after the coarse stage (default: the preset's)."),
+    no_repair: bool = typer.Option(False, "--no-repair", help="Skip the repair stage."),
+    repairer: Optional[str] = typer.Option(None, "--repairer", help="unet (default) or package.module:factory."),
     seed: int = typer.Option(0, "--seed", help="Seed for initialization, view order and (unless --noise-seed) noise."),
     noise_seed: Optional[int] = typer.Option(None, "--noise-seed", help="Seed for the injected pose noise."),
     device: str = typer.Option("cpu", "--device", help="cpu or cuda."),
@@ -42,33 +68,49 @@ def train(
     data_root: Optional[Path] = typer.Option(None, "--data-root", help="Folder holding datasets."),
     out: Optional[Path] = typer.Option(None, "--out", help="Run folder (default runs/<scene>-<views>v-<time>)."),
     resume: bool = typer.Option(False, "--resume", help="Continue the run in --out from its last checkpoint."),
+    settings: Optional[list[str]] = typer.Option(
+        None, "--set", help="Any TrainConfig field: name=value or group.name=value, JSON values (repeatable), e.g. "
+        "--set repair.fit_steps=800 --set lr.pose=0.005."),
 ) -> None:
-    """Train Gaussians and per-camera pose deltas; writes config, logs, checkpoints, PLY and poses to the run folder."""
+    """Train Gaussians and per-camera pose deltas (coarse stage, then the repair stage if it has iterations); writes
+    config, logs, checkpoints, PLY and poses to the run folder."""
     if views not in (4, 6, 9):
         raise WarpbagsError(f"--views must be 4, 6 or 9, got {views}")
     if resume and out is None:
         raise WarpbagsError("--resume needs --out (the run folder to continue)")
-    config = load_preset(
-        preset, views=views, iters=iters, rounds=rounds, init=init, depth_loss=depth_loss, blur_sigma_px=blur_px,
-        blur_until=blur_until, pose_opt_start=pose_opt_start,
-        rot_noise_deg=rot_noise_deg, trans_noise=trans_noise, pose_opt=not no_pose_opt, fix_first_camera=not free_gauge, seed=seed,
+    if no_repair and repair_iters:
+        raise WarpbagsError("--no-repair and --repair-iters contradict each other; give one")
+    options = dict(
+        views=views, iters=iters, rounds=rounds, init=init, depth_loss=depth_loss, blur_sigma_px=blur_px,
+        blur_until=blur_until, pose_opt_start=pose_opt_start, rot_noise_deg=rot_noise_deg, trans_noise=trans_noise,
+        pose_opt=not no_pose_opt, fix_first_camera=not free_gauge, seed=seed,
         noise_seed=seed if noise_seed is None else noise_seed, resolution=resolution, max_image_size=max_image_size,
     )
+    overrides = parse_settings(settings or [])
+    clash = sorted(set(overrides) & set(options))
+    if clash:
+        raise WarpbagsError(f"--set {clash[0]}: it has its own option, use that")
+    repair = {"iters": 0 if no_repair else repair_iters, "repairer": repairer}
+    repair = {key: value for key, value in repair.items() if value is not None}
+    if repair:
+        overrides["repair"] = {**overrides.get("repair", {}), **repair}
+    config = load_preset(preset, **options, **overrides)
     scene_data = training_scene(scene, config, data_root)
     out = out or default_run_dir(scene_data.name, views)
     trainer = start_or_resume(scene_data, config, out, device=device, resume=resume, log=stdout.print)
     initial = trainer.pose_error(trainer.viewmats_init)
+    repair_note = (f" + {trainer.config.repair.iters} repair" if trainer.config.repair.iters else "")
     stdout.print(
-        f"{scene_data.name}: {views} views at {scene_data.width}x{scene_data.height}, {trainer.config.iters} iterations "
-        f"({trainer.config.preset}); initial pose error {initial['rot_err_deg']:.3f} deg / {initial['trans_err']:.4f}"
+        f"{scene_data.name}: {views} views at {scene_data.width}x{scene_data.height}, {trainer.config.iters}{repair_note} "
+        f"iterations ({trainer.config.preset}); initial pose error {initial['rot_err_deg']:.3f} deg / {initial['trans_err']:.4f}"
     )
     columns = [TextColumn("[bold]train"), BarColumn(), MofNCompleteColumn(), TextColumn("{task.fields[status]}"),
                TimeElapsedColumn(), TimeRemainingColumn()]
     with Progress(*columns, console=stdout, transient=False) as progress:
-        task = progress.add_task("train", total=trainer.config.iters, completed=trainer.iteration, status="")
+        task = progress.add_task("train", total=trainer.config.total_iters, completed=trainer.iteration, status="")
 
         def update(record: dict) -> None:
-            status = (f"loss {record['loss']:.4f}  N {record['num_gaussians']}  "
+            status = (f"{record['stage']}  loss {record['loss']:.4f}  N {record['num_gaussians']}  "
                       f"rot {record['rot_err_deg']:.3f} deg  trans {record['trans_err']:.4f}")
             progress.update(task, completed=record["iter"], status=status)
 

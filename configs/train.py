@@ -77,6 +77,70 @@ class DensifyConfig:
 
 
 @dataclass(frozen=True)
+class RepairConfig:
+    """GaussianObject's second stage, run by `warpbags.repair` after the coarse iterations (`iters` 0 = off).
+
+    Training pairs for the repairer (GaussianObject's leave_one_out_stage1/2 and dataset_lora, shortened so
+    that a CPU run takes minutes; at the coarse-stage resolution, poses frozen at the coarse estimate):
+        loo_iters: each leave-one-out model trains this many iterations in all (GaussianObject: 10000).
+        loo_snapshot: the first `loo_snapshot` iterations see every training view but the left-out one
+            (densification stops here; GaussianObject: 6000). From the snapshot, one copy goes on with the
+            left-out view added and one without it; the per-channel mean/std of the difference between the two
+            final models is the "3D noise" distribution.
+        loo_samples: renders of the left-out view taken over the first quarter of the copy that sees it again
+            (GaussianObject keeps ~25 of its left_image samples): the (corrupted render, real image) pairs.
+        noise_renders: renders per training view of the coarse model with 3D noise added to positions, log
+            scales, quaternions and logit opacities (noise ~ N(mean, std), clamped to mean +- c std for all but
+            positions, c drawn from `noise_clamp_std`; each element kept with probability 1 - p, p drawn from
+            `noise_dropout`; GaussianObject's add_statistics_noise with its ranges).
+
+    Repairer (`warpbags.repair.network`):
+        repairer: "unet" (a compact U-Net fitted per scene) or "package.module:factory" for a user's repairer
+            (e.g. GaussianObject's ControlNet + LoRA with downloaded weights).
+        unet_channels: channels of the U-Net's first level (doubled per level, 3 levels).
+        fit_steps, fit_lr, fit_batch, fit_crop: Adam steps, learning rate, batch size and random crop size (px)
+            for fitting the U-Net to the pairs (L1 loss).
+
+    Repair optimization (GaussianObject's train_repair):
+        iters: repair iterations after the coarse stage (paper: 3000; 0 = no repair stage).
+        pseudo_views: novel cameras per refresh, each at a random point of a random gap between neighbouring
+            training cameras (30-70% of the way; GaussianObject's sample_away_from_gt with 0.8).
+        refresh_every: the pseudo cameras are redrawn and their repaired renders rebuilt this often.
+        pseudo_ratio_start, pseudo_ratio_end, pseudo_until: loss = (1 - r) real + r pseudo, with r going
+            linearly from start to end over the first `pseudo_until` fraction of the repair iterations and 0
+            after (GaussianObject: 1.0 -> 0.5 over 2800 of 4000). The real-view term keeps its coarse form and
+            drives the pose deltas; pseudo views never move the poses.
+        weight_l1, weight_l2, weight_lpips: the pseudo-view loss mix (GaussianObject: 0.5 / 0.5 / 2.0; the LPIPS
+            term only where the `lpips` package and its weights are available). Each pseudo view's loss is also
+            scaled by min(1, 2 d / d_max), d its distance to the nearest training camera (GaussianObject).
+        samples_kept: how many refreshes keep their sample strip in repair/samples.
+    """
+
+    iters: int = 0
+    loo_iters: int = 300
+    loo_snapshot: int = 200
+    loo_samples: int = 4
+    noise_renders: int = 8
+    noise_clamp_std: tuple[float, float] = (0.6, 0.8)
+    noise_dropout: tuple[float, float] = (0.6, 0.8)
+    repairer: str = "unet"
+    unet_channels: int = 16
+    fit_steps: int = 400
+    fit_lr: float = 2e-3
+    fit_batch: int = 8
+    fit_crop: int = 64
+    pseudo_views: int = 8
+    refresh_every: int = 50
+    pseudo_ratio_start: float = 1.0
+    pseudo_ratio_end: float = 0.5
+    pseudo_until: float = 0.7
+    weight_l1: float = 0.5
+    weight_l2: float = 0.5
+    weight_lpips: float = 2.0
+    samples_kept: int = 3
+
+
+@dataclass(frozen=True)
 class TrainConfig:
     """Everything that decides a training run (saved as config.json in the run folder).
 
@@ -116,6 +180,7 @@ class TrainConfig:
         checkpoint_every: checkpoint interval in iterations.
         pose_alignment: alignment used for the logged pose error ("procrustes", "pairwise").
         render_threads: host threads for CPU rendering (0 = the renderer's default: all cores).
+        repair: the repair stage that follows the `iters` coarse iterations (`repair.iters` = 0: none).
     """
 
     preset: str = "paper"
@@ -152,6 +217,12 @@ class TrainConfig:
     render_threads: int = 0
     lr: LearningRates = field(default_factory=LearningRates)
     densify: DensifyConfig = field(default_factory=DensifyConfig)
+    repair: RepairConfig = field(default_factory=RepairConfig)
+
+    @property
+    def total_iters(self) -> int:
+        """Coarse plus repair iterations."""
+        return self.iters + self.repair.iters
 
     def validate(self) -> TrainConfig:
         """Check value ranges; returns self.
@@ -180,6 +251,16 @@ class TrainConfig:
             (0 <= self.lambda_depth < 1, f"lambda_depth must be in [0, 1), got {self.lambda_depth}"),
             (self.depth_loss in ("mad", "pearson"), f"--depth-loss must be mad or pearson, got {self.depth_loss!r}"),
             (self.pose_alignment in ("procrustes", "pairwise"), f"pose_alignment: {self.pose_alignment!r}"),
+            (self.repair.iters >= 0, f"--repair-iters must be >= 0, got {self.repair.iters}"),
+            (1 <= self.repair.loo_snapshot < self.repair.loo_iters,
+             f"repair.loo_snapshot must be in [1, loo_iters), got {self.repair.loo_snapshot}"),
+            (self.repair.iters == 0 or self.views >= 3, "the repair stage needs at least 3 training views"),
+            (self.repair.unet_channels % 4 == 0 and self.repair.unet_channels > 0,
+             f"repair.unet_channels must be a positive multiple of 4, got {self.repair.unet_channels}"),
+            (self.repair.pseudo_views >= 1, f"repair.pseudo_views must be >= 1, got {self.repair.pseudo_views}"),
+            (0 <= self.repair.pseudo_until <= 1, f"repair.pseudo_until must be in [0, 1], got {self.repair.pseudo_until}"),
+            (self.repair.refresh_every >= 1, f"repair.refresh_every must be >= 1, got {self.repair.refresh_every}"),
+            (self.repair.fit_crop >= 8, f"repair.fit_crop must be >= 8, got {self.repair.fit_crop}"),
         ]
         for ok, message in checks:
             if not ok:
@@ -194,11 +275,17 @@ class TrainConfig:
         values = dict(values)
         values["lr"] = LearningRates(**values.get("lr", {}))
         values["densify"] = DensifyConfig(**values.get("densify", {}))
+        repair = dict(values.get("repair", {}))
+        for key in ("noise_clamp_std", "noise_dropout"):  # JSON turns tuples into lists
+            if key in repair:
+                repair[key] = tuple(repair[key])
+        values["repair"] = RepairConfig(**repair)
         return TrainConfig(**values)
 
 
 def paper() -> TrainConfig:
-    """The BAGS report's coarse stage: 5000 iterations, poses from 1000, depth until 1000, one view per step."""
+    """The BAGS report's schedule: 5000 coarse iterations (poses from 1000, depth until 1000, one view per step), then
+    3000 repair iterations."""
     return TrainConfig(
         preset="paper",
         iters=5000,
@@ -207,6 +294,10 @@ def paper() -> TrainConfig:
         checkpoint_every=500,
         views_per_step=1,
         densify=DensifyConfig(start=500, stop=3000, every=100, opacity_reset_every=1000),
+        # The report's repair stage; leave-one-out models use the coarse recipe (GaussianObject keeps its
+        # leave-one-out Gaussian set fixed from iteration 6000 of 10000: here from the densification stop).
+        repair=RepairConfig(iters=3000, loo_iters=5000, loo_snapshot=3000, loo_samples=8, unet_channels=32,
+                            fit_steps=2000, fit_crop=128, pseudo_views=20, refresh_every=200),
     )
 
 
@@ -246,25 +337,50 @@ def quick() -> TrainConfig:
 PRESETS = {"paper": paper, "quick": quick}
 
 
+def _typed(value: Any, default: Any, name: str) -> Any:
+    """`value` as the type of the field's `default` (ints pass for floats, lists for tuples)."""
+    if default is None or value is None:
+        return value
+    if isinstance(default, bool) or not isinstance(default, (int, float, tuple)):
+        ok = isinstance(value, type(default))
+    elif isinstance(default, float):
+        ok = isinstance(value, (int, float)) and not isinstance(value, bool)
+    elif isinstance(default, int):
+        ok = isinstance(value, int) and not isinstance(value, bool)
+    else:
+        ok = isinstance(value, (list, tuple)) and len(value) == len(default)
+        value = tuple(value) if ok else value
+    if not ok:
+        raise WarpbagsError(f"{name} must be like {default!r}, got {value!r}")
+    return value
+
+
+def _replaced(base: Any, overrides: dict[str, Any], prefix: str = "") -> Any:
+    """`base` (a config dataclass) with fields replaced, nested groups given as partial dicts, types checked."""
+    fields = {f.name for f in dataclasses.fields(base)}
+    unknown = set(overrides) - fields
+    if unknown:
+        raise WarpbagsError(f"unknown training option(s): {', '.join(prefix + key for key in sorted(unknown))}")
+    changes = {}
+    for key, value in overrides.items():
+        current = getattr(base, key)
+        if dataclasses.is_dataclass(current):
+            if not isinstance(value, dict):
+                raise WarpbagsError(f"{prefix}{key} must be a group of fields, got {value!r}")
+            changes[key] = _replaced(current, value, f"{prefix}{key}.")
+        else:
+            changes[key] = _typed(value, current, prefix + key)
+    return dataclasses.replace(base, **changes)
+
+
 def load_preset(name: str, **overrides: Any) -> TrainConfig:
-    """A preset by name with top-level fields replaced (None values are ignored), validated.
+    """A preset by name with fields replaced (None values are ignored; the groups lr, densify and repair may be
+    given as partial dicts), type-checked and validated.
 
     Raises:
-        WarpbagsError: unknown preset or field, or an out-of-range value.
+        WarpbagsError: unknown preset or field, a value of the wrong type, or an out-of-range value.
     """
     if name not in PRESETS:
         raise WarpbagsError(f"--preset must be one of {', '.join(PRESETS)}, got {name!r}")
-    config = PRESETS[name]()
-    known = {f.name for f in dataclasses.fields(TrainConfig)}
-    unknown = set(overrides) - known
-    if unknown:
-        raise WarpbagsError(f"unknown training option(s): {', '.join(sorted(unknown))}")
     overrides = {key: value for key, value in overrides.items() if value is not None}
-    for key in ("lr", "densify"):  # nested groups may be given as partial dicts
-        if isinstance(overrides.get(key), dict):
-            try:
-                overrides[key] = dataclasses.replace(getattr(config, key), **overrides[key])
-            except TypeError as error:
-                raise WarpbagsError(f"bad {key} override: {error}") from None
-    config = dataclasses.replace(config, **overrides)
-    return config.validate()
+    return _replaced(PRESETS[name](), overrides).validate()

@@ -11,13 +11,16 @@ from warpbags.pose import (
     Sim3,
     align_viewmats,
     apply_pose_deltas,
+    azimuth_order,
     camera_centers,
+    interpolated_viewmats,
     perturb_viewmats,
     pose_errors,
     rotation_error_deg,
     se3_exp,
     so3_exp,
     so3_log,
+    turntable_viewmats,
     umeyama,
 )
 
@@ -516,3 +519,25 @@ def test_perturb_rejects_bad_arguments():
         perturb_viewmats(reference, rot_std_deg=-1.0, trans_std=0.0, seed=0)
     with pytest.raises(ValueError, match=r"\[C, 4, 4\]"):
         perturb_viewmats(reference[0], rot_std_deg=1.0, trans_std=0.0, seed=0)
+
+
+# --------------------------------------------------------------------------------------------- camera paths
+def test_interpolated_viewmats_walk_the_orbit_between_neighbouring_cameras():
+    base = torch.eye(4, dtype=F64)
+    base[2, 3] = 4.0
+    orbit = turntable_viewmats(base[None], 16)
+    shuffled = orbit[::2][torch.tensor([3, 0, 6, 1, 5, 2, 7, 4])]  # 8 cameras 45 degrees apart, out of order
+    order = azimuth_order(shuffled)
+    assert len(set(order.tolist())) == 8
+    # Neighbours in azimuth order are 45 degrees apart (2 turntable steps of 16).
+    angles = rotation_error_deg(shuffled[order, :3, :3], shuffled[order.roll(-1), :3, :3])
+    torch.testing.assert_close(angles, torch.full((8,), 45.0, dtype=F64))
+    ends = interpolated_viewmats(shuffled, torch.tensor([0, 5]), torch.tensor([0.0, 1.0], dtype=F64))
+    torch.testing.assert_close(ends, shuffled[order[[0, 6]]], rtol=0, atol=1e-12)
+    middles = interpolated_viewmats(shuffled, torch.arange(8), torch.full((8,), 0.5, dtype=F64))
+    # Each midpoint is an odd turntable frame (the frames between the even ones), each found exactly once.
+    distances = torch.cdist(middles[:, :3, :].flatten(1), orbit[1::2, :3, :].flatten(1))
+    assert distances.min(dim=1).values.max().item() < 1e-9
+    assert sorted(distances.argmin(dim=1).tolist()) == list(range(8))
+    quarter = interpolated_viewmats(shuffled, torch.arange(8), torch.full((8,), 0.25, dtype=F64))
+    torch.testing.assert_close(camera_centers(quarter).norm(dim=-1), torch.full((8,), 4.0, dtype=F64))

@@ -31,8 +31,8 @@ from warpbags.data import ORBIT_RADIUS, Scene, SceneNormalization, load_scene
 from warpbags.errors import WarpbagsError
 from warpbags.files import atomic_output
 from warpbags.gaussians import read_ply, render_gaussians, sh_degree_of, to_source_frame, write_ply
-from warpbags.losses import photometric_loss
-from warpbags.report import write_run_report
+from warpbags.losses import load_lpips, photometric_loss
+from warpbags.report import write_image_grid, write_run_report
 from warpbags.pose import align_viewmats, apply_pose_deltas, pose_errors, turntable_viewmats
 
 ALIGNMENTS = ("procrustes", "pairwise")
@@ -154,13 +154,7 @@ class LpipsMetric:
     """LPIPS-VGG through the `lpips` package, or a reason why it is unavailable (no package, no weights offline)."""
 
     def __init__(self) -> None:
-        self.model, self.unavailable = None, None
-        try:
-            import lpips  # noqa: PLC0415 - optional dependency
-
-            self.model = lpips.LPIPS(net="vgg", verbose=False)
-        except Exception as error:  # noqa: BLE001 - any failure to build it means "unavailable", with the reason
-            self.unavailable = f"{type(error).__name__}: {str(error).splitlines()[0] if str(error) else ''}"[:200]
+        self.model, self.unavailable = load_lpips()
 
     def __call__(self, image: np.ndarray, target: np.ndarray) -> float | None:
         if self.model is None:
@@ -186,9 +180,7 @@ def image_metrics(images: torch.Tensor, targets: torch.Tensor, lpips_metric: Lpi
 
 def _save_comparison(path: Path, target: torch.Tensor, image: torch.Tensor) -> None:
     """truth | render | 4x absolute error, side by side, as PNG."""
-    error = ((image - target).abs() * 4).clamp(0, 1)
-    strip = torch.cat([target, image.clamp(0, 1), error], dim=1).numpy()
-    cv2.imwrite(str(path), cv2.cvtColor((strip * 255 + 0.5).astype(np.uint8), cv2.COLOR_RGB2BGR))
+    write_image_grid(path, [[target, image, (image - target).abs() * 4]])
 
 
 def evaluate_run(path: str | Path, *, alignment: str = "procrustes", refine_iters: int = 100,

@@ -1,4 +1,4 @@
-"""Training losses (GaussianObject's coarse stage): L1 + D-SSIM, mask BCE on alpha, scale-invariant depth."""
+"""Training losses (GaussianObject): L1 + D-SSIM, mask BCE on alpha, scale-invariant depth, the repair-stage mix."""
 
 from __future__ import annotations
 
@@ -110,3 +110,36 @@ def depth_loss(
             correlation = (rendered * target).sum() / (rendered.norm() * target.norm()).clamp_min(1e-12)
             losses.append(1.0 - correlation)
     return torch.stack(losses).mean() if losses else None
+
+
+def load_lpips() -> tuple[torch.nn.Module | None, str | None]:
+    """LPIPS-VGG from the `lpips` package (GaussianObject's metric and repair loss): (network, None), or
+    (None, why it is unavailable) when the package or its weights cannot be had offline."""
+    try:
+        import lpips  # noqa: PLC0415 - optional dependency (it pulls torchvision and downloads weights)
+
+        network = lpips.LPIPS(net="vgg", verbose=False)
+    except Exception as error:  # noqa: BLE001 - any failure to build it means "unavailable", with the reason
+        return None, f"{type(error).__name__}: {str(error).splitlines()[0] if str(error) else ''}"[:200]
+    for parameter in network.parameters():
+        parameter.requires_grad_(False)
+    return network, None
+
+
+def repair_loss(images: torch.Tensor, targets: torch.Tensor, weight_l1: float, weight_l2: float, weight_lpips: float,
+                lpips_network: torch.nn.Module | None = None) -> tuple[torch.Tensor, dict]:
+    """GaussianObject's pseudo-view loss ``w1 L1 + w2 MSE + w3 LPIPS`` over [B, H, W, 3] images, per image.
+
+    Returns:
+        ([B] losses, terms) where terms holds the batch means; the LPIPS term is skipped without a network.
+    """
+    l1 = (images - targets).abs().mean(dim=(1, 2, 3))
+    l2 = ((images - targets) ** 2).mean(dim=(1, 2, 3))
+    losses = weight_l1 * l1 + weight_l2 * l2
+    terms = {"pseudo_l1": l1.mean().item(), "pseudo_l2": l2.mean().item()}
+    if lpips_network is not None and weight_lpips > 0:
+        to_lpips = lambda x: x.permute(0, 3, 1, 2) * 2 - 1  # noqa: E731 - [B,3,H,W] in [-1, 1]
+        perceptual = lpips_network(to_lpips(images), to_lpips(targets)).reshape(-1)
+        losses = losses + weight_lpips * perceptual
+        terms["pseudo_lpips"] = perceptual.mean().item()
+    return losses, terms

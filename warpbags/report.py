@@ -50,6 +50,16 @@ def image_strip(paths: list[Path], out: Path, height: int = 128) -> None:
     cv2.imwrite(str(out), np.concatenate(images, axis=1))
 
 
+def write_image_grid(path: Path, rows: list[list]) -> None:
+    """A PNG of [H, W, 3] RGB images in [0, 1] (tensors or arrays, all the same size), row by row (atomically)."""
+    grid = np.concatenate([np.concatenate([np.asarray(image, dtype=np.float32) for image in row], axis=1)
+                           for row in rows], axis=0)
+    pixels = (np.clip(grid, 0, 1) * 255 + 0.5).astype(np.uint8)
+    with atomic_output(path) as temporary:
+        if not cv2.imwrite(str(temporary), cv2.cvtColor(pixels, cv2.COLOR_RGB2BGR)):
+            raise OSError(f"could not write {path}")
+
+
 def write_run_report(run_dir: Path, result: dict) -> Path:
     """report.md: the metrics table, training curves, held-out comparisons and (if rendered) a turntable strip."""
     run_dir = Path(run_dir)

@@ -1,6 +1,8 @@
-"""`Trainer`: joint optimization of 3D Gaussians and per-camera pose deltas (BAGS coarse stage).
+"""`Trainer`: joint optimization of 3D Gaussians and per-camera pose deltas (BAGS), coarse then repair stage.
 
-One class for every variant (pose optimization on/off, gauge choice, presets) chosen by `TrainConfig`.
+One class for every variant (pose optimization on/off, gauge choice, repair on/off, presets) chosen by
+`TrainConfig`. The first `iters` iterations are the coarse stage; the `repair.iters` after them the repair stage
+(`warpbags.repair.RepairStage`: pseudo views supervised by repaired renders, next to the real views).
 
 Run folder layout (`out_dir`):
     config.json        the resolved TrainConfig plus scene/view information
@@ -11,10 +13,14 @@ Run folder layout (`out_dir`):
     checkpoints/       checkpoint_XXXXXX.pt, written atomically (temp file + os.replace); the newest 3 kept
     gaussians.ply      final Gaussians, standard 3DGS PLY layout
     poses_final.npy    [C,4,4] optimized world-to-camera poses, exp(delta) @ poses_init
+    coarse/            with a repair stage: the coarse stage's result as a run folder of its own (same files but
+                       log and checkpoints), so `warpbags eval RUN/coarse` measures what repair changed
+    repair/            the repair stage's pairs, repairer and sample pictures (see `warpbags.repair.stage`)
 """
 
 from __future__ import annotations
 
+import copy
 import json
 import math
 import signal
@@ -34,6 +40,7 @@ from warpbags.gaussians import render_gaussians, write_ply
 from warpbags.init import hull_or_random_points, initial_gaussians
 from warpbags.losses import depth_loss, gaussian_blur, mask_loss, photometric_loss
 from warpbags.pose import apply_pose_deltas, camera_centers, pose_errors
+from warpbags.repair import RepairStage, repairer_factory
 from warpbags.strategy import DensifyStrategy
 
 CHECKPOINTS_KEPT = 3
@@ -68,6 +75,8 @@ class Trainer:
             raise WarpbagsError("--device cuda: no CUDA device is available")
         if device not in ("cpu", "cuda"):
             raise WarpbagsError(f"--device must be cpu or cuda, got {device!r}")
+        if config.repair.iters > 0:
+            repairer_factory(config.repair.repairer)  # a bad --repairer fails now, not after the coarse stage
         if device == "cpu":
             # Warp runs its own host threads; torch's OpenMP workers would fight them.
             torch.set_num_threads(1)
@@ -116,6 +125,8 @@ class Trainer:
         if config.fix_first_camera:
             self.gauge_mask[0] = 0.0
         self._start_round()
+        self.repair_stage: RepairStage | None = None  # built when the coarse stage ends
+        self._repair_state: dict | None = None  # its checkpointed state, applied when it is built
         self._stop_requested = False
 
     # ----------------------------------------------------------------------------------------------- setup
@@ -166,13 +177,20 @@ class Trainer:
         """Iterations done in the current round (Gaussian schedules restart with each round)."""
         return self.iteration % self.round_length
 
+    @property
+    def in_repair(self) -> bool:
+        """True once the coarse iterations are done (the Gaussian schedules of the rounds have ended)."""
+        return self.iteration >= self.config.iters
+
     def sh_degree(self) -> int:
+        if self.in_repair:
+            return self.config.sh_degree
         return min(self.config.sh_degree, self.round_iteration // max(self.config.sh_degree_every, 1))
 
     def blur_sigma(self) -> float:
         """Coarse-to-fine blur (pixels) at the current iteration."""
         config = self.config
-        if config.blur_until <= 0:
+        if config.blur_until <= 0 or self.in_repair:
             return 0.0
         return config.blur_sigma_px * max(0.0, 1.0 - self.round_iteration / config.blur_until)
 
@@ -196,6 +214,8 @@ class Trainer:
 
     def _set_learning_rates(self) -> None:
         config, fraction = self.config, self.round_iteration / max(self.round_length - 1, 1)
+        if self.in_repair:  # GaussianObject's repair keeps the final position lr; the poses keep their final lr
+            fraction = 1.0
         for group in self.optimizer.param_groups:
             if group["name"] == "means":
                 group["lr"] = _exponential(config.lr.means_init, config.lr.means_final, fraction) * self.scene_extent
@@ -204,7 +224,7 @@ class Trainer:
         round_start = self.iteration - self.round_iteration
         pose_start = max(round_start, config.pose_opt_start)
         pose_end = min(round_start + self.round_length, config.iters)
-        pose_fraction = (self.iteration - pose_start) / max(pose_end - pose_start - 1, 1)
+        pose_fraction = 1.0 if self.in_repair else (self.iteration - pose_start) / max(pose_end - pose_start - 1, 1)
         pose_lr = _exponential(config.lr.pose, config.lr.pose_final, pose_fraction)
         for group in self.pose_optimizer.param_groups:
             group["lr"] = pose_lr * (config.lr.pose_translation_scale if group["name"] == "translation" else 1.0)
@@ -247,7 +267,8 @@ class Trainer:
                 mask_term = mask_loss(alphas, masks)
             loss = loss + config.lambda_mask * mask_term
             terms["mask"] = mask_term.item()
-        if self.depths is not None and self.round_iteration < config.depth_until and config.lambda_depth > 0:
+        depth_active = not self.in_repair and self.round_iteration < config.depth_until and config.lambda_depth > 0
+        if self.depths is not None and depth_active:
             depth_term = depth_loss(depths, alphas, self.depths[views], None if self.masks is None else self.masks[views],
                                     mode=config.depth_loss)
             if depth_term is not None:
@@ -268,7 +289,9 @@ class Trainer:
             raise WarpbagsError(f"training diverged at iteration {self.iteration}: {bad}; {kept}")
 
     def train_step(self) -> dict:
-        """One iteration; returns its log record."""
+        """One iteration (coarse or repair stage); returns its log record."""
+        if self.in_repair:
+            return self._repair_step()
         started = time.perf_counter()
         if self.iteration > 0 and self.round_iteration == 0:
             self._start_round()
@@ -289,10 +312,45 @@ class Trainer:
         self.iteration += 1
         densify = self.strategy.step(self.round_iteration or self.round_length, self.params, self.optimizer,
                                      self.generator)
-        record = {"iter": self.iteration, "loss": loss.item(), **terms, "num_gaussians": len(self.params["means"]),
-                  "sh_degree": self.sh_degree(), "pose_opt": self.pose_active(), **self.pose_error(), **densify,
-                  "seconds": time.perf_counter() - started}
+        record = {"iter": self.iteration, "stage": "coarse", "loss": loss.item(), **terms,
+                  "num_gaussians": len(self.params["means"]), "sh_degree": self.sh_degree(), "pose_opt": self.pose_active(),
+                  **self.pose_error(), **densify, "seconds": time.perf_counter() - started}
         return record
+
+    def _repair_step(self) -> dict:
+        """A repair-stage iteration: (1 - r) real-view loss + r pseudo-view loss, no densification."""
+        started = time.perf_counter()
+        if self.repair_stage is None:
+            self.repair_stage = RepairStage(self, self.log)
+            if self._repair_state is not None:
+                self.repair_stage.load_state_dict(self._repair_state)
+        self._set_learning_rates()
+        loss, terms, _ = self._loss(self._views())
+        ratio = self.repair_stage.pseudo_ratio(self.iteration - self.config.iters)
+        if ratio > 0:
+            pseudo, pseudo_terms = self.repair_stage.loss(self)
+            loss = (1 - ratio) * loss + ratio * pseudo
+            terms.update(pseudo_terms)
+        self._check_finite(loss)
+        loss.backward()
+        self.optimizer.step()
+        self.optimizer.zero_grad(set_to_none=True)
+        if self.pose_active():
+            self.pose_optimizer.step()
+        self.pose_optimizer.zero_grad(set_to_none=True)
+        self.iteration += 1
+        return {"iter": self.iteration, "stage": "repair", "loss": loss.item(), "pseudo_ratio": ratio, **terms,
+                "num_gaussians": len(self.params["means"]), "sh_degree": self.sh_degree(),
+                "pose_opt": self.pose_active(), **self.pose_error(), "seconds": time.perf_counter() - started}
+
+    def continue_from(self, other: Trainer) -> None:
+        """Take over `other`'s Gaussians, their optimizer and densification state, iteration and scene extent (the
+        poses stay this trainer's): how a leave-one-out model goes on with its left-out view added back."""
+        self.scene_extent, self.iteration = other.scene_extent, other.iteration
+        self.params = {name: torch.nn.Parameter(value.detach().clone()) for name, value in other.params.items()}
+        self.optimizer = self._make_optimizer()
+        self.optimizer.load_state_dict(copy.deepcopy(other.optimizer.state_dict()))
+        self.strategy.load_state_dict(copy.deepcopy(other.strategy.state_dict()))
 
     # ----------------------------------------------------------------------------------------------- files
     def latest_checkpoint(self) -> Path | None:
@@ -312,6 +370,7 @@ class Trainer:
             "strategy": self.strategy.state_dict(),
             "generator": self.generator.get_state(),
             "viewmats_init": self.viewmats_init.cpu(),
+            "repair": None if self.repair_stage is None else self.repair_stage.state_dict(),
         }
         path = self.checkpoint_dir / f"checkpoint_{self.iteration:06d}.pt"
         _save_atomic(state, path)
@@ -333,6 +392,7 @@ class Trainer:
         self.strategy.load_state_dict(state["strategy"])
         self.generator.set_state(state["generator"])
         self.viewmats_init = state["viewmats_init"].to(self.device)
+        self.repair_stage, self._repair_state = None, state.get("repair")
 
     def resume(self) -> bool:
         """Load the newest checkpoint and cut log.jsonl back to it; False when there is none."""
@@ -348,34 +408,41 @@ class Trainer:
         self.log(f"resumed from {path} (iteration {self.iteration})")
         return True
 
-    def write_run_files(self, extra: dict | None = None) -> None:
-        """config.json, poses_true.npy, poses_init.npy (at the start of a run)."""
-        self.out_dir.mkdir(parents=True, exist_ok=True)
+    def write_run_files(self, extra: dict | None = None, folder: Path | None = None) -> None:
+        """config.json, poses_true.npy, poses_init.npy, intrinsics.npy into `folder` (default: the run folder)."""
+        folder = self.out_dir if folder is None else folder
+        folder.mkdir(parents=True, exist_ok=True)
         normalization = self.scene.normalization
         info = {"config": self.config.to_dict(), "scene": self.scene.name, "image_names": self.scene.image_names,
                 "scene_root": str(Path(self.scene.root).resolve()), "resolution": self.scene.resolution,
                 "normalization": {"center": list(normalization.center), "scale": normalization.scale},
                 "width": self.scene.width, "height": self.scene.height, "device": str(self.device), **(extra or {})}
-        (self.out_dir / "config.json").write_text(json.dumps(info, indent=2))
-        np.save(self.out_dir / "poses_true.npy", self.viewmats_true.cpu().numpy())
-        np.save(self.out_dir / "poses_init.npy", self.viewmats_init.cpu().numpy())
-        np.save(self.out_dir / "intrinsics.npy", self.Ks.cpu().numpy())
+        (folder / "config.json").write_text(json.dumps(info, indent=2))
+        np.save(folder / "poses_true.npy", self.viewmats_true.cpu().numpy())
+        np.save(folder / "poses_init.npy", self.viewmats_init.cpu().numpy())
+        np.save(folder / "intrinsics.npy", self.Ks.cpu().numpy())
 
-    def write_results(self) -> None:
-        write_ply(self.out_dir / "gaussians.ply", self.params)
-        np.save(self.out_dir / "poses_final.npy", self.current_viewmats().cpu().numpy())
+    def write_results(self, folder: Path | None = None) -> None:
+        """gaussians.ply and poses_final.npy into `folder` (default: the run folder)."""
+        folder = self.out_dir if folder is None else folder
+        write_ply(folder / "gaussians.ply", self.params)
+        with atomic_output(folder / "poses_final.npy") as temporary:
+            np.save(temporary, self.current_viewmats().cpu().numpy())
 
     # ----------------------------------------------------------------------------------------------- loop
     def _request_stop(self, signum, frame) -> None:
         self._stop_requested = True
 
     def train(self, stop_at: int | None = None, callback: Callable[[dict], None] | None = None) -> dict:
-        """Train until `stop_at` (default: config.iters) iterations are done; returns the last record.
+        """Train until `stop_at` (default: all coarse and repair iterations) are done; returns the last record.
 
-        Checkpoints every `checkpoint_every` iterations and at the end. Ctrl-C (SIGINT) finishes the current
-        iteration, saves a checkpoint and raises KeyboardInterrupt. Divergence raises WarpbagsError.
+        Checkpoints every `checkpoint_every` iterations, at the end of the coarse stage and at the end. With a
+        repair stage, the coarse result is also written to coarse/ as a run folder of its own. Ctrl-C (SIGINT)
+        finishes the current iteration, saves a checkpoint and raises KeyboardInterrupt. Divergence raises
+        WarpbagsError.
         """
-        stop_at = self.config.iters if stop_at is None else min(stop_at, self.config.iters)
+        total = self.config.total_iters
+        stop_at = total if stop_at is None else min(stop_at, total)
         self.out_dir.mkdir(parents=True, exist_ok=True)
         previous_handler = None
         try:
@@ -391,7 +458,11 @@ class Trainer:
                     log_file.flush()
                     if callback is not None:
                         callback(record)
-                    if self.iteration % self.config.checkpoint_every == 0 or self.iteration == stop_at:
+                    coarse_done = self.iteration == self.config.iters and self.config.repair.iters > 0
+                    if coarse_done:
+                        self.write_run_files(folder=self.out_dir / "coarse")
+                        self.write_results(self.out_dir / "coarse")
+                    if self.iteration % self.config.checkpoint_every == 0 or self.iteration == stop_at or coarse_done:
                         self.save_checkpoint()
                     if self._stop_requested:
                         self.save_checkpoint()
@@ -399,7 +470,7 @@ class Trainer:
         finally:
             if previous_handler is not None:
                 signal.signal(signal.SIGINT, previous_handler)
-        if self.iteration >= self.config.iters:
+        if self.iteration >= total:
             self.write_results()
         return record
 

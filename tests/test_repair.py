@@ -1,0 +1,202 @@
+"""Repair stage: the repair network, 3D noise, pseudo cameras, the plug-in point, and the stage end to end."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import torch
+from typer.testing import CliRunner
+
+from warpbags.cli.main import app
+from warpbags.configs.train import RepairConfig, load_preset
+from warpbags.data import SyntheticOptions, ensure_synthetic_scene, load_scene
+from warpbags.errors import WarpbagsError
+from warpbags.evaluation import evaluate_run
+from warpbags.losses import gaussian_blur
+from warpbags.repair import RepairPairs, UNetRepairer, make_repairer
+from warpbags.repair.pairs import LEAVE_ONE_OUT, NOISE, NOISY_PARAMETERS, NoiseStatistics, perturbed_gaussians
+from warpbags.repair.stage import distance_weights
+from warpbags.trainer import Trainer, training_scene
+
+TINY = SyntheticOptions(views=16, width=96, height=96)
+# A repair stage small enough for a test: 4 leave-one-out models of 24 iterations, 30 fitting steps, 16 repair
+# iterations with a refresh every 5.
+TINY_REPAIR = dict(iters=16, loo_iters=24, loo_snapshot=16, loo_samples=2, noise_renders=2, fit_steps=30, fit_crop=32,
+                   pseudo_views=4, refresh_every=5, samples_kept=2)
+
+
+@pytest.fixture(scope="module")
+def scene_dir(tmp_path_factory):
+    return ensure_synthetic_scene(TINY, cache_dir=tmp_path_factory.mktemp("cache"))
+
+
+def tiny_config(**repair):
+    return load_preset("quick", iters=30, rounds=1, pose_opt_start=0, depth_until=10, checkpoint_every=10,
+                       init_points=600, hull_resolution=32, render_threads=1, rot_noise_deg=3.0,
+                       repair={**TINY_REPAIR, **repair})
+
+
+def object_images(scene_dir, count=4) -> torch.Tensor:
+    scene = load_scene(scene_dir, name="tiny").subset(list(range(count)))
+    masks = scene.masks[..., None]
+    return scene.images * masks + (1 - masks)
+
+
+# ------------------------------------------------------------------------------------------------ network
+def test_unfitted_repair_network_is_the_identity(scene_dir):
+    images = object_images(scene_dir, 2)
+    repairer = UNetRepairer(RepairConfig())
+    torch.testing.assert_close(repairer.repair(images), images, rtol=0, atol=1e-6)
+    odd = images[:, :90, :93]  # sides that are not multiples of 4 are padded and cropped back
+    assert repairer.repair(odd).shape == odd.shape
+
+
+def test_repair_network_learns_to_undo_a_blur(scene_dir):
+    targets = object_images(scene_dir)
+    corrupted = gaussian_blur(targets, 1.5).clamp(0, 1)
+    half = len(targets) // 2
+    pairs = RepairPairs(corrupted, targets, [LEAVE_ONE_OUT] * half + [NOISE] * (len(targets) - half),
+                        list(range(len(targets))), NoiseStatistics({}, {}))
+    repairer = UNetRepairer(RepairConfig(fit_steps=150, fit_crop=48, fit_batch=4), seed=0)
+    stats = repairer.fit(pairs, log=lambda message: None)
+    assert stats["crop_l1_last_tenth"] < 0.8 * stats["crop_l1_first_tenth"]
+    for kind in (LEAVE_ONE_OUT, NOISE):
+        assert stats["l1_repaired"][kind] < 0.8 * stats["l1_identity"][kind], stats
+
+
+def test_make_repairer_loads_a_plugin_and_rejects_bad_ones(tmp_path, monkeypatch):
+    (tmp_path / "my_repairers.py").write_text(
+        "class Passthrough:\n"
+        "    def __init__(self, config, seed): self.seed = seed\n"
+        "    def fit(self, pairs, log): return {}\n"
+        "    def repair(self, images): return images\n"
+        "    def state_dict(self): return {}\n"
+        "    def load_state_dict(self, state): pass\n"
+        "def not_a_repairer(config, seed): return object()\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    assert make_repairer(RepairConfig(repairer="my_repairers:Passthrough"), seed=3).seed == 3
+    assert isinstance(make_repairer(RepairConfig()), UNetRepairer)
+    for spec, message in [("my_repairers:not_a_repairer", "lacks"), ("my_repairers:missing", "cannot load"),
+                          ("no_such_module:factory", "cannot load"), ("diffusion", "package.module:factory")]:
+        with pytest.raises(WarpbagsError, match=message):
+            make_repairer(RepairConfig(repairer=spec))
+
+
+# ------------------------------------------------------------------------------------------------ 3D noise
+def test_perturbed_gaussians_follow_the_noise_statistics():
+    count = 20000
+    params = {"means": torch.zeros(count, 3), "scales": torch.zeros(count, 3), "quats": torch.zeros(count, 4),
+              "opacities": torch.zeros(count), "sh0": torch.zeros(count, 1, 3)}
+    mean = {name: torch.full(params[name].shape[1:], 0.1) for name in NOISY_PARAMETERS}
+    std = {name: torch.full(params[name].shape[1:], 0.5) for name in NOISY_PARAMETERS}
+    noise = NoiseStatistics(mean, std)
+    generator = torch.Generator().manual_seed(0)
+    full = perturbed_gaussians(params, noise, clamp_std=0.7, dropout=0.0, generator=generator)
+    assert full["means"].mean().item() == pytest.approx(0.1, abs=0.01)
+    assert full["means"].std().item() == pytest.approx(0.5, abs=0.01)
+    assert full["scales"].min().item() >= 0.1 - 0.35 - 1e-6 and full["scales"].max().item() <= 0.1 + 0.35 + 1e-6
+    assert torch.equal(full["sh0"], params["sh0"])  # colours get no noise
+    sparse = perturbed_gaussians(params, noise, clamp_std=0.7, dropout=0.75, generator=generator)
+    assert (sparse["means"] != 0).float().mean().item() == pytest.approx(0.25, abs=0.01)
+    none = perturbed_gaussians(params, noise, clamp_std=0.7, dropout=1.0, generator=generator)
+    assert all(torch.equal(none[name], params[name]) for name in params)
+
+
+def test_distance_weights_favour_views_away_from_the_training_cameras():
+    from warpbags.pose import turntable_viewmats
+
+    base = torch.eye(4, dtype=torch.float64)
+    base[2, 3] = 4.0
+    orbit = turntable_viewmats(base[None], 16)
+    train = orbit[::4]  # 4 cameras, 90 degrees apart
+    weights = distance_weights(orbit[[0, 1, 2]], train)
+    assert weights[0].item() == pytest.approx(0.0, abs=1e-6)  # on a training camera
+    assert 0 < weights[1] < weights[2] <= 1  # half-way between two is farthest
+
+
+# ------------------------------------------------------------------------------------------------ end to end
+def make_trainer(scene_dir, out, **repair) -> Trainer:
+    config = tiny_config(**repair)
+    return Trainer(training_scene(load_scene(scene_dir, name="tiny"), config), config, out, log=lambda message: None)
+
+
+def test_repair_stage_runs_end_to_end_and_writes_its_samples(scene_dir, tmp_path):
+    trainer = make_trainer(scene_dir, tmp_path)
+    trainer.write_run_files()
+    trainer.train()
+    config = trainer.config
+    assert trainer.iteration == config.iters + config.repair.iters
+    records = [json.loads(line) for line in (tmp_path / "log.jsonl").read_text().splitlines()]
+    repair_records = [r for r in records if r["stage"] == "repair"]
+    assert len(repair_records) == config.repair.iters
+    assert repair_records[0]["pseudo_ratio"] == 1.0 and "pseudo_l1" in repair_records[0]
+    assert repair_records[-1]["pseudo_ratio"] == 0.0  # the last 30% train on the real views alone
+    assert all(np.isfinite(r["loss"]) for r in repair_records)
+
+    fit = json.loads((tmp_path / "repair" / "fit.json").read_text())
+    assert fit["pairs"] == {LEAVE_ONE_OUT: 4 * 2, NOISE: 4 * 2}
+    pairs = RepairPairs.load(tmp_path / "repair" / "pairs.pt")
+    assert pairs.corrupted.shape == pairs.targets.shape == (16, 96, 96, 3)
+    # A leave-one-out render of a view is worse than the coarse model's render of it, which saw the view.
+    loo = [i for i, kind in enumerate(pairs.kinds) if kind == LEAVE_ONE_OUT]
+    assert (pairs.corrupted[loo] - pairs.targets[loo]).abs().mean() > 0.01
+    assert (tmp_path / "repair" / "samples" / "pairs.png").is_file()
+    pseudo_samples = sorted((tmp_path / "repair" / "samples").glob("pseudo_*.png"))
+    assert [p.name for p in pseudo_samples] == ["pseudo_000035.png", "pseudo_000040.png"]  # refreshes, newest 2 kept
+
+    for folder in (tmp_path / "coarse", tmp_path):  # both results evaluate as runs
+        assert (folder / "gaussians.ply").is_file() and (folder / "poses_final.npy").is_file()
+        report = evaluate_run(folder, refine_iters=0, log=lambda message: None)
+        assert np.isfinite(report["images"]["mean"]["psnr"])
+    coarse_poses, final_poses = np.load(tmp_path / "coarse" / "poses_final.npy"), np.load(tmp_path / "poses_final.npy")
+    assert not np.allclose(coarse_poses, final_poses)  # the poses kept optimizing through the repair stage
+
+
+def test_repair_stage_resumes_to_the_same_result(scene_dir, tmp_path):
+    straight = make_trainer(scene_dir, tmp_path / "straight")
+    straight.train()
+    interrupted = make_trainer(scene_dir, tmp_path / "resumed")
+    interrupted.train(stop_at=interrupted.config.iters + 7)
+    messages = []
+    resumed = Trainer(interrupted.scene, interrupted.config, tmp_path / "resumed", log=messages.append)
+    assert resumed.resume()
+    resumed.train()
+    assert any("loaded" in message for message in messages)  # pairs and repairer were not rebuilt
+    for name in straight.params:
+        torch.testing.assert_close(resumed.params[name], straight.params[name], rtol=0, atol=0)
+    torch.testing.assert_close(resumed.current_viewmats(), straight.current_viewmats(), rtol=0, atol=0)
+
+
+def test_cli_trains_with_repair_and_rejects_contradictions(scene_dir, tmp_path):
+    runner = CliRunner()
+    out = tmp_path / "run"
+    settings = [f"--set=repair.{key}={json.dumps(value)}" for key, value in TINY_REPAIR.items() if key != "iters"]
+    common = [str(scene_dir), "--iters", "20", "--rounds", "1", "--set", "init_points=500", "--set",
+              "hull_resolution=32", "--set", "render_threads=1", *settings]
+    result = runner.invoke(app, ["train", *common, "--repair-iters", "6", "--out", str(out)])
+    assert result.exit_code == 0, result.output
+    assert "20 + 6 repair iterations" in result.output
+    saved = json.loads((out / "config.json").read_text())["config"]
+    assert saved["repair"]["iters"] == 6 and saved["repair"]["loo_iters"] == TINY_REPAIR["loo_iters"]
+    assert (out / "repair" / "samples" / "pairs.png").is_file() and (out / "coarse" / "gaussians.ply").is_file()
+
+    for extra, message in [(["--no-repair", "--repair-iters", "5"], "contradict"),
+                           (["--set", "repair.fit_steps=many"], "repair.fit_steps must be like"),
+                           (["--set", "views=6"], "--set views: it has its own option"),
+                           (["--set", "repair.nope=1"], "unknown training option"),
+                           (["--repairer", "nowhere:factory", "--repair-iters", "2"], "cannot load")]:
+        result = runner.invoke(app, ["train", *common, *extra, "--out", str(tmp_path / "bad")])
+        assert result.exit_code == 2 and message in result.output, (extra, result.output)
+        assert "Traceback" not in result.output
+
+
+def test_no_repair_writes_no_repair_files(scene_dir, tmp_path):
+    runner = CliRunner()
+    result = runner.invoke(app, ["train", str(scene_dir), "--iters", "10", "--rounds", "1", "--no-repair",
+                                 "--set", "init_points=400", "--set", "hull_resolution=24", "--out", str(tmp_path)])
+    assert result.exit_code == 0, result.output
+    assert json.loads((tmp_path / "config.json").read_text())["config"]["repair"]["iters"] == 0
+    assert not (tmp_path / "repair").exists() and not (tmp_path / "coarse").exists()
+    assert (tmp_path / "gaussians.ply").is_file()

@@ -1,0 +1,207 @@
+"""Repairers: image-to-image models that turn renders of a sparse-view model into plausible images of the object.
+
+GaussianObject's repairer is Stable Diffusion 1.5 + ControlNet-tile with a per-scene LoRA; its weights cannot be
+downloaded here, so warpbags ships `UNetRepairer`, a compact U-Net fitted per scene on the same (corrupted
+render, real image) pairs. Any object with the `Repairer` methods can take its place:
+
+    warpbags train maryrose --repair-iters 3000 --repairer mypackage.diffusion:make_repairer
+
+where ``make_repairer(config: RepairConfig, seed: int) -> Repairer`` (for instance a ControlNet + LoRA model
+loaded from local weights, whose `fit` trains the LoRA on the pairs).
+"""
+
+from __future__ import annotations
+
+import importlib
+import math
+import os
+from typing import Callable, Protocol, runtime_checkable
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from warpbags.configs.train import RepairConfig
+from warpbags.errors import WarpbagsError
+from warpbags.repair.pairs import RepairPairs
+
+
+@runtime_checkable
+class Repairer(Protocol):
+    """What the repair stage needs from a repairer. Images are [B, H, W, 3] float in [0, 1] on a white background."""
+
+    def fit(self, pairs: RepairPairs, log: Callable[[str], None]) -> dict:
+        """Learn to map `pairs.corrupted` to `pairs.targets`; returns statistics worth saving (JSON-able)."""
+
+    def repair(self, images: torch.Tensor) -> torch.Tensor:
+        """Repaired versions of `images` (no gradient)."""
+
+    def state_dict(self) -> dict:
+        """Everything needed to restore the fitted repairer (saved as repair/repairer.pt)."""
+
+    def load_state_dict(self, state: dict) -> None:
+        """Restore from `state_dict()`."""
+
+
+def _conv_block(channels_in: int, channels_out: int) -> nn.Sequential:
+    return nn.Sequential(
+        nn.Conv2d(channels_in, channels_out, 3, padding=1), nn.GroupNorm(4, channels_out), nn.SiLU(),
+        nn.Conv2d(channels_out, channels_out, 3, padding=1), nn.GroupNorm(4, channels_out), nn.SiLU(),
+    )
+
+
+class RepairUNet(nn.Module):
+    """A 3-level U-Net predicting a residual: ``repaired = image + net(image)``.
+
+    The output convolution starts at zero, so an unfitted network is the identity (a repairer that has seen no
+    data changes nothing). Input sides must be multiples of 4 (`UNetRepairer.repair` pads).
+    """
+
+    levels = 3
+
+    def __init__(self, channels: int = 16):
+        super().__init__()
+        widths = [channels * 2**level for level in range(self.levels)]
+        self.encoders = nn.ModuleList([_conv_block(3, widths[0])] + [
+            _conv_block(widths[level - 1], widths[level]) for level in range(1, self.levels)])
+        self.decoders = nn.ModuleList([
+            _conv_block(widths[level + 1] + widths[level], widths[level]) for level in range(self.levels - 1)])
+        self.output = nn.Conv2d(widths[0], 3, 1)
+        nn.init.zeros_(self.output.weight)
+        nn.init.zeros_(self.output.bias)
+
+    def forward(self, images: torch.Tensor) -> torch.Tensor:
+        """[B, 3, H, W] -> [B, 3, H, W]."""
+        skips, features = [], images * 2 - 1
+        for level, encoder in enumerate(self.encoders):
+            features = encoder(features if level == 0 else F.avg_pool2d(features, 2))
+            skips.append(features)
+        for level in reversed(range(self.levels - 1)):
+            features = F.interpolate(features, scale_factor=2, mode="bilinear", align_corners=False)
+            features = self.decoders[level](torch.cat([features, skips[level]], dim=1))
+        return images + self.output(features)
+
+
+class UNetRepairer:
+    """`RepairUNet` fitted per scene with L1 on random crops (flipped at random) of the pairs.
+
+    Crops are centred on object pixels (either image not white), where the repair has something to do.
+    """
+
+    def __init__(self, config: RepairConfig, seed: int = 0):
+        self.config = config
+        self.generator = torch.Generator().manual_seed(seed)
+        torch.manual_seed(seed)  # the convolutions' initial weights
+        self.network = RepairUNet(config.unet_channels)
+
+    def _crops(self, pairs: RepairPairs, size: int) -> tuple[torch.Tensor, torch.Tensor]:
+        count, height, width, _ = pairs.corrupted.shape
+        picks = torch.randint(count, (self.config.fit_batch,), generator=self.generator)
+        inputs, targets = [], []
+        for pick in picks.tolist():
+            corrupted, target = pairs.corrupted[pick], pairs.targets[pick]
+            ys, xs = torch.nonzero(((corrupted < 0.99) | (target < 0.99)).any(-1), as_tuple=True)
+            if len(ys) == 0:
+                ys, xs = torch.tensor([height // 2]), torch.tensor([width // 2])
+            choice = torch.randint(len(ys), (1,), generator=self.generator).item()
+            top = min(max(int(ys[choice]) - size // 2, 0), height - size)
+            left = min(max(int(xs[choice]) - size // 2, 0), width - size)
+            rows, columns = slice(top, top + size), slice(left, left + size)
+            corrupted, target = corrupted[rows, columns], target[rows, columns]
+            if torch.rand(1, generator=self.generator).item() < 0.5:
+                corrupted, target = corrupted.flip(1), target.flip(1)
+            inputs.append(corrupted)
+            targets.append(target)
+        to_nchw = lambda images: torch.stack(images).permute(0, 3, 1, 2).contiguous()  # noqa: E731
+        return to_nchw(inputs), to_nchw(targets)
+
+    def fit(self, pairs: RepairPairs, log: Callable[[str], None] = print) -> dict:
+        """Adam on L1 with a cosine-decayed rate; returns the L1 per pair kind before (identity) and after."""
+        config = self.config
+        height, width = pairs.corrupted.shape[1:3]
+        size = min(config.fit_crop, height, width) // 4 * 4
+        if size < 8:
+            raise WarpbagsError(f"images of {width}x{height} are too small to fit the repair network")
+        before = self.l1_by_kind(pairs, repaired=False)
+        optimizer = torch.optim.Adam(self.network.parameters(), lr=config.fit_lr)
+        schedule = torch.optim.lr_scheduler.LambdaLR(
+            optimizer, lambda step: 0.1 + 0.9 * 0.5 * (1 + math.cos(math.pi * step / max(config.fit_steps, 1))))
+        threads = torch.get_num_threads()
+        torch.set_num_threads(os.cpu_count() or 1)  # convolutions use all cores; the renderer is idle meanwhile
+        losses = []
+        try:
+            self.network.train()
+            for _ in range(config.fit_steps):
+                inputs, targets = self._crops(pairs, size)
+                loss = (self.network(inputs) - targets).abs().mean()
+                optimizer.zero_grad()
+                loss.backward()
+                optimizer.step()
+                schedule.step()
+                losses.append(loss.item())
+            self.network.eval()
+            after = self.l1_by_kind(pairs, repaired=True)
+        finally:
+            torch.set_num_threads(threads)
+        head, tail = losses[: max(len(losses) // 10, 1)], losses[-max(len(losses) // 10, 1):]
+        stats = {"steps": config.fit_steps, "crop": size, "crop_l1_first_tenth": sum(head) / len(head),
+                 "crop_l1_last_tenth": sum(tail) / len(tail), "l1_identity": before, "l1_repaired": after}
+        log(f"repair network: crop L1 {stats['crop_l1_first_tenth']:.4f} -> {stats['crop_l1_last_tenth']:.4f} "
+            f"over {config.fit_steps} steps")
+        return stats
+
+    def l1_by_kind(self, pairs: RepairPairs, repaired: bool) -> dict[str, float]:
+        """Mean whole-image L1 to the targets per pair kind, of the repaired (or the raw) corrupted images."""
+        result = {}
+        for kind in sorted(set(pairs.kinds)):
+            index = [i for i, k in enumerate(pairs.kinds) if k == kind]
+            images = pairs.corrupted[index]
+            if repaired:
+                images = self.repair(images)
+            result[kind] = (images - pairs.targets[index]).abs().mean().item()
+        return result
+
+    @torch.no_grad()
+    def repair(self, images: torch.Tensor) -> torch.Tensor:
+        height, width = images.shape[1:3]
+        pad_y, pad_x = -height % 4, -width % 4
+        inputs = F.pad(images.permute(0, 3, 1, 2), (0, pad_x, 0, pad_y), mode="replicate")
+        repaired = torch.cat([self.network(batch) for batch in inputs.split(8)])
+        return repaired[:, :, :height, :width].permute(0, 2, 3, 1).clamp(0, 1)
+
+    def state_dict(self) -> dict:
+        return {"network": self.network.state_dict()}
+
+    def load_state_dict(self, state: dict) -> None:
+        self.network.load_state_dict(state["network"])
+        self.network.eval()
+
+
+def repairer_factory(spec: str) -> Callable[[RepairConfig, int], Repairer]:
+    """The factory `spec` names: "unet" (`UNetRepairer`) or "package.module:factory", imported.
+
+    Raises:
+        WarpbagsError: a malformed spec, or a factory that cannot be imported.
+    """
+    if spec == "unet":
+        return UNetRepairer
+    module_name, _, attribute = spec.partition(":")
+    if not module_name or not attribute:
+        raise WarpbagsError(f"--repairer must be unet or package.module:factory, got {spec!r}")
+    try:
+        return getattr(importlib.import_module(module_name), attribute)
+    except (ImportError, AttributeError) as error:
+        raise WarpbagsError(f"--repairer {spec}: cannot load it ({error})") from None
+
+
+def make_repairer(config: RepairConfig, seed: int = 0) -> Repairer:
+    """The repairer `config.repairer` names, built as factory(config, seed).
+
+    Raises:
+        WarpbagsError: the factory cannot be imported, or what it returns lacks the `Repairer` methods.
+    """
+    repairer = repairer_factory(config.repairer)(config, seed)
+    if not isinstance(repairer, Repairer):
+        raise WarpbagsError(f"--repairer {config.repairer}: returned {type(repairer).__name__}, which lacks "
+                            "fit/repair/state_dict/load_state_dict")
+    return repairer

@@ -1,0 +1,146 @@
+"""`RepairStage`: the pseudo-view half of GaussianObject's repair optimization, attached to a `Trainer`.
+
+After the coarse stage the trainer builds one RepairStage, which
+1. builds the repairer's training pairs (`warpbags.repair.pairs`) and fits the repairer, or loads both from the
+   run folder when a resumed run already made them;
+2. every `refresh_every` iterations draws `pseudo_views` novel cameras in the gaps between the training cameras,
+   renders them and repairs the renders: the pseudo ground truth;
+3. each iteration returns the loss of one pseudo view against its repaired image.
+The trainer mixes it with the real-view loss (`RepairConfig` gives the schedule) and keeps optimizing the poses
+from the real views.
+
+Files (under the run folder's repair/):
+    pairs.pt            the training pairs and 3D-noise statistics
+    repairer.pt         the fitted repairer's state
+    fit.json            fitting statistics (L1 to the real images per pair kind, before and after repair)
+    samples/pairs.png   rows of corrupted | repaired | real image, leave-one-out pairs first
+    samples/pseudo_XXXXXX.png   rows of render | repaired image of pseudo views at a refresh (newest kept)
+"""
+
+from __future__ import annotations
+
+import json
+from typing import Callable
+
+import torch
+
+from warpbags.files import atomic_output
+from warpbags.gaussians import render_gaussians
+from warpbags.losses import load_lpips, repair_loss
+from warpbags.pose import camera_centers, interpolated_viewmats
+from warpbags.repair.network import make_repairer
+from warpbags.repair.pairs import LEAVE_ONE_OUT, NOISE, RepairPairs, build_pairs
+from warpbags.report import write_image_grid
+
+SAMPLE_ROWS = 4  # pictures per kind in a sample sheet
+
+
+def distance_weights(pseudo_viewmats: torch.Tensor, train_viewmats: torch.Tensor) -> torch.Tensor:
+    """[K] GaussianObject's pseudo-view weights min(1, 2 d / d_max): d is the distance from a pseudo camera to the
+    nearest training camera, d_max 1.2 x the largest distance from a training camera to its second-nearest other
+    (so views next to a real one, whose renders need little repair, count less)."""
+    pseudo, train = camera_centers(pseudo_viewmats), camera_centers(train_viewmats)
+    nearest = torch.cdist(pseudo, train).min(dim=1).values
+    between = torch.cdist(train, train).sort(dim=1).values
+    reach = 1.2 * between[:, min(2, len(train) - 1)].max()
+    return (2 * nearest / reach.clamp_min(1e-12)).clamp(max=1.0)
+
+
+class RepairStage:
+    """Pseudo ground truth from a repairer, for a trainer whose coarse stage is finished.
+
+    Args:
+        trainer: the `warpbags.trainer.Trainer` (its config's `repair` group sets everything here).
+        log: receives one-line progress notices.
+    """
+
+    def __init__(self, trainer, log: Callable[[str], None] = print):
+        self.config = trainer.config.repair
+        self.folder = trainer.out_dir / "repair"
+        self.samples = self.folder / "samples"
+        self.samples.mkdir(parents=True, exist_ok=True)
+        self.log = log
+        self.repairer = make_repairer(self.config, trainer.config.seed)
+        pairs_path, repairer_path = self.folder / "pairs.pt", self.folder / "repairer.pt"
+        if pairs_path.is_file() and repairer_path.is_file():  # a resumed run: reuse what it made
+            pairs = RepairPairs.load(pairs_path)
+            self.repairer.load_state_dict(torch.load(repairer_path, weights_only=False))
+            log(f"repair: loaded {len(pairs.kinds)} pairs and the fitted repairer from {self.folder}")
+        else:
+            log(f"repair: building training pairs ({trainer.num_cameras} leave-one-out models, "
+                f"{self.config.loo_iters} iterations each)")
+            pairs = build_pairs(trainer, log)
+            pairs.save(pairs_path)
+            stats = self.repairer.fit(pairs, log)
+            with atomic_output(repairer_path) as temporary:
+                torch.save(self.repairer.state_dict(), temporary)
+            with atomic_output(self.folder / "fit.json") as temporary:
+                temporary.write_text(json.dumps({"pairs": {kind: pairs.kinds.count(kind) for kind in set(pairs.kinds)},
+                                                 **stats}, indent=2))
+            self._save_pair_samples(pairs)
+        self.lpips, unavailable = load_lpips() if self.config.weight_lpips > 0 else (None, None)
+        if unavailable:
+            log(f"repair: LPIPS unavailable ({unavailable}); the pseudo-view loss is L1 + L2 only")
+        self.viewmats: torch.Tensor | None = None  # [K,4,4] current pseudo cameras
+        self.targets: torch.Tensor | None = None  # [K,H,W,3] their repaired renders
+        self.weights: torch.Tensor | None = None  # [K] their distance weights
+
+    def pseudo_ratio(self, repair_iteration: int) -> float:
+        """r in loss = (1 - r) real + r pseudo at this repair iteration (0-based)."""
+        config = self.config
+        until = config.pseudo_until * config.iters
+        if repair_iteration >= until:
+            return 0.0
+        fraction = repair_iteration / max(until, 1)
+        return config.pseudo_ratio_start + (config.pseudo_ratio_end - config.pseudo_ratio_start) * fraction
+
+    def _render(self, trainer, viewmats: torch.Tensor) -> torch.Tensor:
+        count = len(viewmats)
+        images, _, _ = render_gaussians(
+            trainer.params, viewmats, trainer.Ks[:1].expand(count, 3, 3).contiguous(), trainer.scene.width,
+            trainer.scene.height, sh_degree=trainer.sh_degree(), backgrounds=trainer.backgrounds[:1].expand(count, 3),
+            cpu_threads=trainer.config.render_threads or None)
+        return images
+
+    def refresh(self, trainer) -> None:
+        """Draw new pseudo cameras, render them and store their repaired renders as the pseudo ground truth."""
+        config, generator = self.config, trainer.generator
+        train_viewmats = trainer.current_viewmats()
+        gaps = torch.randint(trainer.num_cameras, (config.pseudo_views,), generator=generator)
+        fractions = 0.3 + 0.4 * torch.rand(config.pseudo_views, generator=generator)  # GaussianObject: 0.5 +- 0.2
+        self.viewmats = interpolated_viewmats(train_viewmats.double(), gaps, fractions.double()).float()
+        self.weights = distance_weights(self.viewmats, train_viewmats)
+        with torch.no_grad():
+            renders = self._render(trainer, self.viewmats).clamp(0, 1)
+        self.targets = self.repairer.repair(renders.cpu()).to(renders.device)
+        rows = [[render.cpu(), target.cpu()] for render, target in zip(renders[:SAMPLE_ROWS], self.targets)]
+        write_image_grid(self.samples / f"pseudo_{trainer.iteration:06d}.png", rows)
+        for old in sorted(self.samples.glob("pseudo_*.png"))[:-config.samples_kept]:
+            old.unlink()
+
+    def loss(self, trainer) -> tuple[torch.Tensor, dict]:
+        """The pseudo-view loss of one random pseudo view (refreshing the pseudo ground truth when due)."""
+        repair_iteration = trainer.iteration - trainer.config.iters
+        if self.targets is None or repair_iteration % self.config.refresh_every == 0:
+            self.refresh(trainer)
+        pick = torch.randint(len(self.viewmats), (1,), generator=trainer.generator)
+        images = self._render(trainer, self.viewmats[pick])
+        config = self.config
+        losses, terms = repair_loss(images, self.targets[pick], config.weight_l1, config.weight_l2, config.weight_lpips,
+                                    self.lpips)
+        return (self.weights[pick] * losses).mean(), terms
+
+    def _save_pair_samples(self, pairs: RepairPairs) -> None:
+        rows = []
+        for kind in (LEAVE_ONE_OUT, NOISE):
+            index = [i for i, k in enumerate(pairs.kinds) if k == kind]
+            index = index[:: max(len(index) // SAMPLE_ROWS, 1)][:SAMPLE_ROWS]  # spread over the views
+            repaired = self.repairer.repair(pairs.corrupted[index])
+            rows += [[pairs.corrupted[i], image, pairs.targets[i]] for i, image in zip(index, repaired)]
+        write_image_grid(self.samples / "pairs.png", rows)
+
+    def state_dict(self) -> dict:
+        return {"viewmats": self.viewmats, "targets": self.targets, "weights": self.weights}
+
+    def load_state_dict(self, state: dict) -> None:
+        self.viewmats, self.targets, self.weights = state["viewmats"], state["targets"], state["weights"]
