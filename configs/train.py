@@ -259,6 +259,8 @@ class TrainConfig:
              f"repair.unet_channels must be a positive multiple of 4, got {self.repair.unet_channels}"),
             (self.repair.pseudo_views >= 1, f"repair.pseudo_views must be >= 1, got {self.repair.pseudo_views}"),
             (0 <= self.repair.pseudo_until <= 1, f"repair.pseudo_until must be in [0, 1], got {self.repair.pseudo_until}"),
+            (0 <= self.repair.pseudo_ratio_start <= 1 and 0 <= self.repair.pseudo_ratio_end <= 1,
+             "repair.pseudo_ratio_start and repair.pseudo_ratio_end must be in [0, 1]"),
             (self.repair.refresh_every >= 1, f"repair.refresh_every must be >= 1, got {self.repair.refresh_every}"),
             (self.repair.fit_crop >= 8, f"repair.fit_crop must be >= 8, got {self.repair.fit_crop}"),
         ]

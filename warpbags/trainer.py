@@ -41,6 +41,7 @@ from warpbags.init import hull_or_random_points, initial_gaussians
 from warpbags.losses import depth_loss, gaussian_blur, mask_loss, photometric_loss
 from warpbags.pose import apply_pose_deltas, camera_centers, pose_errors
 from warpbags.repair import RepairStage, repairer_factory
+from warpbags.repair.stage import pseudo_ratio
 from warpbags.strategy import DensifyStrategy
 
 CHECKPOINTS_KEPT = 3
@@ -125,7 +126,7 @@ class Trainer:
         if config.fix_first_camera:
             self.gauge_mask[0] = 0.0
         self._start_round()
-        self.repair_stage: RepairStage | None = None  # built when the coarse stage ends
+        self.repair_stage: RepairStage | None = None  # built when the repair stage first uses pseudo views
         self._repair_state: dict | None = None  # its checkpointed state, applied when it is built
         self._stop_requested = False
 
@@ -320,13 +321,13 @@ class Trainer:
     def _repair_step(self) -> dict:
         """A repair-stage iteration: (1 - r) real-view loss + r pseudo-view loss, no densification."""
         started = time.perf_counter()
-        if self.repair_stage is None:
+        ratio = pseudo_ratio(self.config.repair, self.iteration - self.config.iters)
+        if self.repair_stage is None and ratio > 0:  # built when first needed (no pairs for a real-only schedule)
             self.repair_stage = RepairStage(self, self.log)
             if self._repair_state is not None:
                 self.repair_stage.load_state_dict(self._repair_state)
         self._set_learning_rates()
         loss, terms, _ = self._loss(self._views())
-        ratio = self.repair_stage.pseudo_ratio(self.iteration - self.config.iters)
         if ratio > 0:
             pseudo, pseudo_terms = self.repair_stage.loss(self)
             loss = (1 - ratio) * loss + ratio * pseudo

@@ -24,6 +24,7 @@ from typing import Callable
 
 import torch
 
+from warpbags.configs.train import RepairConfig
 from warpbags.files import atomic_output
 from warpbags.gaussians import render_gaussians
 from warpbags.losses import load_lpips, repair_loss
@@ -44,6 +45,16 @@ def distance_weights(pseudo_viewmats: torch.Tensor, train_viewmats: torch.Tensor
     between = torch.cdist(train, train).sort(dim=1).values
     reach = 1.2 * between[:, min(2, len(train) - 1)].max()
     return (2 * nearest / reach.clamp_min(1e-12)).clamp(max=1.0)
+
+
+def pseudo_ratio(config: RepairConfig, repair_iteration: int) -> float:
+    """r in loss = (1 - r) real + r pseudo at a repair iteration (0-based): linear from `pseudo_ratio_start` to
+    `pseudo_ratio_end` over the first `pseudo_until` of the repair iterations, 0 after."""
+    until = config.pseudo_until * config.iters
+    if repair_iteration >= until:
+        return 0.0
+    fraction = repair_iteration / max(until, 1)
+    return config.pseudo_ratio_start + (config.pseudo_ratio_end - config.pseudo_ratio_start) * fraction
 
 
 class RepairStage:
@@ -84,15 +95,6 @@ class RepairStage:
         self.viewmats: torch.Tensor | None = None  # [K,4,4] current pseudo cameras
         self.targets: torch.Tensor | None = None  # [K,H,W,3] their repaired renders
         self.weights: torch.Tensor | None = None  # [K] their distance weights
-
-    def pseudo_ratio(self, repair_iteration: int) -> float:
-        """r in loss = (1 - r) real + r pseudo at this repair iteration (0-based)."""
-        config = self.config
-        until = config.pseudo_until * config.iters
-        if repair_iteration >= until:
-            return 0.0
-        fraction = repair_iteration / max(until, 1)
-        return config.pseudo_ratio_start + (config.pseudo_ratio_end - config.pseudo_ratio_start) * fraction
 
     def _render(self, trainer, viewmats: torch.Tensor) -> torch.Tensor:
         count = len(viewmats)
