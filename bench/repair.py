@@ -4,15 +4,15 @@
                            [--preset quick] [key=value ...]
 
 SCENE: a preset (maryrose, synthetic), a scene folder, or `synthetic-small` (16 views, 96 px, cached).
-Per scene, one run trains the coarse stage, then the repair stage. As a control, the same coarse model also
-trains the same number of repair-stage iterations on the real views alone ("real": pseudo-view ratio 0), so
-that what the pseudo views add is told apart from what more iterations add. All three models are evaluated
-the same way: held-out PSNR / SSIM / LPIPS (LPIPS only where the `lpips` package and its
+Per scene, one run trains the coarse stage, then the repair stage. Two controls continue the same coarse model
+for the same number of iterations: "real" on the real views alone (pseudo-view ratio 0), telling what the
+pseudo views add from what more iterations add, and "identity" with pseudo views whose targets are their own
+unrepaired renders, telling what the repairer adds. All four models are evaluated the same way: held-out PSNR / SSIM / LPIPS (LPIPS only where the `lpips` package and its
 weights are available) with the test cameras aligned by Procrustes, and again after 50 iterations of test-pose
 refinement, plus the training-pose rotation error. Also printed: the repairer's L1 to the real images on its own
 training pairs (identity vs repaired), and the seconds spent in the coarse stage, in building pairs and fitting
-the repairer, and in the repair iterations. `key=value` pairs override TrainConfig fields (JSON values), e.g.
-`repair={"fit_steps": 800}`.
+the repairer, and in the repair iterations. `name=value` / `group.name=value` pairs override TrainConfig fields
+(JSON values, as `warpbags train --set`), e.g. `repair.fit_steps=800`.
 """
 
 from __future__ import annotations
@@ -26,7 +26,7 @@ from pathlib import Path
 
 import torch
 
-from warpbags.configs.train import load_preset
+from warpbags.configs.train import load_preset, parse_settings
 from warpbags.data import SyntheticOptions, ensure_synthetic_scene, load_scene, open_scene
 from warpbags.evaluation import evaluate_run
 from warpbags.repair import RepairStage
@@ -46,6 +46,34 @@ def _metrics(run_dir: Path) -> dict:
             "ssim_refined": refined["ssim"], "rot": report["poses"]["procrustes"]["final"]["rotation_deg_mean"]}
 
 
+class IdentityRepairer:
+    """A repairer that changes nothing: pseudo views are then supervised by their own renders."""
+
+    def fit(self, pairs, log) -> dict:
+        return {}
+
+    def repair(self, images: torch.Tensor) -> torch.Tensor:
+        return images
+
+    def state_dict(self) -> dict:
+        return {}
+
+    def load_state_dict(self, state: dict) -> None:
+        pass
+
+
+def _continue(scene, config, checkpoint: Path, out: Path, repairer=None) -> tuple[Path, float]:
+    """Train a copy of the checkpointed coarse model through `config`'s repair iterations; (run folder, seconds)."""
+    trainer = Trainer(training_scene(scene, config), config, out, log=lambda message: None)
+    trainer.write_run_files()
+    trainer.load_checkpoint(checkpoint)
+    if repairer is not None:
+        trainer.repair_stage = RepairStage(trainer, log=lambda message: None, repairer=repairer)
+    started = time.perf_counter()
+    trainer.train()
+    return out, time.perf_counter() - started
+
+
 def _fmt(value, digits: int) -> str:
     return "n/a" if value is None else f"{value:.{digits}f}"
 
@@ -59,13 +87,13 @@ def main() -> None:
     parser.add_argument("--repair-iters", type=int, default=300)
     parser.add_argument("--preset", default="quick")
     parser.add_argument("--keep", type=Path, help="keep the run folders under this folder (to look at the samples)")
-    parser.add_argument("overrides", nargs="*", help="TrainConfig fields as key=value (JSON values)")
+    parser.add_argument("overrides", nargs="*", help="TrainConfig fields as name=value or group.name=value (JSON values)")
     args = parser.parse_intermixed_args()
     torch.set_num_threads(1)
-    overrides = {key: json.loads(value) for key, value in (item.split("=", 1) for item in args.overrides)}
+    overrides = parse_settings(args.overrides)
     repair = {"iters": args.repair_iters, **overrides.pop("repair", {})}
     print(f"{args.views} views, noise {args.rot} deg / {args.trans}, preset {args.preset}, repair {repair} {overrides}")
-    header = (f"{'scene':<16} {'model':<7} {'PSNR':>6} {'SSIM':>6} {'LPIPS':>6} {'PSNR*':>6} {'SSIM*':>6} "
+    header = (f"{'scene':<16} {'model':<8} {'PSNR':>6} {'SSIM':>6} {'LPIPS':>6} {'PSNR*':>6} {'SSIM*':>6} "
               f"{'rot':>6}")
     with tempfile.TemporaryDirectory() as scratch:
         root = args.keep or Path(scratch)
@@ -80,34 +108,31 @@ def main() -> None:
             trainer.train(stop_at=config.iters)
             coarse_seconds = time.perf_counter() - started
 
-            # Control: the same coarse model trained the same repair iterations on the real views alone.
-            real_only = dataclasses.replace(config, repair=dataclasses.replace(
-                config.repair, pseudo_ratio_start=0.0, pseudo_ratio_end=0.0))
-            control_out = root / f"{name}-{args.views}v-real-only"
-            control = Trainer(training_scene(scene, real_only), real_only, control_out, log=lambda message: None)
-            control.write_run_files()
-            control.load_checkpoint(trainer.latest_checkpoint())
-            started = time.perf_counter()
-            control.train()
-            control_seconds = time.perf_counter() - started
-
+            coarse_checkpoint = trainer.latest_checkpoint()
             started = time.perf_counter()
             trainer.repair_stage = RepairStage(trainer, log=lambda message: None)  # pairs + fit, timed on their own
             preparation_seconds = time.perf_counter() - started
             started = time.perf_counter()
             trainer.train()
             repair_seconds = time.perf_counter() - started
+            # Controls from the same coarse model and the same number of iterations: the real views alone, and
+            # pseudo views whose targets are the renders themselves (what the repairer adds over that).
+            real_only = dataclasses.replace(config, repair=dataclasses.replace(
+                config.repair, pseudo_ratio_start=0.0, pseudo_ratio_end=0.0))
+            real_out, real_seconds = _continue(scene, real_only, coarse_checkpoint, root / f"{name}-real-only")
+            identity_out, _ = _continue(scene, config, coarse_checkpoint, root / f"{name}-identity", IdentityRepairer())
             fit = json.loads((out / "repair" / "fit.json").read_text())
             print(header + "\n" + "-" * len(header))
-            for model, folder in (("coarse", out / "coarse"), ("real", control_out), ("repair", out)):
+            for model, folder in (("coarse", out / "coarse"), ("real", real_out), ("identity", identity_out),
+                                  ("repair", out)):
                 m = _metrics(folder)
-                print(f"{name:<16} {model:<7} {m['psnr']:>6.2f} {m['ssim']:>6.3f} {_fmt(m['lpips'], 3):>6} "
+                print(f"{name:<16} {model:<8} {m['psnr']:>6.2f} {m['ssim']:>6.3f} {_fmt(m['lpips'], 3):>6} "
                       f"{m['psnr_refined']:>6.2f} {m['ssim_refined']:>6.3f} {m['rot']:>6.3f}", flush=True)
             print("repairer L1 on its pairs (identity -> repaired): "
                   + ", ".join(f"{kind} {fit['l1_identity'][kind]:.4f} -> {fit['l1_repaired'][kind]:.4f}"
                               for kind in sorted(fit["l1_identity"])))
             print(f"seconds: coarse {coarse_seconds:.0f} ({config.iters} its), pairs + fit {preparation_seconds:.0f}, "
-                  f"repair {repair_seconds:.0f} ({config.repair.iters} its), real-only {control_seconds:.0f}\n",
+                  f"repair {repair_seconds:.0f} ({config.repair.iters} its), real-only {real_seconds:.0f}\n",
                   flush=True)
     print("PSNR/SSIM/LPIPS on held-out views (object on white) with Procrustes-aligned test poses; * after 50\n"
           "iterations of test-pose refinement; rot: mean training-pose rotation error (deg) after alignment.")

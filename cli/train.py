@@ -2,42 +2,19 @@
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
-from typing import Any, Optional
+from typing import Optional
 
 import typer
 from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 from warpbags.cli.main import app, clean_errors
-from warpbags.configs.train import load_preset
+from warpbags.configs.train import load_preset, parse_settings
 
 from warpbags.errors import WarpbagsError
 from warpbags.trainer import default_run_dir, start_or_resume, training_scene
 
 stdout = Console(highlight=False)
-
-
-def parse_settings(settings: list[str]) -> dict[str, Any]:
-    """`--set` items as load_preset overrides: "a=1" -> {"a": 1}, "group.b=2" -> {"group": {"b": 2}}.
-
-    Values are JSON (numbers, true/false, lists); anything else is taken as a string.
-    """
-    overrides: dict[str, Any] = {}
-    for item in settings:
-        key, separator, text = item.partition("=")
-        if not separator or not key:
-            raise WarpbagsError(f"--set {item!r}: expected name=value or group.name=value")
-        try:
-            value = json.loads(text)
-        except json.JSONDecodeError:
-            value = text
-        group, _, name = key.rpartition(".")
-        if group:
-            overrides.setdefault(group, {})[name] = value
-        else:
-            overrides[key] = value
-    return overrides
 
 
 @app.command()
@@ -92,6 +69,9 @@ def train(
         raise WarpbagsError(f"--set {clash[0]}: it has its own option, use that")
     repair = {"iters": 0 if no_repair else repair_iters, "repairer": repairer}
     repair = {key: value for key, value in repair.items() if value is not None}
+    clash = sorted(set(overrides.get("repair", {})) & set(repair))
+    if clash:
+        raise WarpbagsError(f"--set repair.{clash[0]}: it has its own option, use that")
     if repair:
         overrides["repair"] = {**overrides.get("repair", {}), **repair}
     config = load_preset(preset, **options, **overrides)

@@ -7,6 +7,7 @@
 from __future__ import annotations
 
 import dataclasses
+import json
 from dataclasses import dataclass, field
 from typing import Any, Literal
 
@@ -139,6 +140,38 @@ class RepairConfig:
     weight_lpips: float = 2.0
     samples_kept: int = 3
 
+    def checks(self) -> list[tuple[bool, str]]:
+        """(condition, message) pairs for `TrainConfig.validate`."""
+        span = (self.loo_iters - self.loo_snapshot) // 4
+        between = lambda name, low, high: (  # noqa: E731
+            low <= getattr(self, name) <= high, f"repair.{name} must be in [{low}, {high}], got {getattr(self, name)}")
+        ranges = lambda name: (  # noqa: E731
+            0 <= getattr(self, name)[0] <= getattr(self, name)[1] <= 1,
+            f"repair.{name} must be (low, high) with 0 <= low <= high <= 1, got {getattr(self, name)}")
+        return [
+            (self.iters >= 0, f"--repair-iters must be >= 0, got {self.iters}"),
+            (1 <= self.loo_snapshot < self.loo_iters,
+             f"repair.loo_snapshot must be in [1, loo_iters), got {self.loo_snapshot}"),
+            (1 <= self.loo_samples <= max(span, 1),
+             f"repair.loo_samples must be in [1, (loo_iters - loo_snapshot) // 4 = {max(span, 1)}], got {self.loo_samples}"),
+            (self.noise_renders >= 0, f"repair.noise_renders must be >= 0, got {self.noise_renders}"),
+            ranges("noise_clamp_std"),
+            ranges("noise_dropout"),
+            (self.unet_channels > 0 and self.unet_channels % 4 == 0,
+             f"repair.unet_channels must be a positive multiple of 4, got {self.unet_channels}"),
+            (self.fit_steps >= 1, f"repair.fit_steps must be >= 1, got {self.fit_steps}"),
+            (self.fit_lr > 0, f"repair.fit_lr must be > 0, got {self.fit_lr}"),
+            (self.fit_batch >= 1, f"repair.fit_batch must be >= 1, got {self.fit_batch}"),
+            (self.fit_crop >= 8, f"repair.fit_crop must be >= 8, got {self.fit_crop}"),
+            (self.pseudo_views >= 1, f"repair.pseudo_views must be >= 1, got {self.pseudo_views}"),
+            (self.refresh_every >= 1, f"repair.refresh_every must be >= 1, got {self.refresh_every}"),
+            between("pseudo_ratio_start", 0, 1),
+            between("pseudo_ratio_end", 0, 1),
+            between("pseudo_until", 0, 1),
+            (min(self.weight_l1, self.weight_l2, self.weight_lpips) >= 0, "repair loss weights must be >= 0"),
+            (self.samples_kept >= 1, f"repair.samples_kept must be >= 1, got {self.samples_kept}"),
+        ]
+
 
 @dataclass(frozen=True)
 class TrainConfig:
@@ -147,7 +180,7 @@ class TrainConfig:
     Attributes:
         preset: the preset this config came from.
         views: number of training views (the scene's sparse_{views}.txt split).
-        iters: total iterations.
+        iters: coarse-stage iterations (the repair stage adds `repair.iters` after them).
         rounds: the iterations are split into this many rounds; each round starts from fresh Gaussians (visual
             hull carved with the current poses) while the poses carry over, so Gaussians that absorbed pose
             errors are discarded and the hull sharpens as the poses improve (1 = the paper's single run). Ignored
@@ -251,18 +284,11 @@ class TrainConfig:
             (0 <= self.lambda_depth < 1, f"lambda_depth must be in [0, 1), got {self.lambda_depth}"),
             (self.depth_loss in ("mad", "pearson"), f"--depth-loss must be mad or pearson, got {self.depth_loss!r}"),
             (self.pose_alignment in ("procrustes", "pairwise"), f"pose_alignment: {self.pose_alignment!r}"),
-            (self.repair.iters >= 0, f"--repair-iters must be >= 0, got {self.repair.iters}"),
-            (1 <= self.repair.loo_snapshot < self.repair.loo_iters,
-             f"repair.loo_snapshot must be in [1, loo_iters), got {self.repair.loo_snapshot}"),
+            *self.repair.checks(),
             (self.repair.iters == 0 or self.views >= 3, "the repair stage needs at least 3 training views"),
-            (self.repair.unet_channels % 4 == 0 and self.repair.unet_channels > 0,
-             f"repair.unet_channels must be a positive multiple of 4, got {self.repair.unet_channels}"),
-            (self.repair.pseudo_views >= 1, f"repair.pseudo_views must be >= 1, got {self.repair.pseudo_views}"),
-            (0 <= self.repair.pseudo_until <= 1, f"repair.pseudo_until must be in [0, 1], got {self.repair.pseudo_until}"),
-            (0 <= self.repair.pseudo_ratio_start <= 1 and 0 <= self.repair.pseudo_ratio_end <= 1,
-             "repair.pseudo_ratio_start and repair.pseudo_ratio_end must be in [0, 1]"),
-            (self.repair.refresh_every >= 1, f"repair.refresh_every must be >= 1, got {self.repair.refresh_every}"),
-            (self.repair.fit_crop >= 8, f"repair.fit_crop must be >= 8, got {self.repair.fit_crop}"),
+            (self.repair.iters == 0 or self.background == "white",
+             "the repair stage works on a white background (GaussianObject's), got background black"),
+
         ]
         for ok, message in checks:
             if not ok:
@@ -274,15 +300,12 @@ class TrainConfig:
 
     @staticmethod
     def from_dict(values: dict[str, Any]) -> TrainConfig:
-        values = dict(values)
-        values["lr"] = LearningRates(**values.get("lr", {}))
-        values["densify"] = DensifyConfig(**values.get("densify", {}))
-        repair = dict(values.get("repair", {}))
-        for key in ("noise_clamp_std", "noise_dropout"):  # JSON turns tuples into lists
-            if key in repair:
-                repair[key] = tuple(repair[key])
-        values["repair"] = RepairConfig(**repair)
-        return TrainConfig(**values)
+        """The config `to_dict` wrote (e.g. a run's config.json); fields it lacks keep their defaults.
+
+        Raises:
+            WarpbagsError: an unknown field or a value of the wrong type.
+        """
+        return _replaced(TrainConfig(), values)
 
 
 def paper() -> TrainConfig:
@@ -373,6 +396,30 @@ def _replaced(base: Any, overrides: dict[str, Any], prefix: str = "") -> Any:
         else:
             changes[key] = _typed(value, current, prefix + key)
     return dataclasses.replace(base, **changes)
+
+
+def parse_settings(settings: list[str]) -> dict[str, Any]:
+    """"name=value" / "group.name=value" strings as `load_preset` overrides: "a=1" -> {"a": 1},
+    "repair.b=2" -> {"repair": {"b": 2}}. Values are JSON (numbers, true/false, lists); anything else is a string.
+
+    Raises:
+        WarpbagsError: an item without "=".
+    """
+    overrides: dict[str, Any] = {}
+    for item in settings:
+        key, separator, text = item.partition("=")
+        if not separator or not key:
+            raise WarpbagsError(f"--set {item!r}: expected name=value or group.name=value")
+        try:
+            value = json.loads(text)
+        except json.JSONDecodeError:
+            value = text
+        group, _, name = key.rpartition(".")
+        if group:
+            overrides.setdefault(group, {})[name] = value
+        else:
+            overrides[key] = value
+    return overrides
 
 
 def load_preset(name: str, **overrides: Any) -> TrainConfig:

@@ -58,7 +58,7 @@ def test_repair_network_learns_to_undo_a_blur(scene_dir):
     corrupted = gaussian_blur(targets, 1.5).clamp(0, 1)
     half = len(targets) // 2
     pairs = RepairPairs(corrupted, targets, [LEAVE_ONE_OUT] * half + [NOISE] * (len(targets) - half),
-                        list(range(len(targets))), NoiseStatistics({}, {}))
+                        NoiseStatistics({}, {}))
     repairer = UNetRepairer(RepairConfig(fit_steps=150, fit_crop=48, fit_batch=4), seed=0)
     stats = repairer.fit(pairs, log=lambda message: None)
     assert stats["crop_l1_last_tenth"] < 0.8 * stats["crop_l1_first_tenth"]
@@ -69,12 +69,12 @@ def test_repair_network_learns_to_undo_a_blur(scene_dir):
 def test_make_repairer_loads_a_plugin_and_rejects_bad_ones(tmp_path, monkeypatch):
     (tmp_path / "my_repairers.py").write_text(
         "class Passthrough:\n"
-        "    def __init__(self, config, seed): self.seed = seed\n"
+        "    def __init__(self, config, seed, device): self.seed = seed\n"
         "    def fit(self, pairs, log): return {}\n"
         "    def repair(self, images): return images\n"
         "    def state_dict(self): return {}\n"
         "    def load_state_dict(self, state): pass\n"
-        "def not_a_repairer(config, seed): return object()\n")
+        "def not_a_repairer(config, seed, device): return object()\n")
     monkeypatch.syspath_prepend(str(tmp_path))
     assert make_repairer(RepairConfig(repairer="my_repairers:Passthrough"), seed=3).seed == 3
     assert isinstance(make_repairer(RepairConfig()), UNetRepairer)
@@ -186,6 +186,11 @@ def test_cli_trains_with_repair_and_rejects_contradictions(scene_dir, tmp_path):
                            (["--set", "repair.fit_steps=many"], "repair.fit_steps must be like"),
                            (["--set", "views=6"], "--set views: it has its own option"),
                            (["--set", "repair.nope=1"], "unknown training option"),
+                           (["--set", "repair.iters=5", "--no-repair"], "--set repair.iters: it has its own option"),
+                           (["--set", "repair.loo_samples=0"], "repair.loo_samples must be in [1, (loo_iters - loo_snapshot) // 4 = 2]"),
+                           (["--set", "repair.noise_dropout=[0.9,0.2]"], "repair.noise_dropout must be (low, high)"),
+                           (["--set", "background=black", "--repair-iters", "2"], "white background"),
+                           (["--set", "repair"], "expected name=value"),
                            (["--repairer", "nowhere:factory", "--repair-iters", "2"], "cannot load")]:
         result = runner.invoke(app, ["train", *common, *extra, "--out", str(tmp_path / "bad")])
         assert result.exit_code == 2 and message in result.output, (extra, result.output)

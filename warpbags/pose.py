@@ -614,9 +614,10 @@ def interpolated_viewmats(viewmats: torch.Tensor, gaps: torch.Tensor, fractions:
     """
     center = torch.zeros(3, dtype=viewmats.dtype, device=viewmats.device) if center is None else center
     order = azimuth_order(viewmats, center)
+    gaps = gaps.to(viewmats.device)
     first, second = order[gaps], order[(gaps + 1) % len(order)]
     to_world_a, to_world_b = viewmats[first, :3, :3].transpose(1, 2), viewmats[second, :3, :3].transpose(1, 2)
-    fractions = fractions.to(viewmats.dtype)[:, None]
+    fractions = fractions.to(viewmats)[:, None]
     rotations = to_world_a @ so3_exp(fractions * so3_log(to_world_a.transpose(1, 2) @ to_world_b))
     offset_a, offset_b = camera_centers(viewmats[first]) - center, camera_centers(viewmats[second]) - center
     distance_a, distance_b = offset_a.norm(dim=-1, keepdim=True), offset_b.norm(dim=-1, keepdim=True)

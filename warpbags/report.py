@@ -25,7 +25,8 @@ def read_log(run_dir: Path) -> list[dict]:
 
 
 def plot_training_curves(records: list[dict], path: Path) -> None:
-    """Total loss and pose errors over iterations (the report's Figs. 6 and 7 for one run)."""
+    """Total loss and pose errors over iterations (the report's Figs. 6 and 7 for one run); a dotted line marks
+    the start of the repair stage."""
     iters = [r["iter"] for r in records]
     figure, (loss_axis, pose_axis) = plt.subplots(1, 2, figsize=(10, 3.6))
     loss_axis.plot(iters, [r["loss"] for r in records])
@@ -35,6 +36,10 @@ def plot_training_curves(records: list[dict], path: Path) -> None:
     twin.plot(iters, [r["trans_err"] for r in records], color="tab:orange", label="translation")
     pose_axis.set(xlabel="iteration", ylabel="rotation error (deg)", title="pose error (Procrustes-aligned)")
     twin.set_ylabel("translation error")
+    repair = [r["iter"] for r in records if r.get("stage") == "repair"]
+    if repair:  # where the repair stage starts
+        for axis in (loss_axis, pose_axis):
+            axis.axvline(repair[0], color="gray", linestyle=":", linewidth=1)
     figure.tight_layout()
     figure.savefig(path, dpi=110)
     plt.close(figure)

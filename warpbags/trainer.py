@@ -180,8 +180,8 @@ class Trainer:
 
     @property
     def in_repair(self) -> bool:
-        """True once the coarse iterations are done (the Gaussian schedules of the rounds have ended)."""
-        return self.iteration >= self.config.iters
+        """True in the repair stage: the coarse iterations are done and repair iterations follow."""
+        return self.config.repair.iters > 0 and self.iteration >= self.config.iters
 
     def sh_degree(self) -> int:
         if self.in_repair:
@@ -236,6 +236,19 @@ class Trainer:
         if per_step == 0 or per_step >= self.num_cameras:
             return torch.arange(self.num_cameras)
         return torch.randperm(self.num_cameras, generator=self.generator)[:per_step]
+
+    def render_views(self, viewmats: torch.Tensor, Ks: torch.Tensor | None = None,
+                     params: dict[str, torch.Tensor] | None = None) -> torch.Tensor:
+        """[B,H,W,3] renders of any cameras ([B,4,4] world-to-camera, intrinsics default camera 0's) at the
+        training size and background, of the Gaussians (default: the trainer's own, e.g. perturbed copies)."""
+        count = len(viewmats)
+        Ks = self.Ks[:1].expand(count, 3, 3).contiguous() if Ks is None else Ks
+        images, _, _ = render_gaussians(
+            self.params if params is None else params, viewmats, Ks, self.scene.width, self.scene.height,
+            sh_degree=self.sh_degree(), backgrounds=self.backgrounds[:1].expand(count, 3),
+            cpu_threads=self.config.render_threads or None,
+        )
+        return images
 
     def render(self, views: torch.Tensor, pose_grad: bool = True, sh_degree: int | None = None):
         """Render training views `views` ([B] long) at the current poses; returns (colors, alphas, meta)."""
@@ -302,21 +315,30 @@ class Trainer:
         self._set_learning_rates()
         views = self._views()
         loss, terms, meta = self._loss(views)
+        self._optimize(loss, after_backward=lambda: self.strategy.accumulate(self.round_iteration, meta))
+        densify = self.strategy.step(self.round_iteration or self.round_length, self.params, self.optimizer,
+                                     self.generator)
+        return self._record("coarse", loss, {**terms, **densify}, started)
+
+    def _optimize(self, loss: torch.Tensor, after_backward: Callable[[], None] | None = None) -> None:
+        """Backward, one Adam step of the Gaussians and (while active) of the poses, then the iteration count."""
         self._check_finite(loss)
         loss.backward()
-        self.strategy.accumulate(self.round_iteration, meta)
+        if after_backward is not None:
+            after_backward()
         self.optimizer.step()
         self.optimizer.zero_grad(set_to_none=True)
-        if self.pose_active():  # the gauge camera's gradient is already zero (pose_deltas is masked)
+        # The gauge camera's gradient is already zero (pose_deltas is masked); a pose delta without a gradient
+        # this step (no real view rendered) is skipped by Adam, so momentum does not move it.
+        if self.pose_active():
             self.pose_optimizer.step()
         self.pose_optimizer.zero_grad(set_to_none=True)
         self.iteration += 1
-        densify = self.strategy.step(self.round_iteration or self.round_length, self.params, self.optimizer,
-                                     self.generator)
-        record = {"iter": self.iteration, "stage": "coarse", "loss": loss.item(), **terms,
-                  "num_gaussians": len(self.params["means"]), "sh_degree": self.sh_degree(), "pose_opt": self.pose_active(),
-                  **self.pose_error(), **densify, "seconds": time.perf_counter() - started}
-        return record
+
+    def _record(self, stage: str, loss: torch.Tensor, terms: dict, started: float) -> dict:
+        return {"iter": self.iteration, "stage": stage, "loss": loss.item(), **terms,
+                "num_gaussians": len(self.params["means"]), "sh_degree": self.sh_degree(),
+                "pose_opt": self.pose_active(), **self.pose_error(), "seconds": time.perf_counter() - started}
 
     def _repair_step(self) -> dict:
         """A repair-stage iteration: (1 - r) real-view loss + r pseudo-view loss, no densification."""
@@ -327,22 +349,15 @@ class Trainer:
             if self._repair_state is not None:
                 self.repair_stage.load_state_dict(self._repair_state)
         self._set_learning_rates()
-        loss, terms, _ = self._loss(self._views())
+        loss, terms = torch.zeros((), device=self.device), {"pseudo_ratio": ratio}
+        if ratio < 1:
+            real, real_terms, _ = self._loss(self._views())
+            loss, terms = (1 - ratio) * real, {**terms, **real_terms}
         if ratio > 0:
             pseudo, pseudo_terms = self.repair_stage.loss(self)
-            loss = (1 - ratio) * loss + ratio * pseudo
-            terms.update(pseudo_terms)
-        self._check_finite(loss)
-        loss.backward()
-        self.optimizer.step()
-        self.optimizer.zero_grad(set_to_none=True)
-        if self.pose_active():
-            self.pose_optimizer.step()
-        self.pose_optimizer.zero_grad(set_to_none=True)
-        self.iteration += 1
-        return {"iter": self.iteration, "stage": "repair", "loss": loss.item(), "pseudo_ratio": ratio, **terms,
-                "num_gaussians": len(self.params["means"]), "sh_degree": self.sh_degree(),
-                "pose_opt": self.pose_active(), **self.pose_error(), "seconds": time.perf_counter() - started}
+            loss, terms = loss + ratio * pseudo, {**terms, **pseudo_terms}
+        self._optimize(loss)
+        return self._record("repair", loss, terms, started)
 
     def continue_from(self, other: Trainer) -> None:
         """Take over `other`'s Gaussians, their optimizer and densification state, iteration and scene extent (the
@@ -433,6 +448,11 @@ class Trainer:
     # ----------------------------------------------------------------------------------------------- loop
     def _request_stop(self, signum, frame) -> None:
         self._stop_requested = True
+
+    @property
+    def stop_requested(self) -> bool:
+        """Ctrl-C was pressed: long work inside a step (building repair pairs) stops early."""
+        return self._stop_requested
 
     def train(self, stop_at: int | None = None, callback: Callable[[dict], None] | None = None) -> dict:
         """Train until `stop_at` (default: all coarse and repair iterations) are done; returns the last record.

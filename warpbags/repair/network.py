@@ -6,8 +6,8 @@ render, real image) pairs. Any object with the `Repairer` methods can take its p
 
     warpbags train maryrose --repair-iters 3000 --repairer mypackage.diffusion:make_repairer
 
-where ``make_repairer(config: RepairConfig, seed: int) -> Repairer`` (for instance a ControlNet + LoRA model
-loaded from local weights, whose `fit` trains the LoRA on the pairs).
+where ``make_repairer(config: RepairConfig, seed: int, device: str) -> Repairer`` (for instance a ControlNet +
+LoRA model loaded from local weights, whose `fit` trains the LoRA on the pairs).
 """
 
 from __future__ import annotations
@@ -28,7 +28,8 @@ from warpbags.repair.pairs import RepairPairs
 
 @runtime_checkable
 class Repairer(Protocol):
-    """What the repair stage needs from a repairer. Images are [B, H, W, 3] float in [0, 1] on a white background."""
+    """What the repair stage needs from a repairer. Images are [B, H, W, 3] float in [0, 1] on a white background;
+    `repair` returns them on the device they came on."""
 
     def fit(self, pairs: RepairPairs, log: Callable[[str], None]) -> dict:
         """Learn to map `pairs.corrupted` to `pairs.targets`; returns statistics worth saving (JSON-able)."""
@@ -88,11 +89,12 @@ class UNetRepairer:
     Crops are centred on object pixels (either image not white), where the repair has something to do.
     """
 
-    def __init__(self, config: RepairConfig, seed: int = 0):
-        self.config = config
+    def __init__(self, config: RepairConfig, seed: int = 0, device: str = "cpu"):
+        self.config, self.device = config, torch.device(device)
         self.generator = torch.Generator().manual_seed(seed)
-        torch.manual_seed(seed)  # the convolutions' initial weights
-        self.network = RepairUNet(config.unet_channels)
+        with torch.random.fork_rng(devices=[]):  # seeds the initial weights without touching the caller's RNG
+            torch.manual_seed(seed)
+            self.network = RepairUNet(config.unet_channels).to(self.device)
 
     def _crops(self, pairs: RepairPairs, size: int) -> tuple[torch.Tensor, torch.Tensor]:
         count, height, width, _ = pairs.corrupted.shape
@@ -112,7 +114,7 @@ class UNetRepairer:
                 corrupted, target = corrupted.flip(1), target.flip(1)
             inputs.append(corrupted)
             targets.append(target)
-        to_nchw = lambda images: torch.stack(images).permute(0, 3, 1, 2).contiguous()  # noqa: E731
+        to_nchw = lambda images: torch.stack(images).permute(0, 3, 1, 2).contiguous().to(self.device)  # noqa: E731
         return to_nchw(inputs), to_nchw(targets)
 
     def fit(self, pairs: RepairPairs, log: Callable[[str], None] = print) -> dict:
@@ -127,7 +129,7 @@ class UNetRepairer:
         schedule = torch.optim.lr_scheduler.LambdaLR(
             optimizer, lambda step: 0.1 + 0.9 * 0.5 * (1 + math.cos(math.pi * step / max(config.fit_steps, 1))))
         threads = torch.get_num_threads()
-        torch.set_num_threads(os.cpu_count() or 1)  # convolutions use all cores; the renderer is idle meanwhile
+        torch.set_num_threads(len(os.sched_getaffinity(0)))  # convolutions use every core; the renderer is idle
         losses = []
         try:
             self.network.train()
@@ -158,16 +160,16 @@ class UNetRepairer:
             images = pairs.corrupted[index]
             if repaired:
                 images = self.repair(images)
-            result[kind] = (images - pairs.targets[index]).abs().mean().item()
+            result[kind] = (images.cpu() - pairs.targets[index]).abs().mean().item()
         return result
 
     @torch.no_grad()
     def repair(self, images: torch.Tensor) -> torch.Tensor:
         height, width = images.shape[1:3]
         pad_y, pad_x = -height % 4, -width % 4
-        inputs = F.pad(images.permute(0, 3, 1, 2), (0, pad_x, 0, pad_y), mode="replicate")
+        inputs = F.pad(images.permute(0, 3, 1, 2).to(self.device), (0, pad_x, 0, pad_y), mode="replicate")
         repaired = torch.cat([self.network(batch) for batch in inputs.split(8)])
-        return repaired[:, :, :height, :width].permute(0, 2, 3, 1).clamp(0, 1)
+        return repaired[:, :, :height, :width].permute(0, 2, 3, 1).clamp(0, 1).to(images.device)
 
     def state_dict(self) -> dict:
         return {"network": self.network.state_dict()}
@@ -177,7 +179,7 @@ class UNetRepairer:
         self.network.eval()
 
 
-def repairer_factory(spec: str) -> Callable[[RepairConfig, int], Repairer]:
+def repairer_factory(spec: str) -> Callable[[RepairConfig, int, str], Repairer]:
     """The factory `spec` names: "unet" (`UNetRepairer`) or "package.module:factory", imported.
 
     Raises:
@@ -194,13 +196,13 @@ def repairer_factory(spec: str) -> Callable[[RepairConfig, int], Repairer]:
         raise WarpbagsError(f"--repairer {spec}: cannot load it ({error})") from None
 
 
-def make_repairer(config: RepairConfig, seed: int = 0) -> Repairer:
-    """The repairer `config.repairer` names, built as factory(config, seed).
+def make_repairer(config: RepairConfig, seed: int = 0, device: str = "cpu") -> Repairer:
+    """The repairer `config.repairer` names, built as factory(config, seed, device).
 
     Raises:
         WarpbagsError: the factory cannot be imported, or what it returns lacks the `Repairer` methods.
     """
-    repairer = repairer_factory(config.repairer)(config, seed)
+    repairer = repairer_factory(config.repairer)(config, seed, device)
     if not isinstance(repairer, Repairer):
         raise WarpbagsError(f"--repairer {config.repairer}: returned {type(repairer).__name__}, which lacks "
                             "fit/repair/state_dict/load_state_dict")

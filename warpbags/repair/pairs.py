@@ -21,7 +21,6 @@ import torch
 
 from warpbags.configs.train import TrainConfig
 from warpbags.files import atomic_output
-from warpbags.gaussians import render_gaussians
 
 # Parameters that get 3D noise (GaussianObject's add_statistics_noise leaves colours alone).
 NOISY_PARAMETERS = ("means", "scales", "quats", "opacities")
@@ -47,14 +46,12 @@ class RepairPairs:
     Attributes:
         corrupted, targets: [P, H, W, 3] float32 in [0, 1].
         kinds: P labels, LEAVE_ONE_OUT or NOISE.
-        views: P training-view indices the pairs show.
         noise: the 3D-noise statistics the NOISE pairs were drawn with.
     """
 
     corrupted: torch.Tensor
     targets: torch.Tensor
     kinds: list[str]
-    views: list[int]
     noise: NoiseStatistics
 
     def save(self, path: Path) -> None:
@@ -63,27 +60,35 @@ class RepairPairs:
 
     @staticmethod
     def load(path: Path) -> RepairPairs:
-        state = torch.load(path, weights_only=False)
+        state = torch.load(path, map_location="cpu", weights_only=False)
         return RepairPairs(**{**state, "noise": NoiseStatistics(**state["noise"])})
 
 
 def leave_one_out_config(config: TrainConfig) -> TrainConfig:
-    """The coarse config turned into a leave-one-out run: `loo_iters` single-round iterations with frozen, exact
-    (noise-free) poses and no repair stage; the Gaussian set is fixed from `loo_snapshot` on."""
+    """The coarse config turned into a leave-one-out run: `loo_iters` single-round iterations with frozen poses
+    (the caller passes the coarse estimate) and no repair stage; the Gaussian set is fixed from `loo_snapshot` on."""
     repair = config.repair
     densify = dataclasses.replace(config.densify, stop=min(config.densify.stop, repair.loo_snapshot), floater_every=0)
-    return dataclasses.replace(config, iters=repair.loo_iters, rounds=1, pose_opt=False, rot_noise_deg=0.0,
-                               trans_noise=0.0, densify=densify, repair=dataclasses.replace(repair, iters=0))
+    return dataclasses.replace(config, iters=repair.loo_iters, rounds=1, pose_opt=False, densify=densify,
+                               repair=dataclasses.replace(repair, iters=0))
 
 
-def _render_view(trainer, view: int) -> torch.Tensor:
-    """[H, W, 3] render of one of `trainer`'s views at its current pose (no gradient)."""
+def _render(trainer, view: int, params: dict[str, torch.Tensor] | None = None) -> torch.Tensor:
+    """[H, W, 3] CPU render of `trainer`'s view `view` at its current pose (no gradient)."""
     with torch.no_grad():
-        images, _, _ = trainer.render(torch.tensor([view]), pose_grad=False, sh_degree=trainer.config.sh_degree)
-    return images[0, ..., :3].clamp(0, 1)  # the trainer renders RGB + expected depth
+        images = trainer.render_views(trainer.current_viewmats()[view:view + 1], trainer.Ks[view:view + 1], params)
+    return images[0].clamp(0, 1).cpu()
 
 
-def leave_one_out(trainer, left_out: int) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+def _train_until(trainer, iteration: int, should_stop: Callable[[], bool]) -> None:
+    while trainer.iteration < iteration:
+        if should_stop():
+            raise KeyboardInterrupt
+        trainer.train_step()
+
+
+def leave_one_out(trainer, left_out: int, should_stop: Callable[[], bool] = lambda: False
+                  ) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
     """Train the leave-one-out pair of models for view `left_out` of `trainer` (a finished coarse stage).
 
     A model of the other views trains to `loo_snapshot`; then one copy goes on without the view ("unseen") and
@@ -91,7 +96,10 @@ def leave_one_out(trainer, left_out: int) -> tuple[torch.Tensor, dict[str, torch
     first quarter of its continuation (the first render is the pure leave-one-out one).
 
     Returns:
-        ([S, H, W, 3] renders of the left-out view, name -> [N, ...] unseen - seen final parameters).
+        ([S, H, W, 3] renders of the left-out view, name -> [N, ...] unseen - seen final parameters), on the CPU.
+
+    Raises:
+        KeyboardInterrupt: `should_stop()` turned true (checked every iteration).
     """
     config = leave_one_out_config(trainer.config)
     repair = trainer.config.repair
@@ -101,22 +109,20 @@ def leave_one_out(trainer, left_out: int) -> tuple[torch.Tensor, dict[str, torch
     make = lambda scene, poses: type(trainer)(scene, config, folder, device=str(trainer.device),  # noqa: E731
                                               viewmats_init=poses, log=lambda message: None)
     unseen = make(trainer.scene.subset(others), viewmats[others])
-    while unseen.iteration < repair.loo_snapshot:
-        unseen.train_step()
+    _train_until(unseen, repair.loo_snapshot, should_stop)
     seen = make(trainer.scene, viewmats)
     seen.continue_from(unseen)
     span = max((repair.loo_iters - repair.loo_snapshot) // 4, 1)
     sample_at = {repair.loo_snapshot + round(k * span / repair.loo_samples) for k in range(repair.loo_samples)}
     samples = []
-    while seen.iteration < repair.loo_iters:
-        if seen.iteration in sample_at:
-            samples.append(_render_view(seen, left_out))
-        seen.train_step()
-    while unseen.iteration < repair.loo_iters:
-        unseen.train_step()
+    for iteration in sorted(sample_at):
+        _train_until(seen, iteration, should_stop)
+        samples.append(_render(seen, left_out))
+    _train_until(seen, repair.loo_iters, should_stop)
+    _train_until(unseen, repair.loo_iters, should_stop)
     if len(seen.params["means"]) != len(unseen.params["means"]):  # densification stopped at the snapshot
         raise RuntimeError("leave-one-out copies diverged in Gaussian count after the snapshot")
-    differences = {name: (unseen.params[name] - seen.params[name]).detach() for name in NOISY_PARAMETERS}
+    differences = {name: (unseen.params[name] - seen.params[name]).detach().cpu() for name in NOISY_PARAMETERS}
     return torch.stack(samples), differences
 
 
@@ -149,29 +155,30 @@ def _uniform(bounds: tuple[float, float], generator: torch.Generator) -> float:
 
 
 def build_pairs(trainer, log: Callable[[str], None] = print) -> RepairPairs:
-    """Leave-one-out and 3D-noise pairs for `trainer` (a finished coarse stage), as `RepairConfig` sets them."""
+    """Leave-one-out and 3D-noise pairs for `trainer` (a finished coarse stage), as `RepairConfig` sets them.
+
+    Draws come from a generator seeded with the run's seed, so a resumed run that rebuilds them gets the same.
+
+    Raises:
+        KeyboardInterrupt: Ctrl-C was pressed (`trainer.stop_requested`).
+    """
     repair = trainer.config.repair
-    corrupted, targets, kinds, views, differences = [], [], [], [], []
+    generator = torch.Generator().manual_seed(trainer.config.seed)
+    should_stop = lambda: trainer.stop_requested  # noqa: E731
+    corrupted, targets, kinds, differences = [], [], [], []
     for view in range(trainer.num_cameras):
-        samples, difference = leave_one_out(trainer, view)
+        samples, difference = leave_one_out(trainer, view, should_stop)
         log(f"leave-one-out model {view + 1}/{trainer.num_cameras}: {len(samples)} renders of view {view}")
         corrupted += list(samples)
         targets += [trainer.targets[view].cpu()] * len(samples)
         kinds += [LEAVE_ONE_OUT] * len(samples)
-        views += [view] * len(samples)
         differences.append(difference)
     noise = noise_statistics(differences)
     for view in range(trainer.num_cameras):
         for _ in range(repair.noise_renders):
-            params = perturbed_gaussians(trainer.params, noise, _uniform(repair.noise_clamp_std, trainer.generator),
-                                         _uniform(repair.noise_dropout, trainer.generator), trainer.generator)
-            with torch.no_grad():
-                images, _, _ = render_gaussians(
-                    params, trainer.current_viewmats()[view:view + 1], trainer.Ks[view:view + 1], trainer.scene.width,
-                    trainer.scene.height, sh_degree=trainer.config.sh_degree, backgrounds=trainer.backgrounds[:1],
-                    cpu_threads=trainer.config.render_threads or None)
-            corrupted.append(images[0].clamp(0, 1).cpu())
+            params = perturbed_gaussians(trainer.params, noise, _uniform(repair.noise_clamp_std, generator),
+                                         _uniform(repair.noise_dropout, generator), generator)
+            corrupted.append(_render(trainer, view, params))
             targets.append(trainer.targets[view].cpu())
             kinds.append(NOISE)
-            views.append(view)
-    return RepairPairs(torch.stack(corrupted).cpu(), torch.stack(targets), kinds, views, noise)
+    return RepairPairs(torch.stack(corrupted), torch.stack(targets), kinds, noise)

@@ -20,16 +20,16 @@ Files (under the run folder's repair/):
 from __future__ import annotations
 
 import json
+import math
 from typing import Callable
 
 import torch
 
 from warpbags.configs.train import RepairConfig
 from warpbags.files import atomic_output
-from warpbags.gaussians import render_gaussians
 from warpbags.losses import load_lpips, repair_loss
 from warpbags.pose import camera_centers, interpolated_viewmats
-from warpbags.repair.network import make_repairer
+from warpbags.repair.network import Repairer, make_repairer
 from warpbags.repair.pairs import LEAVE_ONE_OUT, NOISE, RepairPairs, build_pairs
 from warpbags.report import write_image_grid
 
@@ -50,10 +50,10 @@ def distance_weights(pseudo_viewmats: torch.Tensor, train_viewmats: torch.Tensor
 def pseudo_ratio(config: RepairConfig, repair_iteration: int) -> float:
     """r in loss = (1 - r) real + r pseudo at a repair iteration (0-based): linear from `pseudo_ratio_start` to
     `pseudo_ratio_end` over the first `pseudo_until` of the repair iterations, 0 after."""
-    until = config.pseudo_until * config.iters
+    until = math.ceil(config.pseudo_until * config.iters)
     if repair_iteration >= until:
         return 0.0
-    fraction = repair_iteration / max(until, 1)
+    fraction = repair_iteration / max(until - 1, 1)
     return config.pseudo_ratio_start + (config.pseudo_ratio_end - config.pseudo_ratio_start) * fraction
 
 
@@ -63,21 +63,26 @@ class RepairStage:
     Args:
         trainer: the `warpbags.trainer.Trainer` (its config's `repair` group sets everything here).
         log: receives one-line progress notices.
+        repairer: an already fitted repairer to use as it is (no pairs are built); default: the config's,
+            fitted on this run's pairs.
     """
 
-    def __init__(self, trainer, log: Callable[[str], None] = print):
+    def __init__(self, trainer, log: Callable[[str], None] = print, repairer: Repairer | None = None):
         self.config = trainer.config.repair
         self.folder = trainer.out_dir / "repair"
         self.samples = self.folder / "samples"
         self.samples.mkdir(parents=True, exist_ok=True)
         self.log = log
-        self.repairer = make_repairer(self.config, trainer.config.seed)
         pairs_path, repairer_path = self.folder / "pairs.pt", self.folder / "repairer.pt"
-        if pairs_path.is_file() and repairer_path.is_file():  # a resumed run: reuse what it made
+        if repairer is not None:
+            self.repairer = repairer
+        elif pairs_path.is_file() and repairer_path.is_file():  # a resumed run: reuse what it made
+            self.repairer = make_repairer(self.config, trainer.config.seed, str(trainer.device))
             pairs = RepairPairs.load(pairs_path)
             self.repairer.load_state_dict(torch.load(repairer_path, weights_only=False))
             log(f"repair: loaded {len(pairs.kinds)} pairs and the fitted repairer from {self.folder}")
         else:
+            self.repairer = make_repairer(self.config, trainer.config.seed, str(trainer.device))
             log(f"repair: building training pairs ({trainer.num_cameras} leave-one-out models, "
                 f"{self.config.loo_iters} iterations each)")
             pairs = build_pairs(trainer, log)
@@ -90,22 +95,19 @@ class RepairStage:
                                                  **stats}, indent=2))
             self._save_pair_samples(pairs)
         self.lpips, unavailable = load_lpips() if self.config.weight_lpips > 0 else (None, None)
+        if self.lpips is not None:
+            self.lpips.to(trainer.device)
         if unavailable:
             log(f"repair: LPIPS unavailable ({unavailable}); the pseudo-view loss is L1 + L2 only")
         self.viewmats: torch.Tensor | None = None  # [K,4,4] current pseudo cameras
         self.targets: torch.Tensor | None = None  # [K,H,W,3] their repaired renders
         self.weights: torch.Tensor | None = None  # [K] their distance weights
 
-    def _render(self, trainer, viewmats: torch.Tensor) -> torch.Tensor:
-        count = len(viewmats)
-        images, _, _ = render_gaussians(
-            trainer.params, viewmats, trainer.Ks[:1].expand(count, 3, 3).contiguous(), trainer.scene.width,
-            trainer.scene.height, sh_degree=trainer.sh_degree(), backgrounds=trainer.backgrounds[:1].expand(count, 3),
-            cpu_threads=trainer.config.render_threads or None)
-        return images
-
     def refresh(self, trainer) -> None:
-        """Draw new pseudo cameras, render them and store their repaired renders as the pseudo ground truth."""
+        """Draw new pseudo cameras, render them and store their repaired renders as the pseudo ground truth.
+
+        The cameras use training camera 0's intrinsics (GaussianObject takes a real view's field of view too).
+        """
         config, generator = self.config, trainer.generator
         train_viewmats = trainer.current_viewmats()
         gaps = torch.randint(trainer.num_cameras, (config.pseudo_views,), generator=generator)
@@ -113,8 +115,8 @@ class RepairStage:
         self.viewmats = interpolated_viewmats(train_viewmats.double(), gaps, fractions.double()).float()
         self.weights = distance_weights(self.viewmats, train_viewmats)
         with torch.no_grad():
-            renders = self._render(trainer, self.viewmats).clamp(0, 1)
-        self.targets = self.repairer.repair(renders.cpu()).to(renders.device)
+            renders = trainer.render_views(self.viewmats).clamp(0, 1)
+        self.targets = self.repairer.repair(renders)
         rows = [[render.cpu(), target.cpu()] for render, target in zip(renders[:SAMPLE_ROWS], self.targets)]
         write_image_grid(self.samples / f"pseudo_{trainer.iteration:06d}.png", rows)
         for old in sorted(self.samples.glob("pseudo_*.png"))[:-config.samples_kept]:
@@ -126,7 +128,7 @@ class RepairStage:
         if self.targets is None or repair_iteration % self.config.refresh_every == 0:
             self.refresh(trainer)
         pick = torch.randint(len(self.viewmats), (1,), generator=trainer.generator)
-        images = self._render(trainer, self.viewmats[pick])
+        images = trainer.render_views(self.viewmats[pick])
         config = self.config
         losses, terms = repair_loss(images, self.targets[pick], config.weight_l1, config.weight_l2, config.weight_lpips,
                                     self.lpips)
