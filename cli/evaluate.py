@@ -99,12 +99,14 @@ def sweep(
     seeds: str = typer.Option("0", "--seeds", help="Seeds (noise and initialization)."),
     trans_noise: float = typer.Option(0.0, "--trans-noise", help="Camera-centre noise std for every run."),
     preset: str = typer.Option("quick", "--preset", help="Training preset for every run."),
-    iters: Optional[int] = typer.Option(None, "--iters", help="Iterations per run (default: the preset's)."),
+    iters: Optional[int] = typer.Option(None, "--iters", help="Coarse iterations per run (default: the preset's)."),
+    repair_iters: Optional[int] = typer.Option(None, "--repair-iters", help="Repair iterations per run (default: the preset's)."),
     out: Optional[Path] = typer.Option(None, "--out", help="Sweep folder (default runs/sweep-<scene>)."),
     data_root: Optional[Path] = typer.Option(None, "--data-root", help="Folder holding datasets."),
 ) -> None:
     """BAGS vs the fixed-pose baseline over noise, views and seeds; resumable; sweep.csv/json and plots."""
-    overrides = (("iters", iters),) if iters is not None else ()
+    overrides = {"iters": iters, "repair": None if repair_iters is None else {"iters": repair_iters}}
+    overrides = tuple((key, value) for key, value in overrides.items() if value is not None)
     spec = SweepSpec(scene=scene, out=out or Path("runs") / f"sweep-{Path(scene).name}",
                      rot_noises=_numbers(rot_noises), views=_numbers(views, int), seeds=_numbers(seeds, int),
                      trans_noise=trans_noise, preset=preset, overrides=overrides)

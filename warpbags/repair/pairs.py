@@ -46,13 +46,21 @@ class RepairPairs:
     Attributes:
         corrupted, targets: [P, H, W, 3] float32 in [0, 1].
         kinds: P labels, LEAVE_ONE_OUT or NOISE.
+        views: P training-view indices the pairs show (the repairer holds one view out to choose its fit).
         noise: the 3D-noise statistics the NOISE pairs were drawn with.
     """
 
     corrupted: torch.Tensor
     targets: torch.Tensor
     kinds: list[str]
+    views: list[int]
     noise: NoiseStatistics
+
+    def select(self, keep: list[bool]) -> RepairPairs:
+        """The pairs where `keep` is true."""
+        index = [i for i, kept in enumerate(keep) if kept]
+        return RepairPairs(self.corrupted[index], self.targets[index], [self.kinds[i] for i in index],
+                           [self.views[i] for i in index], self.noise)
 
     def save(self, path: Path) -> None:
         with atomic_output(path) as temporary:
@@ -165,13 +173,14 @@ def build_pairs(trainer, log: Callable[[str], None] = print) -> RepairPairs:
     repair = trainer.config.repair
     generator = torch.Generator().manual_seed(trainer.config.seed)
     should_stop = lambda: trainer.stop_requested  # noqa: E731
-    corrupted, targets, kinds, differences = [], [], [], []
+    corrupted, targets, kinds, views, differences = [], [], [], [], []
     for view in range(trainer.num_cameras):
         samples, difference = leave_one_out(trainer, view, should_stop)
         log(f"leave-one-out model {view + 1}/{trainer.num_cameras}: {len(samples)} renders of view {view}")
         corrupted += list(samples)
         targets += [trainer.targets[view].cpu()] * len(samples)
         kinds += [LEAVE_ONE_OUT] * len(samples)
+        views += [view] * len(samples)
         differences.append(difference)
     noise = noise_statistics(differences)
     for view in range(trainer.num_cameras):
@@ -181,4 +190,5 @@ def build_pairs(trainer, log: Callable[[str], None] = print) -> RepairPairs:
             corrupted.append(_render(trainer, view, params))
             targets.append(trainer.targets[view].cpu())
             kinds.append(NOISE)
-    return RepairPairs(torch.stack(corrupted), torch.stack(targets), kinds, noise)
+            views.append(view)
+    return RepairPairs(torch.stack(corrupted), torch.stack(targets), kinds, views, noise)
