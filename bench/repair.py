@@ -1,7 +1,7 @@
 """What the repair stage buys: held-out image quality before vs after it, and what it costs, in one run.
 
     python bench/repair.py SCENE [SCENE ...] [--views 4] [--rot 0] [--trans 0] [--repair-iters 300]
-                           [--preset quick] [name=value ...]
+                           [--preset quick] [--set name=value ...]
 
 SCENE: a preset (maryrose, synthetic), a scene folder, or `synthetic-small` (16 views, 96 px, cached).
 Per scene, one run trains the coarse stage, then the repair stage. Two controls continue the same coarse model
@@ -13,9 +13,9 @@ and its weights are available) with the test cameras aligned by Procrustes, agai
 test-pose refinement (*), and the training-pose rotation error. Also printed: the PSNR of the coarse model's
 held-out renders before and after the repairer (does it move novel views towards the truth?), the repairer's
 L1 to the real images on its own training pairs (identity vs repaired), and the seconds spent in the coarse
-stage, in building pairs and fitting the repairer, and in the repair iterations. `name=value` /
-`group.name=value` pairs override TrainConfig fields (JSON values, as `warpbags train --set`), e.g.
-`repair.fit_steps=800`.
+stage, in building pairs and fitting the repairer, and in the repair iterations. `--set name=value` /
+`--set group.name=value` overrides TrainConfig fields (JSON values, as `warpbags train --set`), e.g.
+`--set seed=1 --set repair.fit_steps=800`.
 """
 
 from __future__ import annotations
@@ -110,10 +110,12 @@ def main() -> None:
     parser.add_argument("--repair-iters", type=int, default=300)
     parser.add_argument("--preset", default="quick")
     parser.add_argument("--keep", type=Path, help="keep the run folders under this folder (to look at the samples)")
-    parser.add_argument("overrides", nargs="*", help="TrainConfig fields as name=value or group.name=value (JSON values)")
-    args = parser.parse_intermixed_args()
+    # An option, not trailing positionals: those would be taken as more scenes.
+    parser.add_argument("--set", dest="settings", action="append", default=[], metavar="NAME=VALUE",
+                        help="a TrainConfig field as name=value or group.name=value (JSON value); repeatable")
+    args = parser.parse_args()
     torch.set_num_threads(1)
-    overrides = parse_settings(args.overrides)
+    overrides = parse_settings(args.settings)
     repair = {"iters": args.repair_iters, **overrides.pop("repair", {})}
     print(f"{args.views} views, noise {args.rot} deg / {args.trans}, preset {args.preset}, repair {repair} {overrides}")
     header = (f"{'scene':<16} {'model':<8} {'PSNR':>6} {'SSIM':>6} {'LPIPS':>6} {'PSNR*':>6} {'SSIM*':>6} "
