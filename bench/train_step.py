@@ -1,0 +1,388 @@
+"""One training step, broken down by phase: maryrose at full resolution (432 x 432), 4 training views.
+
+    python bench/train_step.py                       # random and hull init, 1 and 4 views per step
+    python bench/train_step.py --inits random --views 1 --steps 20
+    python bench/train_step.py --opensplat PATH      # adds OpenSplat's CPU trainer on the same views and points
+
+The step is built from the pieces `warpbags.trainer.Trainer` runs (as the speed comparison with OpenSplat
+configures it: SH degree 0, no densification, the object on a white background, loss (1-0.2) L1 + 0.2 (1-SSIM) +
+0.01 mask BCE on the rendered alpha, render mode RGB+ED, pose deltas optimized): `warpbags.init` points and
+`initial_gaussians`, `warpbags.gaussians.render_gaussians`, `warpbags.losses`, one Adam per parameter group as
+`Trainer._make_optimizer`, `DensifyStrategy.accumulate`. Every configuration runs in its own process, so each peak
+RSS is its own.
+
+Phases. The rendering stages are timed by wrapping the functions `warpbags.rendering.rasterization` calls
+(forward: wall time of each call; backward: identity markers on each stage's inputs and outputs stamp the time
+the gradient passes them, and each interval between stamps goes to the stage it ends in). What no stage claims
+(activations, compositing the background, autograd bookkeeping, Python) is "other". Warp CPU launches run
+serially in the calling thread; warpbags' rasterizer runs host threads over tiles (warpbags/wrapper.py).
+
+Printed per configuration: mean Gaussians per pixel in the tile lists the rasterizer walks, ms per phase (median
+over the timed steps), the whole step (median of un-instrumented steps), Warp launches per step and the peak RSS.
+torch runs with 1 thread, as the trainer sets it.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import re
+import resource
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from contextlib import contextmanager
+from pathlib import Path
+
+import torch
+
+PHASES = (
+    "pose deltas", "projection", "SH", "binning + sort", "raster forward", "loss forward",
+    "loss backward", "raster backward", "SH backward", "projection backward", "pose backward",
+    "densify stats", "optimizer", "other",
+)
+# The stages `warpbags.rendering` imports from `warpbags.wrapper`, keyed by its name for them.
+STAGES = {
+    "apply_pose_deltas": ("pose deltas", "pose backward"),
+    "project_gaussians": ("projection", "projection backward"),
+    "spherical_harmonics": ("SH", "SH backward"),
+    "bin_gaussians": ("binning + sort", None),
+    "rasterize_to_pixels": ("raster forward", "raster backward"),
+}
+OPENSPLAT_BACKGROUND = (0.6130, 0.0101, 0.3984)  # OpenSplat's fixed training background (model.hpp)
+
+
+class _Stamp(torch.autograd.Function):
+    """Identity whose backward records (time, label): where the backward pass is at that moment."""
+
+    @staticmethod
+    def forward(ctx, tensor, events, label):
+        ctx.events, ctx.label = events, label
+        return tensor.view_as(tensor)
+
+    @staticmethod
+    def backward(ctx, grad):
+        ctx.events.append((time.perf_counter(), ctx.label))
+        return grad, None, None
+
+
+class PhaseClock:
+    """Accumulates the ms of each phase within one step."""
+
+    def __init__(self):
+        self.ms = dict.fromkeys(PHASES, 0.0)
+        self.events: list[tuple[float, str]] = []  # backward stamps of the current step
+
+    @contextmanager
+    def phase(self, name: str):
+        start = time.perf_counter()
+        yield
+        self.ms[name] += 1e3 * (time.perf_counter() - start)
+
+    def attribute_backward(self, start: float, end: float) -> None:
+        """Split [start, end] of loss.backward() among the stages by the stamps seen in it.
+
+        An interval ending at a stage's input stamp was that stage's backward; one ending at the rasterizer's
+        output stamps was the loss (and compositing) backward; the rest is glue ("other").
+        """
+        last = start
+        for stamp, label in sorted(self.events):
+            stage, side = label.rsplit(":", 1)
+            if side == "in":
+                phase = STAGES[stage][1]
+            elif stage == "rasterize_to_pixels":
+                phase = "loss backward"
+            else:
+                phase = "other"
+            self.ms[phase] += 1e3 * (stamp - last)
+            last = stamp
+        self.ms["other"] += 1e3 * (end - last)
+        self.events.clear()
+
+
+def _stamped(tensor, clock: PhaseClock, label: str):
+    if isinstance(tensor, torch.Tensor) and tensor.is_floating_point() and tensor.requires_grad:
+        return _Stamp.apply(tensor, clock.events, label)
+    return tensor
+
+
+@contextmanager
+def instrumented(clock: PhaseClock):
+    """Wrap the stages `warpbags.rendering` calls with forward timers and backward stamps; count Warp launches."""
+    import warp as wp
+
+    import warpbags.rendering as rendering
+
+    originals = {name: getattr(rendering, name) for name in STAGES}
+    launches = [0]
+    launch = wp.launch
+
+    def counted_launch(*args, **kwargs):
+        launches[0] += 1
+        return launch(*args, **kwargs)
+
+    def wrap(name, function):
+        forward_phase = STAGES[name][0]
+
+        def stage(*args, **kwargs):
+            args = [_stamped(a, clock, f"{name}:in") for a in args]
+            with clock.phase(forward_phase):
+                outputs = function(*args, **kwargs)
+            if isinstance(outputs, tuple) and not hasattr(outputs, "_fields"):
+                return tuple(_stamped(o, clock, f"{name}:out") for o in outputs)
+            return _stamped(outputs, clock, f"{name}:out")
+
+        return stage
+
+    for name, function in originals.items():
+        setattr(rendering, name, wrap(name, function))
+    wp.launch = counted_launch
+    try:
+        yield launches
+    finally:
+        for name, function in originals.items():
+            setattr(rendering, name, function)
+        wp.launch = launch
+
+
+def build_problem(init: str, points: int, seed: int = 0) -> dict:
+    """The 4 training views of maryrose at full resolution, initial Gaussians and optimizers (as the trainer)."""
+    from warpbags.configs.train import DensifyConfig, load_preset
+    from warpbags.gaussians import render_gaussians  # noqa: F401 - imported here so timing excludes import
+    from warpbags.init import hull_or_random_points, initial_gaussians
+    from warpbags.pose import camera_centers
+    from warpbags.strategy import DensifyStrategy
+    from warpbags.trainer import training_scene
+
+    config = load_preset("quick", max_image_size=0, init=init, init_points=points, sh_degree=0, views_per_step=1,
+                         seed=seed)
+    scene = training_scene("maryrose", config)
+    generator = torch.Generator().manual_seed(seed)
+    xyz, colors, note = hull_or_random_points(
+        scene.images, scene.masks, scene.viewmats, scene.Ks, method=init, count=points,
+        resolution=config.hull_resolution, dilation_px=config.hull_dilation_px,
+        missed_views=config.hull_missed_views, generator=generator,
+    )
+    params = {name: torch.nn.Parameter(value) for name, value in initial_gaussians(xyz, colors, 0).items()}
+    centers = camera_centers(scene.viewmats)
+    extent = 1.1 * float((centers - centers.mean(0)).norm(dim=-1).max())
+    lr = config.lr
+    rates = {"means": lr.means_init * extent, "scales": lr.scales, "quats": lr.quats, "opacities": lr.opacities,
+             "sh0": lr.sh_dc}
+    optimizer = torch.optim.Adam([{"params": [p], "lr": rates[n], "name": n} for n, p in params.items()], lr=0.0,
+                                 eps=lr.adam_eps)
+    cams = scene.num_views
+    pose_rotations = torch.nn.Parameter(torch.zeros(cams, 3))
+    pose_translations = torch.nn.Parameter(torch.zeros(cams, 3))
+    pose_optimizer = torch.optim.Adam([{"params": [pose_rotations], "lr": lr.pose},
+                                       {"params": [pose_translations], "lr": lr.pose * lr.pose_translation_scale}])
+    # Statistics accumulate every step; no clone/split/prune ever runs (fixed Gaussian count, as OpenSplat's run).
+    strategy = DensifyStrategy(DensifyConfig(start=10**9, stop=10**9 + 1, opacity_reset_every=0, floater_every=0),
+                               extent)
+    masks = scene.masks
+    targets = scene.images * masks[..., None] + (1 - masks[..., None])  # the object on the white background
+    return dict(scene=scene, config=config, params=params, optimizer=optimizer, pose_rotations=pose_rotations,
+                pose_translations=pose_translations, pose_optimizer=pose_optimizer, strategy=strategy,
+                targets=targets, masks=masks, backgrounds=torch.ones(cams, 3), init_note=note,
+                points=xyz, point_colors=colors, generator=torch.Generator().manual_seed(seed))
+
+
+def training_step(problem: dict, views_per_step: int, clock: PhaseClock | None = None) -> dict:
+    """One iteration as `Trainer.train_step` runs it; returns the render's meta."""
+    from warpbags.gaussians import render_gaussians
+    from warpbags.losses import mask_loss, photometric_loss
+
+    clock = clock or PhaseClock()
+    scene, config = problem["scene"], problem["config"]
+    views = torch.randperm(scene.num_views, generator=problem["generator"])[:views_per_step]
+    with clock.phase("other"):
+        deltas = torch.cat([problem["pose_rotations"], problem["pose_translations"]], dim=1)[views]
+    renders, alphas, meta = render_gaussians(
+        problem["params"], scene.viewmats[views], scene.Ks[views], scene.width, scene.height, sh_degree=0,
+        backgrounds=problem["backgrounds"][views], pose_deltas=deltas, render_mode="RGB+ED",
+    )
+    meta["means2d"].retain_grad()
+    with clock.phase("loss forward"):
+        loss, _ = photometric_loss(renders[..., :3], problem["targets"][views], config.lambda_dssim)
+        loss = loss + config.lambda_mask * mask_loss(alphas[..., 0], problem["masks"][views])
+    start = time.perf_counter()
+    loss.backward()
+    clock.attribute_backward(start, time.perf_counter())
+    with clock.phase("densify stats"):
+        problem["strategy"].accumulate(0, meta)
+    with clock.phase("optimizer"):
+        problem["optimizer"].step()
+        problem["optimizer"].zero_grad(set_to_none=True)
+        problem["pose_optimizer"].step()
+        problem["pose_optimizer"].zero_grad(set_to_none=True)
+    return meta
+
+
+def run_configuration(init: str, views_per_step: int, points: int, steps: int, warmup: int) -> dict:
+    """Median ms per phase over `steps` instrumented steps, then the median of `steps` plain steps."""
+    torch.set_num_threads(1)  # as the trainer: Warp runs its own host threads
+    problem = build_problem(init, points)
+    for _ in range(warmup):
+        training_step(problem, views_per_step)
+    per_phase: dict[str, list[float]] = {name: [] for name in PHASES}
+    launch_counts = []
+    visits = []
+    for _ in range(steps):
+        clock = PhaseClock()
+        with instrumented(clock) as launches:
+            start = time.perf_counter()
+            meta = training_step(problem, views_per_step, clock)
+            total = 1e3 * (time.perf_counter() - start)
+        clock.ms["other"] += total - sum(clock.ms.values())
+        for name in PHASES:
+            per_phase[name].append(clock.ms[name])
+        launch_counts.append(launches[0])
+        bins = meta["bins"]
+        visits.append(bins.isect_ids.numel() * bins.tile_size**2 / (meta["n_cameras"] * meta["width"] * meta["height"]))
+    plain = []
+    for _ in range(steps):
+        start = time.perf_counter()
+        training_step(problem, views_per_step)
+        plain.append(1e3 * (time.perf_counter() - start))
+    scene = problem["scene"]
+    return {
+        "init": init, "views_per_step": views_per_step, "gaussians": len(problem["params"]["means"]),
+        "init_note": problem["init_note"], "width": scene.width, "height": scene.height,
+        "phases_ms": {name: statistics.median(values) for name, values in per_phase.items()},
+        "step_ms": statistics.median(plain), "step_ms_instrumented": statistics.median(
+            [sum(values[i] for values in per_phase.values()) for i in range(steps)]),
+        "launches": statistics.median(launch_counts), "visits_per_pixel": statistics.fmean(visits),
+        "peak_rss_mib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
+    }
+
+
+def write_opensplat_project(folder: Path, points: int) -> dict:
+    """The random-init problem as an OpenSplat (nerfstudio) project: the same 4 views, intrinsics and 10k points.
+
+    As /work/shared/tools/opensplat/perf_vs_opensplat_prep.py: transforms.json with OpenGL camera axes, the object
+    composited onto OpenSplat's fixed background (the analogue of warpbags' white one), points.ply with uchar
+    colours. Cameras and points stay in warpbags' normalized world (OpenSplat re-centres and scales both alike).
+    """
+    import cv2
+    import numpy as np
+
+    problem = build_problem("random", points)
+    scene = problem["scene"]
+    (folder / "images").mkdir(parents=True, exist_ok=True)
+    frames = []
+    opengl_axes = np.diag([1.0, -1.0, -1.0, 1.0])
+    background = torch.tensor(OPENSPLAT_BACKGROUND)
+    for index in range(scene.num_views):
+        mask = scene.masks[index][..., None]
+        composite = scene.images[index] * mask + background * (1 - mask)
+        rgb = (composite.clamp(0, 1) * 255).round().to(torch.uint8).numpy()
+        name = f"images/view_{index}.png"
+        cv2.imwrite(str(folder / name), rgb[..., ::-1])
+        K = scene.Ks[index].double()
+        camera_to_world = np.linalg.inv(scene.viewmats[index].double().numpy()) @ opengl_axes
+        frames.append({"file_path": name, "w": scene.width, "h": scene.height, "fl_x": float(K[0, 0]),
+                       "fl_y": float(K[1, 1]), "cx": float(K[0, 2]), "cy": float(K[1, 2]),
+                       "transform_matrix": camera_to_world.tolist()})
+    xyz = problem["points"].numpy().astype("<f4")
+    colors = (problem["point_colors"].clamp(0, 1) * 255).round().to(torch.uint8).numpy()
+    rows = np.empty(len(xyz), dtype=[("xyz", "<f4", 3), ("rgb", "u1", 3)])
+    rows["xyz"], rows["rgb"] = xyz, colors
+    header = (f"ply\nformat binary_little_endian 1.0\nelement vertex {len(xyz)}\nproperty float x\nproperty float y\n"
+              "property float z\nproperty uchar red\nproperty uchar green\nproperty uchar blue\nend_header\n")
+    with open(folder / "points.ply", "wb") as handle:
+        handle.write(header.encode("ascii"))
+        handle.write(rows.tobytes())
+    transforms = {"camera_model": "OPENCV", "ply_file_path": "points.ply", "frames": frames}
+    (folder / "transforms.json").write_text(json.dumps(transforms, indent=2))
+    return {"width": scene.width, "height": scene.height, "points": len(xyz)}
+
+
+def run_opensplat(binary: Path, points: int, steps: int, warmup: int) -> dict:
+    """OpenSplat's CPU trainer on the same problem (SH 0, no densification, 0.2 DSSIM, full resolution, one view
+    per step): median interval between its "Step N" lines after `warmup`, and its own peak RSS."""
+    with tempfile.TemporaryDirectory(prefix="opensplat-") as work:
+        folder = Path(work)
+        write_opensplat_project(folder, points)
+        command = [str(binary), str(folder), "-o", str(folder / "splat.ply"), "-n", str(warmup + steps + 1), "--cpu",
+                   "-d", "1", "--num-downscales", "0", "--sh-degree", "0", "--ssim-weight", "0.2",
+                   "--warmup-length", "1000000", "--refine-every", "1000000", "--densify-grad-thresh", "1e9",
+                   "--save-every", "-1"]
+        process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, bufsize=1)
+        step_line = re.compile(r"^Step ([0-9]+):")
+        stamps = {}
+        for line in process.stdout:
+            match = step_line.match(line)
+            if match:
+                stamps[int(match.group(1))] = time.perf_counter()
+        _, status, usage = os.wait4(process.pid, 0)
+        process.returncode = os.waitstatus_to_exitcode(status)
+    if process.returncode != 0 or len(stamps) < warmup + 2:
+        raise RuntimeError(f"opensplat exited with {process.returncode} after {len(stamps)} steps: {' '.join(command)}")
+    intervals = [stamps[s] - stamps[s - 1] for s in sorted(stamps) if s > warmup and s - 1 in stamps]
+    return {"step_ms": 1e3 * statistics.median(intervals), "peak_rss_mib": usage.ru_maxrss / 1024}
+
+
+def _child(arguments: list[str]) -> dict:
+    """Run this script for one configuration in a fresh process (its own peak RSS) and read its JSON line."""
+    result = subprocess.run([sys.executable, __file__, *arguments], capture_output=True, text=True, check=False)
+    if result.returncode != 0:
+        raise RuntimeError(f"{' '.join(arguments)} failed:\n{result.stderr[-3000:]}")
+    return json.loads(result.stdout.strip().splitlines()[-1])
+
+
+def print_table(rows: list[dict], opensplat: dict | None) -> None:
+    names = [f"{r['init']} {r['views_per_step']}v" for r in rows]
+    width = max(len(n) for n in PHASES + ("step (plain)",)) + 1
+    print(f"{'':<{width}}" + "".join(f"{n:>13}" for n in names))
+    for key, label, fmt in (("gaussians", "Gaussians", "{:13d}"), ("visits_per_pixel", "visits / pixel", "{:13.1f}"),
+                            ("launches", "Warp launches", "{:13.0f}")):
+        print(f"{label:<{width}}" + "".join(fmt.format(r[key]) for r in rows))
+    print("ms per phase (median over steps):")
+    for phase in PHASES:
+        print(f"  {phase:<{width - 2}}" + "".join(f"{r['phases_ms'][phase]:13.1f}" for r in rows))
+    print(f"{'sum of phases':<{width}}" + "".join(f"{r['step_ms_instrumented']:13.1f}" for r in rows))
+    print(f"{'step (plain)':<{width}}" + "".join(f"{r['step_ms']:13.1f}" for r in rows))
+    print(f"{'peak RSS MiB':<{width}}" + "".join(f"{r['peak_rss_mib']:13.0f}" for r in rows))
+    if opensplat is not None:
+        print(f"OpenSplat (CPU), one view per step: {opensplat['step_ms']:.0f} ms/step, {opensplat['peak_rss_mib']:.0f} MiB")
+        for r, name in zip(rows, names):
+            if r["views_per_step"] == 1:
+                print(f"  OpenSplat / warpbags {name}: {opensplat['step_ms'] / r['step_ms']:.1f}x faster per step, "
+                      f"peak RSS {r['peak_rss_mib']:.0f} vs {opensplat['peak_rss_mib']:.0f} MiB")
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--inits", default="random,hull", help="comma-separated: random, hull")
+    parser.add_argument("--views", default="1,4", help="comma-separated views per step")
+    parser.add_argument("--points", type=int, default=10_000, help="initial Gaussians")
+    parser.add_argument("--steps", type=int, default=15, help="timed steps per configuration")
+    parser.add_argument("--warmup", type=int, default=3, help="untimed steps first (compilation, caches)")
+    parser.add_argument("--opensplat", type=Path, help="an OpenSplat binary built with its CPU backend")
+    parser.add_argument("--json", type=Path, help="also write the results here")
+    parser.add_argument("--one", nargs=2, metavar=("INIT", "VIEWS"), help=argparse.SUPPRESS)  # a child process
+    args = parser.parse_args()
+    if args.one:
+        print(json.dumps(run_configuration(args.one[0], int(args.one[1]), args.points, args.steps, args.warmup)))
+        return
+    rows = []
+    for init in args.inits.split(","):
+        for views in args.views.split(","):
+            rows.append(_child(["--one", init, views, "--points", str(args.points), "--steps", str(args.steps),
+                                "--warmup", str(args.warmup)]))
+    opensplat = None
+    if args.opensplat is not None:
+        opensplat = run_opensplat(args.opensplat, args.points, max(args.steps, 20), max(args.warmup, 10))
+    first = rows[0]
+    print(f"maryrose {first['width']}x{first['height']}, 4 training views, torch {torch.__version__} (1 thread), "
+          f"{len(os.sched_getaffinity(0))} cores; init: " + "; ".join(f"{r['init']}: {r['init_note']}" for r in rows[::len(args.views.split(','))]))
+    print_table(rows, opensplat)
+    if args.json is not None:
+        args.json.write_text(json.dumps({"rows": rows, "opensplat": opensplat}, indent=2))
+
+
+if __name__ == "__main__":
+    main()
