@@ -1,14 +1,30 @@
-"""Tile binning: which Gaussians touch which screen tiles, as (tile, depth) sort keys.
+"""Tile binning: which Gaussians touch which screen tiles, each tile's list ordered front to back.
 
-Two passes, as gsplat: count the tiles under each projected Gaussian's bounding square, then (after a prefix sum
-on the host side) emit one key per (Gaussian, tile) pair. Key = tile << 32 | depth bits: the bit pattern of a
-positive float32 orders like its value, so one 64-bit integer sort orders by tile, then front to back (gsplat's
-trick). Camera c's tiles are numbered c * tiles_per_camera + ty * tiles_x + tx. Never differentiated.
+A Gaussian is listed in a tile only if its ellipse of reach -- the pixels where alpha = opacity exp(-sigma) is at
+least the rasterizer's 1/255 cut-off, sigma = 1/2 d^T conic d -- meets the rectangle of the tile's pixel centres.
+For each row of tiles the ellipse's x-extent within that band is found in closed form, so the test costs a few
+square roots per tile row, not per tile, and drops the corners of the projection's square bounding box (about a
+fifth of it for a round Gaussian, most of it for an elongated one). It is conservative (a small margin on the
+threshold), so the rasterized image is the one every tile of the bounding box would give.
+
+Two orderings, same lists:
+- CUDA (gsplat): count each Gaussian's tiles, emit one key per (Gaussian, tile) after a prefix sum, key =
+  tile << 32 | depth bits (the bit pattern of a positive float32 orders like its value), one 64-bit sort.
+- CPU: a counting sort. Per camera, count the Gaussians of every tile, prefix-sum the counts into tile offsets,
+  then walk the Gaussians front to back (argsort of the N depths) appending each to its tiles: linear in the
+  number of intersections instead of a sort of them. Each camera's walk is serial by design (one thread).
+
+Camera c's tiles are numbered c * tiles_per_camera + ty * tiles_x + tx. Never differentiated.
 """
 
 from typing import Any
 
 import warp as wp
+
+from warpbags.kernels.rasterize import ALPHA_THRESHOLD
+
+# Added to 2 ln(255 opacity), the reach of sigma doubled: float32 rounding in the rasterizer never meets it.
+REACH_MARGIN = 2.0e-3
 
 
 @wp.func
@@ -25,26 +41,80 @@ def tile_bounds(mean2d: Any, radius: int, tile_size: int, tiles_x: int, tiles_y:
     return x0, x1, y0, y1
 
 
+@wp.func
+def reach_quadric(conic: Any, opacity: Any):
+    """(a, b, c, t) with the ellipse of reach {d : a dx^2 + 2 b dx dy + c dy^2 <= t}; t < 0 if nothing reaches."""
+    return (float(conic[0]), float(conic[1]), float(conic[2]),
+            2.0 * wp.log(float(opacity) / ALPHA_THRESHOLD) + REACH_MARGIN)
+
+
+@wp.func
+def row_tile_span(mean2d: Any, a: float, b: float, c: float, t: float, ty: int, x0: int, x1: int, tile_size: int,
+                  height: int):
+    """Half-open tile columns [tx0, tx1) of tile row `ty`, within [x0, x1), that the ellipse of reach meets.
+
+    The row's band is its pixel centres' y-range; the ellipse's points in the band project onto an x-interval whose
+    ends are the ellipse's own x-extremes where they fall inside the band, else the band edge nearest to them (the
+    boundary x(dy) is concave). A conic that is not positive definite keeps the whole [x0, x1).
+    """
+    det = a * c - b * b
+    if a <= 0.0 or c <= 0.0 or det <= 0.0:
+        return x0, x1
+    ts = float(tile_size)
+    mx = float(mean2d[0])
+    my = float(mean2d[1])
+    band_lo = float(ty) * ts + 0.5 - my
+    band_hi = wp.min(float(ty) * ts + ts, float(height)) - 0.5 - my
+    dy_reach = wp.sqrt(t * a / det)
+    band_lo = wp.max(band_lo, -dy_reach)
+    band_hi = wp.min(band_hi, dy_reach)
+    if band_lo > band_hi:
+        return x0, x0
+    dx_reach = wp.sqrt(t * c / det)
+    # right extreme at (dx_reach, -b dx_reach / c), left one mirrored through the centre
+    dy_right = wp.clamp(-b * dx_reach / c, band_lo, band_hi)
+    dy_left = wp.clamp(b * dx_reach / c, band_lo, band_hi)
+    root_right = wp.sqrt(wp.max(b * b * dy_right * dy_right - a * (c * dy_right * dy_right - t), 0.0))
+    root_left = wp.sqrt(wp.max(b * b * dy_left * dy_left - a * (c * dy_left * dy_left - t), 0.0))
+    x_hi = mx + (-b * dy_right + root_right) / a
+    x_lo = mx + (-b * dy_left - root_left) / a
+    # tile tx holds pixel centres tx * ts + 0.5 ... tx * ts + ts - 0.5
+    tx0 = wp.max(int(wp.ceil((x_lo + 0.5) / ts - 1.0)), x0)
+    tx1 = wp.min(int(wp.floor((x_hi - 0.5) / ts)) + 1, x1)
+    return tx0, wp.max(tx1, tx0)
+
+
 @wp.kernel(enable_backward=False)
 def count_tiles_kernel(
     means2d: wp.array(dtype=Any),
+    conics: wp.array(dtype=Any),
+    opacities: wp.array(dtype=Any),
     radii: wp.array(dtype=wp.int32),
+    num_gaussians: int,
     tile_size: int,
     tiles_x: int,
     tiles_y: int,
+    height: int,
     tile_counts: wp.array(dtype=wp.int32),
 ):
     gid = wp.tid()
     tile_counts[gid] = 0
     if radii[gid] <= 0:
         return
+    a, b, c, t = reach_quadric(conics[gid], opacities[gid % num_gaussians])
     x0, x1, y0, y1 = tile_bounds(means2d[gid], radii[gid], tile_size, tiles_x, tiles_y)
-    tile_counts[gid] = (x1 - x0) * (y1 - y0)
+    count = int(0)
+    for ty in range(y0, y1):
+        tx0, tx1 = row_tile_span(means2d[gid], a, b, c, t, ty, x0, x1, tile_size, height)
+        count += tx1 - tx0
+    tile_counts[gid] = count
 
 
 @wp.kernel(enable_backward=False)
 def emit_intersections_kernel(
     means2d: wp.array(dtype=Any),
+    conics: wp.array(dtype=Any),
+    opacities: wp.array(dtype=Any),
     radii: wp.array(dtype=wp.int32),
     write_offsets: wp.array(dtype=wp.int32),
     depth_bits: wp.array(dtype=wp.int32),
@@ -52,6 +122,7 @@ def emit_intersections_kernel(
     tile_size: int,
     tiles_x: int,
     tiles_y: int,
+    height: int,
     isect_keys: wp.array(dtype=wp.int64),
     isect_ids: wp.array(dtype=wp.int32),
 ):
@@ -59,12 +130,75 @@ def emit_intersections_kernel(
     if radii[gid] <= 0:
         return
     cam = gid / num_gaussians
+    a, b, c, t = reach_quadric(conics[gid], opacities[gid % num_gaussians])
     x0, x1, y0, y1 = tile_bounds(means2d[gid], radii[gid], tile_size, tiles_x, tiles_y)
     depth_key = wp.int64(depth_bits[gid])
     cursor = write_offsets[gid]
     for ty in range(y0, y1):
-        for tx in range(x0, x1):
+        tx0, tx1 = row_tile_span(means2d[gid], a, b, c, t, ty, x0, x1, tile_size, height)
+        for tx in range(tx0, tx1):
             tile = cam * tiles_x * tiles_y + ty * tiles_x + tx
             isect_keys[cursor] = (wp.int64(tile) << wp.int64(32)) | depth_key
             isect_ids[cursor] = gid
             cursor += 1
+
+
+@wp.kernel(enable_backward=False)
+def tile_histogram_kernel(
+    means2d: wp.array(dtype=Any),
+    conics: wp.array(dtype=Any),
+    opacities: wp.array(dtype=Any),
+    radii: wp.array(dtype=wp.int32),
+    num_gaussians: int,
+    tile_size: int,
+    tiles_x: int,
+    tiles_y: int,
+    height: int,
+    first_camera: int,
+    tile_counts: wp.array(dtype=wp.int32),
+):
+    """One thread per camera: tile_counts[tile] = how many Gaussians the tile lists (zeroed by the caller)."""
+    cam = first_camera + wp.tid()
+    for g in range(num_gaussians):
+        gid = cam * num_gaussians + g
+        if radii[gid] > 0:
+            a, b, c, t = reach_quadric(conics[gid], opacities[g])
+            x0, x1, y0, y1 = tile_bounds(means2d[gid], radii[gid], tile_size, tiles_x, tiles_y)
+            for ty in range(y0, y1):
+                tx0, tx1 = row_tile_span(means2d[gid], a, b, c, t, ty, x0, x1, tile_size, height)
+                for tx in range(tx0, tx1):
+                    tile = cam * tiles_x * tiles_y + ty * tiles_x + tx
+                    tile_counts[tile] = tile_counts[tile] + 1
+
+
+@wp.kernel(enable_backward=False)
+def fill_tiles_front_to_back_kernel(
+    means2d: wp.array(dtype=Any),
+    conics: wp.array(dtype=Any),
+    opacities: wp.array(dtype=Any),
+    radii: wp.array(dtype=wp.int32),
+    depth_order: wp.array2d(dtype=wp.int32),
+    num_gaussians: int,
+    tile_size: int,
+    tiles_x: int,
+    tiles_y: int,
+    height: int,
+    first_camera: int,
+    tile_cursors: wp.array(dtype=wp.int32),
+    isect_ids: wp.array(dtype=wp.int32),
+):
+    """One thread per camera: append the Gaussians to their tiles' lists in depth order (`depth_order[cam]`),
+    `tile_cursors` starting at the tiles' offsets."""
+    cam = first_camera + wp.tid()
+    for k in range(num_gaussians):
+        g = depth_order[cam, k]
+        gid = cam * num_gaussians + g
+        if radii[gid] > 0:
+            a, b, c, t = reach_quadric(conics[gid], opacities[g])
+            x0, x1, y0, y1 = tile_bounds(means2d[gid], radii[gid], tile_size, tiles_x, tiles_y)
+            for ty in range(y0, y1):
+                tx0, tx1 = row_tile_span(means2d[gid], a, b, c, t, ty, x0, x1, tile_size, height)
+                for tx in range(tx0, tx1):
+                    tile = cam * tiles_x * tiles_y + ty * tiles_x + tx
+                    isect_ids[tile_cursors[tile]] = gid
+                    tile_cursors[tile] = tile_cursors[tile] + 1

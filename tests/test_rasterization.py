@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import pytest
 import torch
 from conftest import DEVICES, random_scene
@@ -122,20 +124,23 @@ def test_cpu_threads_give_identical_results():
             torch.testing.assert_close(a, b, rtol=1e-12, atol=1e-12)
 
 
-def test_per_camera_parallel_sort_equals_one_sort():
-    from warpbags.wrapper import _sort_per_camera
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@pytest.mark.parametrize("tile_size", [4, 8, 16])
+def test_counting_sort_binning_equals_key_sort(dtype, tile_size):
+    """The CPU binning (counting sort of depth-ordered Gaussians) lists exactly what the CUDA path's key sort does."""
+    from warpbags.wrapper import _bin_by_sort, _to_warp, bin_gaussians, project_gaussians
 
-    g = torch.Generator().manual_seed(0)
-    cams, n = 3, 50
-    counts = torch.randint(0, 40, (cams * n,), generator=g, dtype=torch.int32)
-    ends = torch.cumsum(counts, 0)
-    write_offsets = (ends - counts).to(torch.int32)
-    # every key of camera c below every key of camera c + 1, as bin_gaussians emits them
-    camera_of_key = torch.repeat_interleave(torch.arange(cams * n) // n, counts.long())
-    keys = (camera_of_key << 40) + torch.randint(0, 2**40, (int(ends[-1]),), generator=g)
-    expected_keys, expected_order = torch.sort(keys)
-    got_keys, got_order = _sort_per_camera(keys, write_offsets, n, torch.device("cpu"), min_parallel_keys=0)
-    assert torch.equal(got_keys, expected_keys) and torch.equal(keys[got_order], expected_keys)
+    cams, n, width, height = 3, 200, 37, 29
+    scene = random_scene(n=n, cams=cams, width=width, height=height, dtype=dtype, seed=1)
+    means2d, conics, depths, radii = project_gaussians(scene["means"], scene["quats"], scene["scales"],
+                                                       scene["opacities"], scene["viewmats"], scene["Ks"], width, height)
+    bins = bin_gaussians(means2d, conics, scene["opacities"], radii, depths, width, height, tile_size)
+    tiles_x, tiles_y = math.ceil(width / tile_size), math.ceil(height / tile_size)
+    splats = [_to_warp(means2d.reshape(-1, 2).contiguous(), "vec2"), _to_warp(conics.reshape(-1, 3).contiguous(), "vec3"),
+              _to_warp(scene["opacities"], "scalar"), _to_warp(radii.reshape(-1).contiguous(), "int32")]
+    tile_offsets, isect_ids = _bin_by_sort(splats, [n, tile_size, tiles_x, tiles_y, height], depths, cams * tiles_x * tiles_y)
+    assert len(isect_ids) > 4 * cams * tiles_x * tiles_y  # several Gaussians per tile
+    assert torch.equal(bins.tile_offsets, tile_offsets) and torch.equal(bins.isect_ids, isect_ids)
 
 
 @pytest.mark.parametrize("render_mode,channels", [("RGB", 3), ("D", 1), ("ED", 1), ("RGB+D", 4), ("RGB+ED", 4)])

@@ -91,7 +91,7 @@ def rasterization(
     else:
         rgb = colors
 
-    bins = bin_gaussians(means2d, radii, depths, width, height, tile_size)
+    bins = bin_gaussians(means2d, conics, opacities, radii, depths, width, height, tile_size, cpu_threads)
     image, depth, alpha = rasterize_to_pixels(means2d, conics, rgb, opacities, depths, bins, width, height, cpu_threads)
 
     alpha = alpha.unsqueeze(-1)

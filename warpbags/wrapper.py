@@ -18,7 +18,12 @@ from typing import NamedTuple, Sequence
 import torch
 import warp as wp
 
-from warpbags.kernels.bin import count_tiles_kernel, emit_intersections_kernel
+from warpbags.kernels.bin import (
+    count_tiles_kernel,
+    emit_intersections_kernel,
+    fill_tiles_front_to_back_kernel,
+    tile_histogram_kernel,
+)
 from warpbags.kernels.pose import apply_pose_deltas_kernel
 from warpbags.kernels.project import project_gaussians_kernel
 from warpbags.kernels.rasterize import rasterize_backward_kernel, rasterize_forward_kernel
@@ -208,26 +213,38 @@ class TileBins(NamedTuple):
 
 
 @torch.no_grad()
-def bin_gaussians(means2d: torch.Tensor, radii: torch.Tensor, depths: torch.Tensor, width: int, height: int, tile_size: int) -> TileBins:
-    """Sort the (Gaussian, tile) intersections of projected Gaussians by tile and depth.
+def bin_gaussians(means2d: torch.Tensor, conics: torch.Tensor, opacities: torch.Tensor, radii: torch.Tensor,
+                  depths: torch.Tensor, width: int, height: int, tile_size: int,
+                  cpu_threads: int | None = None) -> TileBins:
+    """List every tile's Gaussians front to back: those whose ellipse of reach meets the tile (kernels/bin.py).
 
     Args:
-        means2d: [C, N, 2]. radii: [C, N] int32 (0 = culled). depths: [C, N]. width, height: image size in pixels.
-        tile_size: tile edge in pixels.
+        means2d: [C, N, 2]. conics: [C, N, 3]. opacities: [N]. radii: [C, N] int32 (0 = culled). depths: [C, N].
+        width, height: image size in pixels. tile_size: tile edge in pixels.
+        cpu_threads: host threads for CPU tensors (cameras are binned in parallel); ignored on CUDA.
     """
     cams, n = radii.shape
     device = radii.device
     tiles_x, tiles_y = math.ceil(width / tile_size), math.ceil(height / tile_size)
-    flat_means2d = means2d.detach().reshape(-1, 2).contiguous()
-    flat_radii = radii.reshape(-1).contiguous()
-    counts = torch.zeros(cams * n, dtype=torch.int32, device=device)
+    num_tiles = cams * tiles_x * tiles_y
+    splats = [_to_warp(means2d.detach().reshape(-1, 2).contiguous(), "vec2"),
+              _to_warp(conics.detach().reshape(-1, 3).contiguous(), "vec3"),
+              _to_warp(opacities.detach().contiguous(), "scalar"), _to_warp(radii.reshape(-1).contiguous(), "int32")]
+    geometry = [n, tile_size, tiles_x, tiles_y, height]
+    if device.type == "cuda":
+        tile_offsets, isect_ids = _bin_by_sort(splats, geometry, depths, num_tiles)
+    else:
+        tile_offsets, isect_ids = _bin_by_counting(splats, geometry, radii, depths, num_tiles,
+                                                   cpu_threads or _default_cpu_threads())
+    return TileBins(tile_size, tiles_x, tiles_y, tile_offsets, isect_ids)
+
+
+def _bin_by_sort(splats: list, geometry: list, depths: torch.Tensor, num_tiles: int):
+    """gsplat's binning: one (tile, depth) key per intersection, sorted (the GPU path)."""
+    device = depths.device
+    counts = torch.empty(depths.numel(), dtype=torch.int32, device=device)
     with _launch_scope(device):
-        wp.launch(
-            count_tiles_kernel,
-            dim=cams * n,
-            inputs=[_to_warp(flat_means2d, "vec2"), _to_warp(flat_radii, "int32"), tile_size, tiles_x, tiles_y],
-            outputs=[_to_warp(counts, "int32")],
-        )
+        wp.launch(count_tiles_kernel, dim=depths.numel(), inputs=[*splats, *geometry], outputs=[_to_warp(counts, "int32")])
     ends = torch.cumsum(counts, 0, dtype=torch.int64)
     num_isects = int(ends[-1]) if ends.numel() else 0
     write_offsets = (ends - counts).to(torch.int32)
@@ -238,40 +255,46 @@ def bin_gaussians(means2d: torch.Tensor, radii: torch.Tensor, depths: torch.Tens
     if num_isects:
         with _launch_scope(device):
             wp.launch(
-                emit_intersections_kernel,
-                dim=cams * n,
-                inputs=[
-                    _to_warp(flat_means2d, "vec2"), _to_warp(flat_radii, "int32"), _to_warp(write_offsets, "int32"),
-                    _to_warp(depth_bits, "int32"), n, tile_size, tiles_x, tiles_y,
-                ],
+                emit_intersections_kernel, dim=depths.numel(),
+                inputs=[*splats, _to_warp(write_offsets, "int32"), _to_warp(depth_bits, "int32"), *geometry],
                 outputs=[_to_warp(keys, "int64"), _to_warp(ids, "int32")],
             )
-    keys, order = _sort_per_camera(keys, write_offsets, n, device)
-    num_tiles = cams * tiles_x * tiles_y
-    tile_of_isect = keys >> 32
-    tile_offsets = torch.searchsorted(tile_of_isect, torch.arange(num_tiles + 1, device=device)).to(torch.int32)
-    return TileBins(tile_size, tiles_x, tiles_y, tile_offsets, ids[order].contiguous())
+    keys, order = torch.sort(keys)
+    tile_offsets = torch.searchsorted(keys >> 32, torch.arange(num_tiles + 1, device=device)).to(torch.int32)
+    return tile_offsets, ids[order].contiguous()
 
 
-def _sort_per_camera(keys: torch.Tensor, write_offsets: torch.Tensor, n: int, device: torch.device,
-                     min_parallel_keys: int = 65536):
-    """torch.sort of the intersection keys. Keys are emitted camera by camera and every key of camera c sorts
-    before those of camera c + 1, so on the CPU the cameras' segments are sorted in parallel host threads (torch
-    releases the GIL) and simply concatenated."""
-    cams = len(write_offsets) // max(n, 1)
-    if device.type == "cuda" or cams < 2 or len(keys) < min_parallel_keys:
-        return torch.sort(keys)
-    starts = write_offsets[::n].tolist() + [len(keys)]
-    segments = [(a, b) for a, b in zip(starts[:-1], starts[1:])]
+def _bin_by_counting(splats: list, geometry: list, radii: torch.Tensor, depths: torch.Tensor, num_tiles: int,
+                     threads: int):
+    """Counting sort by tile of the depth-ordered Gaussians (the CPU path): one serial pass per camera to count,
+    one to fill; cameras run in parallel host threads (Warp launches release the GIL)."""
+    cams = radii.shape[0]
+    tile_counts = torch.zeros(num_tiles, dtype=torch.int32)
+    cameras = [(cam, cam + 1) for cam in range(cams)]
+    counts_wp = _to_warp(tile_counts, "int32")
 
-    def sort_segment(bounds):
-        a, b = bounds
-        values, order = torch.sort(keys[a:b])
-        return values, order + a
+    def count(worker, first, stop):
+        wp.launch(tile_histogram_kernel, dim=stop - first, inputs=[*splats, *geometry, first], outputs=[counts_wp])
 
-    with ThreadPoolExecutor(max_workers=min(cams, _default_cpu_threads())) as pool:
-        parts = list(pool.map(sort_segment, segments))
-    return torch.cat([p[0] for p in parts]), torch.cat([p[1] for p in parts])
+    with _launch_scope(radii.device):
+        _for_each_worker(count, cameras, min(threads, cams))
+    tile_offsets = torch.zeros(num_tiles + 1, dtype=torch.int32)
+    torch.cumsum(tile_counts, 0, dtype=torch.int32, out=tile_offsets[1:])
+    isect_ids = torch.empty(int(tile_offsets[-1]), dtype=torch.int32)
+    # Culled Gaussians last; a stable sort keeps equal depths in index order (deterministic lists).
+    depth_keys = torch.where(radii > 0, depths.detach(), torch.full_like(depths, math.inf))
+    depth_order = torch.argsort(depth_keys, dim=1, stable=True).to(torch.int32)
+    tile_cursors = tile_offsets[:-1].clone()
+    order_wp, cursors_wp, ids_wp = _to_warp(depth_order, "int32"), _to_warp(tile_cursors, "int32"), _to_warp(isect_ids, "int32")
+
+    def fill(worker, first, stop):
+        wp.launch(fill_tiles_front_to_back_kernel, dim=stop - first, inputs=[*splats, order_wp, *geometry, first],
+                  outputs=[cursors_wp, ids_wp])
+
+    if len(isect_ids):
+        with _launch_scope(radii.device):
+            _for_each_worker(fill, cameras, min(threads, cams))
+    return tile_offsets, isect_ids
 
 
 def _default_cpu_threads() -> int:
