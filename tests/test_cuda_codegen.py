@@ -1,7 +1,7 @@
 """Every Warp kernel module builds for a CUDA architecture through NVRTC, with no GPU present.
 
 The kernels are generic over float32/float64; their overloads are instantiated by rendering once on the CPU in
-both precisions (with SH and pose deltas, so every kernel runs), then each module is compiled ahead of time for
+both precisions (with SH and pose deltas, and the photometric loss on the render, so every kernel runs), then each module is compiled ahead of time for
 sm_80. Same source as the CPU path: what passes here is what a CUDA machine runs.
 """
 
@@ -15,8 +15,9 @@ import warp as wp
 from conftest import random_scene
 
 import warpbags
+from warpbags.losses import photometric_loss
 
-KERNEL_MODULES = ["pose", "project", "sh", "bin", "rasterize"]
+KERNEL_MODULES = ["pose", "project", "sh", "bin", "rasterize", "loss"]
 
 
 @pytest.mark.parametrize("module_name", KERNEL_MODULES)
@@ -25,7 +26,8 @@ def test_kernel_module_compiles_for_sm80(module_name, tmp_path):
         scene = random_scene(n=6, cams=2, width=8, height=8, dtype=dtype, sh_degree=1)
         means = scene["means"].requires_grad_()
         out, _, _ = warpbags.rasterization(**scene, sh_degree=1, pose_deltas=torch.zeros(2, 6, dtype=dtype))
-        out.sum().backward()
+        loss, _ = photometric_loss(out, torch.rand_like(out))
+        loss.backward()
         assert means.grad is not None
 
     module = importlib.import_module(f"warpbags.kernels.{module_name}")

@@ -7,6 +7,16 @@ import math
 
 import torch
 import torch.nn.functional as F
+import warp as wp
+
+from warpbags.kernels.loss import (
+    WINDOW_RADIUS,
+    photometric_grad_kernel,
+    ssim_column_pass_kernel,
+    ssim_grad_row_pass_kernel,
+    ssim_row_pass_kernel,
+)
+from warpbags.wrapper import _default_cpu_threads, _for_each_worker, _launch_scope, _to_warp
 
 
 @functools.lru_cache(maxsize=8)
@@ -57,11 +67,86 @@ def ssim(images: torch.Tensor, targets: torch.Tensor, window_size: int = 11, sig
 
 
 def photometric_loss(images: torch.Tensor, targets: torch.Tensor, lambda_dssim: float = 0.2) -> tuple[torch.Tensor, dict]:
-    """``(1 - lambda_dssim) L1 + lambda_dssim (1 - SSIM)`` over [B, H, W, 3] images; returns (loss, terms)."""
-    l1 = (images - targets).abs().mean()
-    ssim_value = ssim(images, targets)
-    loss = (1 - lambda_dssim) * l1 + lambda_dssim * (1 - ssim_value)
+    """``(1 - lambda_dssim) L1 + lambda_dssim (1 - SSIM)`` over [B, H, W, 3] images; returns (loss, terms).
+
+    SSIM is `ssim`'s (11 x 11 Gaussian window, zero padding). The loss and its gradient in `images` come from the
+    fused Warp passes of kernels/loss.py (host threads on the CPU); targets that need a gradient take the plain
+    torch path.
+    """
+    if targets.requires_grad:
+        l1 = (images - targets).abs().mean()
+        ssim_value = ssim(images, targets)
+        loss = (1 - lambda_dssim) * l1 + lambda_dssim * (1 - ssim_value)
+    else:
+        loss, l1, ssim_value = _FusedPhotometricLoss.apply(images, targets.detach(), lambda_dssim)
     return loss, {"l1": l1.item(), "ssim": ssim_value.item()}
+
+
+@functools.lru_cache(maxsize=8)
+def _window_1d(device: str, dtype: torch.dtype, sigma: float = 1.5) -> torch.Tensor:
+    coords = torch.arange(2 * WINDOW_RADIUS + 1, dtype=torch.float64) - WINDOW_RADIUS
+    g = torch.exp(-(coords**2) / (2 * sigma**2))
+    return (g / g.sum()).to(device=device, dtype=dtype)
+
+
+def _row_passes(kernel, before: list, after: list, batch_rows: int, width: int, device: torch.device) -> None:
+    """Launch a per-pixel pass of kernels/loss.py (arguments `before`, the launch's first pixel, `after`) over all
+    image rows, split into row ranges across host threads on the CPU. The pass is complete when this returns:
+    the next one reads neighbouring rows."""
+    workers = 1 if device.type == "cuda" else min(_default_cpu_threads(), max(batch_rows // 16, 1))
+    bounds = torch.linspace(1, batch_rows, 2 * workers + 1).round().long().tolist()
+    rows = [(0, 1)] + [(a, b) for a, b in zip(bounds[:-1], bounds[1:]) if b > a]
+
+    def work(worker, first, stop):
+        wp.launch(kernel, dim=(stop - first) * width, inputs=[*before, first * width, *after])
+
+    with _launch_scope(device):
+        _for_each_worker(work, rows, workers)
+
+
+class _FusedPhotometricLoss(torch.autograd.Function):
+    """(loss, L1, SSIM) of [B, H, W, 3] images against targets; only the loss is differentiable (in the images)."""
+
+    @staticmethod
+    def forward(ctx, images, targets, lambda_dssim):
+        batch, height, width, _ = images.shape
+        images, targets = images.detach().contiguous(), targets.to(images.dtype).contiguous()
+        pixels = batch * height * width
+        vec3 = lambda t: _to_warp(t.view(pixels, 3), "vec3")  # noqa: E731
+        window = _to_warp(_window_1d(str(images.device), images.dtype), "scalar")
+        head = [vec3(images), vec3(targets), window, width, height]
+        row_means = [vec3(torch.empty_like(images)) for _ in range(5)]  # x, y, x^2, y^2, xy blurred along rows
+        _row_passes(ssim_row_pass_kernel, head, row_means, batch * height, width, images.device)
+        ssim_sums = images.new_empty(pixels)
+        l1_sums = images.new_empty(pixels)
+        partials = [torch.empty_like(images) for _ in range(3)]  # dS/dmu_x, dS/dE[x^2], dS/dE[xy]
+        _row_passes(ssim_column_pass_kernel, head,
+                    [*row_means, _to_warp(ssim_sums, "scalar"), _to_warp(l1_sums, "scalar"), *map(vec3, partials)],
+                    batch * height, width, images.device)
+        values = 3 * pixels
+        l1, ssim_value = l1_sums.sum() / values, ssim_sums.sum() / values
+        loss = (1 - lambda_dssim) * l1 + lambda_dssim * (1 - ssim_value)
+        ctx.save_for_backward(images, targets, *partials)
+        ctx.lambda_dssim = lambda_dssim
+        ctx.mark_non_differentiable(l1, ssim_value)
+        return loss, l1, ssim_value
+
+    @staticmethod
+    def backward(ctx, v_loss, _v_l1, _v_ssim):
+        images, targets, *partials = ctx.saved_tensors
+        batch, height, width, _ = images.shape
+        pixels = batch * height * width
+        vec3 = lambda t: _to_warp(t.view(pixels, 3), "vec3")  # noqa: E731
+        window = _to_warp(_window_1d(str(images.device), images.dtype), "scalar")
+        blurred = [torch.empty_like(images) for _ in range(3)]
+        _row_passes(ssim_grad_row_pass_kernel, [window, width, height], [*map(vec3, partials), *map(vec3, blurred)],
+                    batch * height, width, images.device)
+        v_images = torch.empty_like(images)
+        scalar = {torch.float32: wp.float32, torch.float64: wp.float64}[images.dtype]
+        scales = [scalar(-ctx.lambda_dssim / (3 * pixels)), scalar((1 - ctx.lambda_dssim) / (3 * pixels))]
+        _row_passes(photometric_grad_kernel, [vec3(images), vec3(targets), window, width, height],
+                    [*map(vec3, blurred), *scales, vec3(v_images)], batch * height, width, images.device)
+        return v_images * v_loss, None, None
 
 
 def mask_loss(alphas: torch.Tensor, masks: torch.Tensor) -> torch.Tensor:

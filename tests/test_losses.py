@@ -1,0 +1,72 @@
+"""The fused photometric loss (kernels/loss.py) against the plain torch formula it replaces."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from warpbags.losses import photometric_loss, ssim
+
+
+def torch_photometric_loss(images, targets, lambda_dssim):
+    l1 = (images - targets).abs().mean()
+    ssim_value = ssim(images, targets)
+    return (1 - lambda_dssim) * l1 + lambda_dssim * (1 - ssim_value), l1, ssim_value
+
+
+def _images(dtype, batch=2, height=19, width=23, seed=0):
+    g = torch.Generator().manual_seed(seed)
+    images = torch.rand(batch, height, width, 3, generator=g, dtype=dtype)
+    targets = torch.rand(batch, height, width, 3, generator=g, dtype=dtype)
+    targets[0, :4, :5] = images[0, :4, :5]  # exact ties: L1's gradient is 0 there, as torch's abs
+    return images, targets
+
+
+# float64: the same sums in another order; float32: its rounding over ~1300 values per window and image.
+TOLERANCES = {torch.float64: (1e-12, 1e-10), torch.float32: (2e-6, 2e-5)}
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+@pytest.mark.parametrize("shape", [(2, 19, 23), (1, 7, 4), (1, 40, 33)])
+def test_fused_loss_value_and_gradient_match_torch(dtype, shape):
+    images, targets = _images(dtype, *shape)
+    value_tol, grad_tol = TOLERANCES[dtype]
+    ours = images.clone().requires_grad_()
+    loss, terms = photometric_loss(ours, targets, 0.2)
+    loss.backward()
+    reference = images.clone().requires_grad_()
+    expected, l1, ssim_value = torch_photometric_loss(reference, targets, 0.2)
+    expected.backward()
+    torch.testing.assert_close(loss, expected, rtol=value_tol, atol=value_tol)
+    assert terms["l1"] == pytest.approx(l1.item(), rel=value_tol, abs=value_tol)
+    assert terms["ssim"] == pytest.approx(ssim_value.item(), rel=value_tol, abs=value_tol)
+    scale = reference.grad.abs().max().item()
+    torch.testing.assert_close(ours.grad, reference.grad, rtol=grad_tol, atol=grad_tol * scale)
+
+
+def test_fused_loss_float32_gradient_against_float64_reference():
+    """What training runs (float32) against the float64 torch loss, relative to the largest gradient."""
+    images, targets = _images(torch.float64, 1, 48, 40, seed=3)
+    ours = images.float().requires_grad_()
+    loss, _ = photometric_loss(ours, targets.float(), 0.2)
+    loss.backward()
+    reference = images.clone().requires_grad_()
+    torch_photometric_loss(reference, targets, 0.2)[0].backward()
+    scale = reference.grad.abs().max().item()
+    torch.testing.assert_close(ours.grad.double(), reference.grad, rtol=0, atol=1e-5 * scale)
+
+
+def test_fused_loss_gradcheck_float64():
+    images, targets = _images(torch.float64, 1, 9, 8, seed=5)
+    images = images.requires_grad_()
+    # keep |x - y| away from 0, where L1 has a kink finite differences would straddle
+    targets = torch.where((images - targets).abs() < 1e-3, targets + 0.01, targets).detach()
+    assert torch.autograd.gradcheck(lambda x: photometric_loss(x, targets, 0.3)[0], (images,), eps=1e-6, atol=1e-8)
+
+
+def test_targets_that_need_gradients_take_the_torch_path():
+    images, targets = _images(torch.float64)
+    targets.requires_grad_()
+    loss, _ = photometric_loss(images, targets, 0.2)
+    loss.backward()
+    assert targets.grad is not None and targets.grad.abs().sum() > 0
