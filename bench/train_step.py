@@ -65,31 +65,40 @@ class _Stamp(torch.autograd.Function):
 
     @staticmethod
     def backward(ctx, grad):
-        ctx.events.append((time.perf_counter(), ctx.label))
+        ctx.events.append((time.perf_counter(), time.process_time(), ctx.label))
         return grad, None, None
 
 
 class PhaseClock:
-    """Accumulates the ms of each phase within one step."""
+    """Accumulates the wall ms and the CPU ms (all threads of the process) of each phase within one step."""
 
     def __init__(self):
         self.ms = dict.fromkeys(PHASES, 0.0)
-        self.events: list[tuple[float, str]] = []  # backward stamps of the current step
+        self.cpu_ms = dict.fromkeys(PHASES, 0.0)
+        self.events: list[tuple[float, float, str]] = []  # backward stamps (wall, CPU, label) of the current step
+
+    @staticmethod
+    def now() -> tuple[float, float]:
+        return time.perf_counter(), time.process_time()
+
+    def add(self, name: str, start: tuple[float, float], end: tuple[float, float]) -> None:
+        self.ms[name] += 1e3 * (end[0] - start[0])
+        self.cpu_ms[name] += 1e3 * (end[1] - start[1])
 
     @contextmanager
     def phase(self, name: str):
-        start = time.perf_counter()
+        start = self.now()
         yield
-        self.ms[name] += 1e3 * (time.perf_counter() - start)
+        self.add(name, start, self.now())
 
-    def attribute_backward(self, start: float, end: float) -> None:
+    def attribute_backward(self, start: tuple[float, float], end: tuple[float, float]) -> None:
         """Split [start, end] of loss.backward() among the stages by the stamps seen in it.
 
         An interval ending at a stage's input stamp was that stage's backward; one ending at the rasterizer's
         output stamps was the loss (and compositing) backward; the rest is glue ("other").
         """
         last = start
-        for stamp, label in sorted(self.events):
+        for wall, cpu, label in sorted(self.events):
             stage, side = label.rsplit(":", 1)
             if side == "in":
                 phase = STAGES[stage][1]
@@ -97,9 +106,9 @@ class PhaseClock:
                 phase = "loss backward"
             else:
                 phase = "other"
-            self.ms[phase] += 1e3 * (stamp - last)
-            last = stamp
-        self.ms["other"] += 1e3 * (end - last)
+            self.add(phase, last, (wall, cpu))
+            last = (wall, cpu)
+        self.add("other", last, end)
         self.events.clear()
 
 
@@ -208,9 +217,9 @@ def training_step(problem: dict, views_per_step: int, clock: PhaseClock | None =
     with clock.phase("loss forward"):
         loss, _ = photometric_loss(renders[..., :3], problem["targets"][views], config.lambda_dssim)
         loss = loss + config.lambda_mask * mask_loss(alphas[..., 0], problem["masks"][views])
-    start = time.perf_counter()
+    start = clock.now()
     loss.backward()
-    clock.attribute_backward(start, time.perf_counter())
+    clock.attribute_backward(start, clock.now())
     with clock.phase("densify stats"):
         problem["strategy"].accumulate(0, meta)
     with clock.phase("optimizer"):
@@ -228,31 +237,36 @@ def run_configuration(init: str, views_per_step: int, points: int, steps: int, w
     for _ in range(warmup):
         training_step(problem, views_per_step)
     per_phase: dict[str, list[float]] = {name: [] for name in PHASES}
+    per_phase_cpu: dict[str, list[float]] = {name: [] for name in PHASES}
     launch_counts = []
     visits = []
     for _ in range(steps):
         clock = PhaseClock()
         with instrumented(clock) as launches:
-            start = time.perf_counter()
+            start = clock.now()
             meta = training_step(problem, views_per_step, clock)
-            total = 1e3 * (time.perf_counter() - start)
-        clock.ms["other"] += total - sum(clock.ms.values())
+            end = clock.now()
+        clock.ms["other"] += 1e3 * (end[0] - start[0]) - sum(clock.ms.values())
+        clock.cpu_ms["other"] += 1e3 * (end[1] - start[1]) - sum(clock.cpu_ms.values())
         for name in PHASES:
             per_phase[name].append(clock.ms[name])
+            per_phase_cpu[name].append(clock.cpu_ms[name])
         launch_counts.append(launches[0])
         bins = meta["bins"]
         visits.append(bins.isect_ids.numel() * bins.tile_size**2 / (meta["n_cameras"] * meta["width"] * meta["height"]))
-    plain = []
+    plain, plain_cpu = [], []
     for _ in range(steps):
-        start = time.perf_counter()
+        start, start_cpu = time.perf_counter(), time.process_time()
         training_step(problem, views_per_step)
         plain.append(1e3 * (time.perf_counter() - start))
+        plain_cpu.append(1e3 * (time.process_time() - start_cpu))
     scene = problem["scene"]
     return {
         "init": init, "views_per_step": views_per_step, "gaussians": len(problem["params"]["means"]),
         "init_note": problem["init_note"], "width": scene.width, "height": scene.height,
         "phases_ms": {name: statistics.median(values) for name, values in per_phase.items()},
-        "step_ms": statistics.median(plain), "step_ms_instrumented": statistics.median(
+        "phases_cpu_ms": {name: statistics.median(values) for name, values in per_phase_cpu.items()},
+        "step_ms": statistics.median(plain), "step_cpu_ms": statistics.median(plain_cpu), "step_ms_instrumented": statistics.median(
             [sum(values[i] for values in per_phase.values()) for i in range(steps)]),
         "launches": statistics.median(launch_counts), "visits_per_pixel": statistics.fmean(visits),
         "peak_rss_mib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
@@ -336,16 +350,17 @@ def _child(arguments: list[str]) -> dict:
 def print_table(rows: list[dict], opensplat: dict | None) -> None:
     names = [f"{r['init']} {r['views_per_step']}v" for r in rows]
     width = max(len(n) for n in PHASES + ("step (plain)",)) + 1
-    print(f"{'':<{width}}" + "".join(f"{n:>13}" for n in names))
-    for key, label, fmt in (("gaussians", "Gaussians", "{:13d}"), ("visits_per_pixel", "visits / pixel", "{:13.1f}"),
-                            ("launches", "Warp launches", "{:13.0f}")):
+    print(f"{'':<{width}}" + "".join(f"{n:>17}" for n in names))
+    for key, label, fmt in (("gaussians", "Gaussians", "{:17d}"), ("visits_per_pixel", "visits / pixel", "{:17.1f}"),
+                            ("launches", "Warp launches", "{:17.0f}")):
         print(f"{label:<{width}}" + "".join(fmt.format(r[key]) for r in rows))
-    print("ms per phase (median over steps):")
+    print("wall ms per phase (median over steps) | CPU ms, all threads:")
     for phase in PHASES:
-        print(f"  {phase:<{width - 2}}" + "".join(f"{r['phases_ms'][phase]:13.1f}" for r in rows))
-    print(f"{'sum of phases':<{width}}" + "".join(f"{r['step_ms_instrumented']:13.1f}" for r in rows))
-    print(f"{'step (plain)':<{width}}" + "".join(f"{r['step_ms']:13.1f}" for r in rows))
-    print(f"{'peak RSS MiB':<{width}}" + "".join(f"{r['peak_rss_mib']:13.0f}" for r in rows))
+        print(f"  {phase:<{width - 2}}" + "".join(f"{r['phases_ms'][phase]:8.1f} |{r['phases_cpu_ms'][phase]:7.1f}"
+                                                    for r in rows))
+    print(f"{'sum of phases':<{width}}" + "".join(f"{r['step_ms_instrumented']:8.1f} |{'':7}" for r in rows))
+    print(f"{'step (plain)':<{width}}" + "".join(f"{r['step_ms']:8.1f} |{r['step_cpu_ms']:7.1f}" for r in rows))
+    print(f"{'peak RSS MiB':<{width}}" + "".join(f"{r['peak_rss_mib']:17.0f}" for r in rows))
     if opensplat is not None:
         print(f"OpenSplat (CPU), one view per step: {opensplat['step_ms']:.0f} ms/step, {opensplat['peak_rss_mib']:.0f} MiB")
         for r, name in zip(rows, names):
