@@ -41,7 +41,7 @@ def locate_pixel(index: int, width: int, height: int, tile_size: int, tiles_x: i
     out = -1
     if x < width and y < height:
         out = (cam * height + y) * width + x
-    return tile, x, y, out
+    return cam, tile, x, y, out
 
 
 @wp.func
@@ -95,9 +95,12 @@ def rasterize_forward_kernel(
     final_transmittance: wp.array(dtype=Any),
     isect_end: wp.array(dtype=wp.int32),
 ):
-    tile, x, y, pix = locate_pixel(first_pixel + wp.tid(), width, height, tile_size, tiles_x, tiles_y)
+    cam, tile, x, y, pix = locate_pixel(first_pixel + wp.tid(), width, height, tile_size, tiles_x, tiles_y)
     if pix < 0:
         return
+    # isect ids are flat (camera, Gaussian) indices and opacities per Gaussian: one subtraction per visit instead
+    # of an integer division
+    first_gaussian = cam * num_gaussians
     px = out_depths.dtype(x) + out_depths.dtype(0.5)
     py = out_depths.dtype(y) + out_depths.dtype(0.5)
     start = tile_offsets[tile]
@@ -112,7 +115,7 @@ def rasterize_forward_kernel(
         sigma, dx, dy = gaussian_falloff(means2d[g], conics[g], px, py)
         if out_of_reach(sigma):
             continue
-        alpha, falloff = splat_alpha(opacities[g % num_gaussians], sigma)
+        alpha, falloff = splat_alpha(opacities[g - first_gaussian], sigma)
         if alpha == out_depths.dtype(0.0):
             continue
         next_transmittance = transmittance * (out_depths.dtype(1.0) - alpha)
@@ -158,9 +161,10 @@ def rasterize_backward_kernel(
     v_opacities: wp.array(dtype=Any),
     v_depths: wp.array(dtype=Any),
 ):
-    tile, x, y, pix = locate_pixel(first_pixel + wp.tid(), width, height, tile_size, tiles_x, tiles_y)
+    cam, tile, x, y, pix = locate_pixel(first_pixel + wp.tid(), width, height, tile_size, tiles_x, tiles_y)
     if pix < 0:
         return
+    first_gaussian = cam * num_gaussians
     px = v_out_depths.dtype(x) + v_out_depths.dtype(0.5)
     py = v_out_depths.dtype(y) + v_out_depths.dtype(0.5)
     start = tile_offsets[tile]
@@ -180,7 +184,7 @@ def rasterize_backward_kernel(
         sigma, dx, dy = gaussian_falloff(means2d[g], conics[g], px, py)
         if out_of_reach(sigma):
             continue
-        opacity = opacities[g % num_gaussians]
+        opacity = opacities[g - first_gaussian]
         alpha, falloff = splat_alpha(opacity, sigma)
         if alpha == v_out_depths.dtype(0.0):
             continue
@@ -202,7 +206,7 @@ def rasterize_backward_kernel(
         depth_behind = depth_behind + weight * z
 
         if raw_alpha <= v_out_depths.dtype(MAX_ALPHA):  # the 0.99 clamp has zero gradient
-            wp.atomic_add(v_opacities, g % num_gaussians, falloff * v_alpha)
+            wp.atomic_add(v_opacities, g - first_gaussian, falloff * v_alpha)
             v_sigma = -raw_alpha * v_alpha
             half = v_out_depths.dtype(0.5)
             wp.atomic_add(v_conics, g, wp.vector(half * dx * dx * v_sigma, dx * dy * v_sigma, half * dy * dy * v_sigma))

@@ -12,7 +12,7 @@ from __future__ import annotations
 import math
 import os
 from concurrent.futures import ThreadPoolExecutor
-from contextlib import ExitStack
+from contextlib import ExitStack, nullcontext
 from typing import NamedTuple, Sequence
 
 import torch
@@ -73,12 +73,14 @@ class _TapedKernel(torch.autograd.Function):
     `input_kinds[i]` is the Warp kind of argument i: "vec3", "mat44", ... for tensors, "float" for a Python number
     passed in the tensors' precision, None for any other plain argument.
     `output_specs` are (kind, shape) of the kernel's outputs, allocated here as zeros; integer outputs are marked
-    non-differentiable.
+    non-differentiable. When no input tensor requires a gradient (rendering for evaluation), the kernel runs
+    without a Tape and no adjoint buffers are allocated.
     """
 
     @staticmethod
     def forward(ctx, kernel, dim, input_kinds, output_specs, *args):
         tensors = [a for a in args if isinstance(a, torch.Tensor)]
+        needs_grad = any(t.requires_grad for t in tensors)
         device = tensors[0].device
         scalar = next(t.dtype for t in tensors if t.is_floating_point())
         wp_inputs, input_grads = [], []
@@ -97,12 +99,12 @@ class _TapedKernel(torch.autograd.Function):
             is_float = kind not in ("int32", "int64")
             dtype = scalar if is_float else getattr(torch, kind)
             value = torch.zeros((*shape, *_KIND_SHAPES.get(kind, ())), dtype=dtype, device=device)
-            grad = torch.zeros_like(value) if is_float else None
+            grad = torch.zeros_like(value) if is_float and needs_grad else None
             outputs.append(value)
             wp_outputs.append(_to_warp(value, kind, grad))
 
-        tape = wp.Tape()
-        with _launch_scope(device), tape:
+        tape = wp.Tape() if needs_grad else None
+        with _launch_scope(device), (tape or nullcontext()):
             wp.launch(kernel, dim=dim, inputs=wp_inputs, outputs=wp_outputs)
         ctx.tape, ctx.device = tape, device
         ctx.wp_outputs, ctx.input_grads = wp_outputs, input_grads
