@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import functools
+import os
 import sys
 from typing import Callable
 
@@ -22,11 +23,26 @@ console = Console(stderr=True)
 
 
 @app.callback()
-def configure() -> None:
+def configure(verbose: bool = typer.Option(False, "--verbose", help="Show Warp's own output: its banner, module "
+                                           "loads and CUDA driver notes.")) -> None:
     """Bundle-Adjusting Gaussian Splatting with NVIDIA Warp kernels."""
     import warp as wp  # noqa: PLC0415 - only the command line silences Warp; library users keep its defaults
 
+    if verbose:
+        return
     wp.config.log_level = wp.LOG_WARNING  # no init banner or per-module load lines between the progress bars
+    wp.config.quiet = True
+    # On a machine without a CUDA driver Warp's native library prints a warning straight to file descriptor 2 when
+    # it initializes; --device cuda without a driver is reported by warpbags itself.
+    sys.stderr.flush()
+    saved = os.dup(2)
+    try:
+        with open(os.devnull, "w") as devnull:
+            os.dup2(devnull.fileno(), 2)
+            wp.init()
+    finally:
+        os.dup2(saved, 2)
+        os.close(saved)
 
 
 def clean_errors(command: Callable) -> Callable:

@@ -78,6 +78,28 @@ class DensifyConfig:
 
 
 @dataclass(frozen=True)
+class CameraConfig:
+    """How the pose corrections are parameterized and started (`warpbags.camera_optimizer`, `warpbags.silhouette`).
+
+    Attributes:
+        parameterization: "object" (rotation about the object centre, image shift, log depth: CamP's object-centric
+            deltas) or "camera" (an se(3) twist about the camera centre, BARF's).
+        precondition: CamP's preconditioner from the Jacobian of the projected initial points (computed once).
+        precondition_reg: its damping r (CamP: 0.01-0.1).
+        centroid_start: before anything else, turn each camera about its centre so that the ray through its mask
+            centroid passes through the object centre (least-squares meeting point of those rays). Needs masks.
+        fix_first_camera: gauge; keep camera 0 at its starting pose (False: every camera is optimized and errors are
+            measured after sim(3) alignment, the BAGS protocol).
+    """
+
+    parameterization: Literal["object", "camera"] = "object"
+    precondition: bool = True
+    precondition_reg: float = 0.1
+    centroid_start: bool = True
+    fix_first_camera: bool = False
+
+
+@dataclass(frozen=True)
 class RepairConfig:
     """GaussianObject's second stage, run by `warpbags.repair` after the coarse iterations (`iters` 0 = off).
 
@@ -187,13 +209,17 @@ class TrainConfig:
             without pose optimization: the baseline trains one round with all the iterations.
         pose_opt: optimize per-camera pose deltas (False = GaussianObject's fixed-pose baseline).
         pose_opt_start: first iteration at which pose deltas are updated.
-        fix_first_camera: gauge choice; keep camera 0's delta at zero (False = all free, rely on alignment).
+        pose_round_share: poses are updated in the first this share of every round; the rest of the round fits
+            the Gaussians to them (1 = the whole round).
         depth_until: the depth term is used for each round's first `depth_until` iterations (0 = never).
         rot_noise_deg, trans_noise, noise_seed: injected pose noise (N(0, sigma^2) angle about a random axis;
             N(0, sigma^2) per camera-centre coordinate, normalized scene units where the orbit radius is 4).
         seed: seeds initialization and view sampling.
         resolution: which image pyramid level to load (images_{resolution}); None = the scene preset's.
         max_image_size: images are further downscaled (area filter) so the longer side is at most this (0 = off).
+        pyramid_levels: coarse-to-fine over rounds: with L levels the last round trains at the full (max_image_size)
+            resolution, the one before at half of it, and so on for L rounds; earlier rounds stay at the coarsest
+            level (1 = every round at full resolution).
         views_per_step: views rendered per iteration (0 = all training views; 1 = one random view, as 3DGS).
         background: "white" or "black"; the ground truth is masked onto it.
         sh_degree: final SH degree; one degree is added every `sh_degree_every` iterations.
@@ -209,6 +235,11 @@ class TrainConfig:
             (0 = off; measured 2.74 -> 2.60 deg on the 4-view synthetic scene at 10 deg, so off by default).
         lambda_dssim, lambda_mask, lambda_depth: loss weights (photometric weight is 1 - lambda_depth while
             the depth term is active).
+        lambda_mask_distance: weight of mean(alpha * distance transform of the mask) (NeRS), a silhouette term
+            whose pose gradient reaches cameras whose render misses the mask.
+        lambda_chamfer: weight of the two-sided chamfer between projected Gaussian centres and mask edges (NeRS).
+        silhouette_until: the two silhouette terms are used for each round's first `silhouette_until` iterations
+            (0 = always).
         depth_loss: "mad" (GaussianObject's median/MAD-normalized disparity L1) or "pearson" (1 - correlation).
         checkpoint_every: checkpoint interval in iterations.
         pose_alignment: alignment used for the logged pose error ("procrustes", "pairwise").
@@ -222,7 +253,7 @@ class TrainConfig:
     rounds: int = 1
     pose_opt: bool = True
     pose_opt_start: int = 1000
-    fix_first_camera: bool = True
+    pose_round_share: float = 1.0
     depth_until: int = 1000
     rot_noise_deg: float = 0.0
     trans_noise: float = 0.0
@@ -230,6 +261,7 @@ class TrainConfig:
     seed: int = 0
     resolution: int | None = None
     max_image_size: int = 0
+    pyramid_levels: int = 1
     views_per_step: int = 1
     background: Literal["white", "black"] = "white"
     sh_degree: int = 2
@@ -244,11 +276,15 @@ class TrainConfig:
     lambda_dssim: float = 0.2
     lambda_mask: float = 0.01
     lambda_depth: float = 0.05
+    lambda_mask_distance: float = 0.0
+    lambda_chamfer: float = 1.0
+    silhouette_until: int = 0
     depth_loss: Literal["mad", "pearson"] = "mad"
     checkpoint_every: int = 500
     pose_alignment: Literal["procrustes", "pairwise"] = "procrustes"
     render_threads: int = 0
     lr: LearningRates = field(default_factory=LearningRates)
+    camera: CameraConfig = field(default_factory=CameraConfig)
     densify: DensifyConfig = field(default_factory=DensifyConfig)
     repair: RepairConfig = field(default_factory=RepairConfig)
 
@@ -268,11 +304,13 @@ class TrainConfig:
             (self.iters >= 1, f"--iters must be >= 1, got {self.iters}"),
             (1 <= self.rounds <= self.iters, f"--rounds must be in [1, iters], got {self.rounds}"),
             (self.pose_opt_start >= 0, f"--pose-opt-start must be >= 0, got {self.pose_opt_start}"),
+            (0 < self.pose_round_share <= 1, f"pose_round_share must be in (0, 1], got {self.pose_round_share}"),
             (self.rot_noise_deg >= 0, f"--rot-noise-deg must be >= 0, got {self.rot_noise_deg}"),
             (self.rot_noise_deg <= 180, f"--rot-noise-deg must be <= 180, got {self.rot_noise_deg}"),
             (self.trans_noise >= 0, f"--trans-noise must be >= 0, got {self.trans_noise}"),
             (self.resolution in (None, 1, 2, 4, 8), f"--resolution must be 1, 2, 4 or 8, got {self.resolution}"),
             (self.max_image_size >= 0, f"--max-image-size must be >= 0, got {self.max_image_size}"),
+            (self.pyramid_levels >= 1, f"pyramid_levels must be >= 1, got {self.pyramid_levels}"),
             (self.views_per_step >= 0, f"views_per_step must be >= 0, got {self.views_per_step}"),
             (self.background in ("white", "black"), f"background must be white or black, got {self.background!r}"),
             (0 <= self.sh_degree <= 3, f"sh_degree must be 0-3, got {self.sh_degree}"),
@@ -284,6 +322,11 @@ class TrainConfig:
             (0 <= self.lambda_depth < 1, f"lambda_depth must be in [0, 1), got {self.lambda_depth}"),
             (self.depth_loss in ("mad", "pearson"), f"--depth-loss must be mad or pearson, got {self.depth_loss!r}"),
             (self.pose_alignment in ("procrustes", "pairwise"), f"pose_alignment: {self.pose_alignment!r}"),
+            (self.camera.parameterization in ("object", "camera"),
+             f"camera.parameterization must be object or camera, got {self.camera.parameterization!r}"),
+            (self.camera.precondition_reg > 0, f"camera.precondition_reg must be > 0, got {self.camera.precondition_reg}"),
+            (min(self.lambda_mask_distance, self.lambda_chamfer) >= 0, "silhouette loss weights must be >= 0"),
+            (self.silhouette_until >= 0, f"silhouette_until must be >= 0, got {self.silhouette_until}"),
             *self.repair.checks(),
             (self.repair.iters == 0 or self.views >= 3, "the repair stage needs at least 3 training views"),
             (self.repair.iters == 0 or self.background == "white",
@@ -329,21 +372,27 @@ def paper() -> TrainConfig:
 def quick() -> TrainConfig:
     """CPU-sized: ~128 px images, <= 6000 Gaussians, all views every step, 600 iterations in 3 rounds.
 
-    The paper's schedule compressed for 2 cores, plus the two changes that made pose recovery work on the 4-view
-    synthetic scene (96 px, 10 deg rotation noise, bench/pose_recovery.py):
-    - poses optimized from the start with a 10x slower translation (rotation lr 1e-2 -> 1e-3, translation 1e-3
-      -> 1e-4): one 600-iteration run then reaches 5.74 -> 0.99 deg (equal rates: 5.74 -> 2.74);
+    The paper's schedule compressed for 2 cores, with what made pose recovery work from 15 deg / 0.3 noise on every
+    camera of the 4-view synthetic scene (96 px, seed 0, `bench/pose_recovery.py`; mean rotation error after sim(3)
+    alignment, 14.17 deg at the start):
+    - the object-centric, preconditioned camera parameterization (`camera`): 1.86 deg, against 7.03 for an se(3)
+      twist about the camera centre;
+    - the chamfer between projected Gaussian centres and mask edges (lambda_chamfer 1): 1.86 -> 0.91 deg;
+    - poses updated in the first half of each round only (pose_round_share 0.5), the second half fitting the
+      Gaussians to them: 0.91 -> 0.81 deg (in every run the error rose again late in a round, as the Gaussians
+      began to absorb the remaining misalignment);
     - three rounds of 200 iterations, each re-carving the hull with the improved poses and starting fresh
-      Gaussians: 5.74 -> 3.13 -> 1.05 -> 0.37 deg in the first experiment; 5.74 -> 0.63 deg with this preset as
-      shipped (bench/pose_recovery.py synthetic-small --rot 10 --trans 0).
-    Starting poses late (iteration 60, lr 3e-3) made them worse (7.9 -> 9.0 deg): the Gaussians absorb the
-    misalignment first.
+      Gaussians; poses optimized from the first iteration with rotation lr 1e-2 -> 1e-3 and a 10x slower
+      translation (equal rates: 1.55 instead of 1.51 deg, no better).
+    Not kept: NeRS's alpha x distance-transform term (0.81 -> 0.88 deg; normalized by the rendered mass it
+    diverged, 20 deg).
     """
     return TrainConfig(
         preset="quick",
         iters=600,
         rounds=3,
         pose_opt_start=0,
+        pose_round_share=0.5,
         depth_until=60,
         checkpoint_every=100,
         max_image_size=128,

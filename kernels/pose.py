@@ -1,10 +1,20 @@
-"""Pose transform: world-to-camera matrices composed with a per-camera se(3) delta.
+"""Pose transforms: world-to-camera matrices composed with a per-camera correction, one kernel per parameterization.
 
-    viewmat' = exp(delta) @ viewmat,   delta = [wx, wy, wz, vx, vy, vz]
+camera (BARF):   viewmat' = exp(delta) @ viewmat,   delta = [wx, wy, wz, vx, vy, vz]
+    a twist in the camera frame: the rotation turns the camera about its own centre.
 
-The rotation part comes first (as BARF orders its se(3) vector); the exponential is the true SE(3) map
-(translation V v, not v). No dynamic loops here, so Warp's automatic adjoint is exact; the small-angle branch keeps
-both the value and its gradient finite at delta = 0, where every camera starts.
+object (CamP's object-centric "FocalPose" deltas, Park et al. 2023):   params = [wx, wy, wz, ux, uy, s]
+    c  = the object centre in the camera frame of `viewmat` (depth clamped to MIN_PIVOT_DEPTH)
+    c' = (c_x / c_z + u_x, c_y / c_z + u_y, 1) * c_z * e^s
+    viewmat' = [R | c' - R c] @ viewmat,   R = exp(w)
+    the rotation turns the camera about the object centre (the centre's image stays put), u shifts the object's
+    image by u times the focal length in pixels, s scales its distance. A camera rotation about its own centre and
+    a sideways shift move a distant object's image almost alike; here they are one parameter (u), and w is left
+    with what only parallax and silhouettes can tell.
+
+The rotation part comes first (as BARF orders its se(3) vector); the exponential is the true SE(3) map (translation
+V v, not v). No dynamic loops here, so Warp's automatic adjoint is exact; the small-angle branch keeps both the value
+and its gradient finite at zero, where every camera starts.
 
 Kernels are generic over float32/float64 (float64 is what the gradient checks run in).
 """
@@ -17,6 +27,9 @@ import warp as wp
 # (next term < 3e-15) and avoids the cancellation in (theta - sin theta) that costs float32 1e-2 relative
 # gradient error at theta ~ 1e-3: small deltas are exactly where bundle adjustment lives.
 SMALL_ANGLE_SQ = 0.04
+
+# An object centre at or behind the camera has no image to shift: its depth is clamped to this (scene units).
+MIN_PIVOT_DEPTH = 1e-3
 
 
 @wp.func
@@ -42,16 +55,10 @@ def so3_coefficients(theta_sq: Any):
 
 
 @wp.func
-def se3_exp(omega: Any, v: Any):
-    """exp of the twist (omega, v) as a 4x4 rigid transform (Rodrigues for R, V v for t)."""
-    a, b, c = so3_coefficients(wp.dot(omega, omega))
-    w = wp.skew(omega)
-    w2 = w @ w
-    eye = wp.identity(n=3, dtype=type(a))
-    rot = eye + a * w + b * w2
-    trans = (eye + b * w + c * w2) @ v
-    zero = type(a)(0.0)
-    one = type(a)(1.0)
+def rigid_matrix(rot: Any, trans: Any):
+    """The 4x4 matrix [rot | trans; 0 0 0 1]."""
+    zero = type(trans[0])(0.0)
+    one = type(trans[0])(1.0)
     return wp.matrix(
         rot[0, 0], rot[0, 1], rot[0, 2], trans[0],
         rot[1, 0], rot[1, 1], rot[1, 2], trans[1],
@@ -59,6 +66,35 @@ def se3_exp(omega: Any, v: Any):
         zero, zero, zero, one,
         shape=(4, 4),
     )
+
+
+@wp.func
+def se3_exp(omega: Any, v: Any):
+    """exp of the twist (omega, v) as a 4x4 rigid transform (Rodrigues for R, V v for t)."""
+    a, b, c = so3_coefficients(wp.dot(omega, omega))
+    w = wp.skew(omega)
+    w2 = w @ w
+    eye = wp.identity(n=3, dtype=type(a))
+    return rigid_matrix(eye + a * w + b * w2, (eye + b * w + c * w2) @ v)
+
+
+@wp.func
+def so3_exp(omega: Any):
+    """Rodrigues' formula: the rotation matrix of an axis-angle vector."""
+    a, b, c = so3_coefficients(wp.dot(omega, omega))
+    w = wp.skew(omega)
+    return wp.identity(n=3, dtype=type(a)) + a * w + b * (w @ w)
+
+
+@wp.func
+def object_centric_delta(omega: Any, shift_x: Any, shift_y: Any, log_depth: Any, pivot: Any):
+    """[R | c' - R c]: turn by exp(omega) about `pivot` c (camera frame), then move c to c' (image shift, depth)."""
+    depth = wp.max(pivot[2], type(pivot[2])(MIN_PIVOT_DEPTH))
+    center = wp.vector(pivot[0], pivot[1], depth)
+    new_depth = depth * wp.exp(log_depth)
+    moved = wp.vector((pivot[0] / depth + shift_x) * new_depth, (pivot[1] / depth + shift_y) * new_depth, new_depth)
+    rot = so3_exp(omega)
+    return rigid_matrix(rot, moved - rot @ center)
 
 
 @wp.kernel
@@ -71,3 +107,23 @@ def apply_pose_deltas_kernel(
     omega = wp.vector(pose_deltas[cam, 0], pose_deltas[cam, 1], pose_deltas[cam, 2])
     v = wp.vector(pose_deltas[cam, 3], pose_deltas[cam, 4], pose_deltas[cam, 5])
     out_viewmats[cam] = se3_exp(omega, v) @ viewmats[cam]
+
+
+@wp.kernel
+def apply_object_deltas_kernel(
+    viewmats: wp.array(dtype=Any),
+    object_params: wp.array2d(dtype=Any),
+    object_centers: wp.array(dtype=Any),
+    out_viewmats: wp.array(dtype=Any),
+):
+    cam = wp.tid()
+    viewmat = viewmats[cam]
+    center = object_centers[cam]
+    pivot = wp.vector(
+        viewmat[0, 0] * center[0] + viewmat[0, 1] * center[1] + viewmat[0, 2] * center[2] + viewmat[0, 3],
+        viewmat[1, 0] * center[0] + viewmat[1, 1] * center[1] + viewmat[1, 2] * center[2] + viewmat[1, 3],
+        viewmat[2, 0] * center[0] + viewmat[2, 1] * center[1] + viewmat[2, 2] * center[2] + viewmat[2, 3],
+    )
+    omega = wp.vector(object_params[cam, 0], object_params[cam, 1], object_params[cam, 2])
+    delta = object_centric_delta(omega, object_params[cam, 3], object_params[cam, 4], object_params[cam, 5], pivot)
+    out_viewmats[cam] = delta @ viewmat

@@ -16,6 +16,7 @@ overfit with 4-9 cameras; both are reported and labelled.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 from dataclasses import dataclass
@@ -26,6 +27,7 @@ import numpy as np
 import torch
 from skimage.metrics import peak_signal_noise_ratio, structural_similarity
 
+from warpbags.camera_optimizer import CameraOptimizer, CameraOptimizerSettings
 from warpbags.configs.train import TrainConfig
 from warpbags.data import ORBIT_RADIUS, Scene, SceneNormalization, load_scene
 from warpbags.errors import WarpbagsError
@@ -33,7 +35,7 @@ from warpbags.files import atomic_output
 from warpbags.gaussians import read_ply, render_gaussians, sh_degree_of, to_source_frame, write_ply
 from warpbags.losses import load_lpips, photometric_loss
 from warpbags.report import write_image_grid, write_run_report
-from warpbags.pose import align_viewmats, apply_pose_deltas, pose_errors, turntable_viewmats
+from warpbags.pose import align_viewmats, pose_errors, turntable_viewmats
 
 ALIGNMENTS = ("procrustes", "pairwise")
 
@@ -129,25 +131,28 @@ def pose_accuracy(run: TrainingRun) -> dict:
     return report
 
 
-def refine_poses(params, viewmats, Ks, targets, width, height, sh_degree, iters: int, lr: float = 1e-3):
-    """Photometric pose refinement of each view with the Gaussians frozen (BARF's test-time optimization).
+def refine_poses(params, viewmats, Ks, targets, width, height, sh_degree, iters: int, lr: float = 1e-3,
+                 settings: CameraOptimizerSettings | None = None):
+    """Photometric pose refinement of each view with the Gaussians frozen (BARF's test-time optimization), through
+    the same camera optimizer as training (`settings`: its parameterization; default object-centric, preconditioned).
 
     Returns:
         [C,4,4] refined world-to-camera matrices.
     """
     frozen = {name: value.detach() for name, value in params.items()}
-    deltas = torch.zeros(len(viewmats), 6, dtype=viewmats.dtype, requires_grad=True)
-    optimizer = torch.optim.Adam([deltas], lr=lr)
+    settings = dataclasses.replace(settings or CameraOptimizerSettings(), lr=lr, fix_first_camera=False)
+    weights = torch.sigmoid(frozen["opacities"])[:, None]
+    center = (frozen["means"] * weights).sum(0) / weights.sum().clamp_min(1e-12)
+    cameras = CameraOptimizer(viewmats, settings, center, Ks, width, height, frozen["means"])
     backgrounds = torch.ones(len(viewmats), 3)
     for _ in range(iters):
-        images, _, _ = render_gaussians(frozen, viewmats, Ks, width, height, sh_degree=sh_degree,
-                                        backgrounds=backgrounds, pose_deltas=deltas)
+        images, _, _ = render_gaussians(frozen, cameras.apply(), Ks, width, height, sh_degree=sh_degree,
+                                        backgrounds=backgrounds)
         loss, _ = photometric_loss(images, targets)
-        optimizer.zero_grad()
+        cameras.zero_grad()
         loss.backward()
-        optimizer.step()
-    with torch.no_grad():
-        return apply_pose_deltas(viewmats, deltas)
+        cameras.step()
+    return cameras.viewmats()
 
 
 class LpipsMetric:
@@ -232,8 +237,11 @@ def evaluate_run(path: str | Path, *, alignment: str = "procrustes", refine_iter
         "images": image_metrics(images, targets, lpips_metric),
     }
     if refine_iters > 0:
+        camera = run.config.camera
+        settings = CameraOptimizerSettings(parameterization=camera.parameterization, precondition=camera.precondition,
+                                           precondition_reg=camera.precondition_reg)
         refined = refine_poses(run.params, test_viewmats, test.Ks, targets, test.width, test.height, sh_degree,
-                               refine_iters)
+                               refine_iters, settings=settings)
         images = render(refined)
         result["images_after_test_pose_refinement"] = {"iters": refine_iters,
                                                         **image_metrics(images, targets, lpips_metric)}

@@ -7,12 +7,13 @@ One class for every variant (pose optimization on/off, gauge choice, repair on/o
 Run folder layout (`out_dir`):
     config.json        the resolved TrainConfig plus scene/view information
     poses_true.npy     [C,4,4] world-to-camera poses of the training views (normalized scene world)
-    poses_init.npy     [C,4,4] the (noisy) poses training starts from
+    poses_init.npy     [C,4,4] the (noisy) poses given to training
+    poses_start.npy    [C,4,4] the poses the optimization starts from (after the mask-centroid start, if used)
     intrinsics.npy     [C,3,3] the training views' intrinsics at the training resolution
     log.jsonl          one JSON object per iteration
     checkpoints/       checkpoint_XXXXXX.pt, written atomically (temp file + os.replace); the newest 3 kept
     gaussians.ply      final Gaussians, standard 3DGS PLY layout
-    poses_final.npy    [C,4,4] optimized world-to-camera poses, exp(delta) @ poses_init
+    poses_final.npy    [C,4,4] optimized world-to-camera poses (the camera optimizer's corrections of poses_start)
     coarse/            with a repair stage: the coarse stage's result as a run folder of its own (same files but
                        log and checkpoints), so `warpbags eval RUN/coarse` measures what repair changed
     repair/            the repair stage's pairs, repairer and sample pictures (see `warpbags.repair.stage`)
@@ -39,9 +40,11 @@ from warpbags.files import atomic_output
 from warpbags.gaussians import render_gaussians, write_ply
 from warpbags.init import hull_or_random_points, initial_gaussians
 from warpbags.losses import depth_loss, gaussian_blur, mask_loss, photometric_loss
-from warpbags.pose import apply_pose_deltas, camera_centers, pose_errors
+from warpbags.camera_optimizer import CameraOptimizer, CameraOptimizerSettings, exponential_lr
+from warpbags.pose import camera_centers, pose_errors
 from warpbags.repair import RepairStage, repairer_factory
 from warpbags.repair.stage import pseudo_ratio
+from warpbags.silhouette import SilhouetteTargets, centroid_start, rays_meeting_point
 from warpbags.strategy import DensifyStrategy
 
 CHECKPOINTS_KEPT = 3
@@ -50,11 +53,6 @@ CHECKPOINTS_KEPT = 3
 def _save_atomic(obj, path: Path) -> None:
     with atomic_output(path) as temporary:
         torch.save(obj, temporary)
-
-
-def _exponential(initial: float, final: float, fraction: float) -> float:
-    fraction = min(max(fraction, 0.0), 1.0)
-    return math.exp((1 - fraction) * math.log(initial) + fraction * math.log(final))
 
 
 class Trainer:
@@ -81,31 +79,23 @@ class Trainer:
         if device == "cpu":
             # Warp runs its own host threads; torch's OpenMP workers would fight them.
             torch.set_num_threads(1)
-        self.scene, self.config, self.device, self.log = scene, config, torch.device(device), log
+        self.config, self.device, self.log = config, torch.device(device), log
         self.out_dir = Path(out_dir)
         self.checkpoint_dir = self.out_dir / "checkpoints"
         self.num_cameras = scene.num_views
         to = dict(device=self.device)
-        self.images = scene.images.to(**to)
-        self.masks = None if scene.masks is None else scene.masks.to(**to)
-        self.depths = None if scene.depths is None else scene.depths.to(**to)
-        self.Ks = scene.Ks.to(**to)
+        self.full_scene = scene
+        self._use_level(0)
         self.viewmats_true = scene.viewmats.to(**to)
         if viewmats_init is None:
             noise = PoseNoise(config.rot_noise_deg, config.trans_noise, config.noise_seed)
             viewmats_init = noisy_viewmats(scene, noise)
-            if config.fix_first_camera:
+            if config.camera.fix_first_camera:
                 # The gauge camera defines the world frame (as the first camera in bundle adjustment): it is
                 # taken as known, since its delta stays zero and its noise could never be corrected.
                 viewmats_init[0] = scene.viewmats[0]
         self.viewmats_init = viewmats_init.to(**to).float()
-        background = 1.0 if config.background == "white" else 0.0
-        self.backgrounds = torch.full((self.num_cameras, 3), background, **to)
-        if self.masks is not None:  # GaussianObject: the object on a plain background
-            m = self.masks[..., None]
-            self.targets = self.images * m + background * (1 - m)
-        else:
-            self.targets = self.images
+        self.viewmats_start, self.object_center = self._starting_poses()
         centers = camera_centers(self.viewmats_init)
         self.scene_extent = 1.1 * float((centers - centers.mean(0)).norm(dim=-1).max())
         if self.depths is None and config.depth_until > 0:
@@ -113,30 +103,77 @@ class Trainer:
 
         self.generator = torch.Generator().manual_seed(config.seed)
         self.iteration = 0
-        # Pose deltas (rotation and translation parts, each with its own learning rate) and their optimizer are
-        # created exactly once; resume loads state into these objects.
-        self.pose_rotations = torch.nn.Parameter(torch.zeros(self.num_cameras, 3, **to))
-        self.pose_translations = torch.nn.Parameter(torch.zeros(self.num_cameras, 3, **to))
-        self.pose_optimizer = torch.optim.Adam([
-            {"params": [self.pose_rotations], "lr": config.lr.pose, "name": "rotation"},
-            {"params": [self.pose_translations], "lr": config.lr.pose * config.lr.pose_translation_scale,
-             "name": "translation"},
-        ])
-        self.gauge_mask = torch.ones(self.num_cameras, 1, **to)
-        if config.fix_first_camera:
-            self.gauge_mask[0] = 0.0
+        # The camera optimizer is created exactly once (resume loads state into it); its preconditioner comes from
+        # the first round's initial points.
+        self.cameras: CameraOptimizer | None = None
         self._start_round()
+        camera = config.camera
+        settings = CameraOptimizerSettings(
+            parameterization=camera.parameterization, precondition=camera.precondition,
+            precondition_reg=camera.precondition_reg, fix_first_camera=camera.fix_first_camera, lr=config.lr.pose,
+            translation_scale=config.lr.pose_translation_scale)
+        self.cameras = CameraOptimizer(self.viewmats_start, settings, self.object_center, self.Ks, self.scene.width,
+                                       self.scene.height, self.params["means"].detach())
         self.repair_stage: RepairStage | None = None  # built when the repair stage first uses pseudo views
         self._repair_state: dict | None = None  # its checkpointed state, applied when it is built
         self._stop_requested = False
 
     # ----------------------------------------------------------------------------------------------- setup
+    def _use_level(self, level: int) -> None:
+        """Train at pyramid level `level` from now on (0 = the full training resolution, k = 1/2^k of it): images,
+        masks, depths, intrinsics, masked targets and silhouette targets at that size."""
+        config, to = self.config, dict(device=self.device)
+        full = self.full_scene
+        scene = full if level == 0 else full.downscaled(max(8, max(full.width, full.height) >> level))
+        if getattr(self, "scene", None) is scene:
+            return
+        self.scene = scene
+        self.images = scene.images.to(**to)
+        self.masks = None if scene.masks is None else scene.masks.to(**to)
+        self.depths = None if scene.depths is None else scene.depths.to(**to)
+        self.Ks = scene.Ks.to(**to)
+        background = 1.0 if config.background == "white" else 0.0
+        self.backgrounds = torch.full((self.num_cameras, 3), background, **to)
+        if self.masks is not None:  # GaussianObject: the object on a plain background
+            m = self.masks[..., None]
+            self.targets = self.images * m + background * (1 - m)
+        else:
+            self.targets = self.images
+        self.silhouettes = None
+        if self.masks is not None and (config.lambda_mask_distance > 0 or config.lambda_chamfer > 0):
+            self.silhouettes = SilhouetteTargets(self.masks).to(self.device)
+
+    def pyramid_level(self) -> int:
+        """The current round's level: with L levels, round r of R trains at 1/2^(L-1-r) of the resolution (never
+        finer than full), so the last rounds are at full resolution; the repair stage is too."""
+        if self.in_repair:
+            return 0
+        rounds = math.ceil(self.config.iters / self.round_length)
+        return min(self.config.pyramid_levels - 1, rounds - 1 - self.iteration // self.round_length)
+
+    def _starting_poses(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """The poses the optimization starts from and the object centre (world) the cameras agree on.
+
+        With masks and `camera.centroid_start`, each camera is first turned so that its mask-centroid ray passes
+        through the rays' meeting point. Without masks the centre is where the optical axes (nearly) meet.
+        """
+        viewmats = self.viewmats_init
+        if self.masks is not None and self.config.camera.centroid_start and self.config.pose_opt:
+            start, center = centroid_start(self.masks.cpu(), viewmats.cpu(), self.Ks.cpu())
+            return start.to(viewmats), center.to(viewmats)
+        if self.masks is None and self.config.camera.centroid_start and self.config.pose_opt:
+            self.log("no masks: no mask-centroid start")
+        axes = viewmats[:, 2, :3].double().cpu()  # camera z axes in world coordinates
+        center = rays_meeting_point(camera_centers(viewmats).double().cpu(), axes)
+        return viewmats.clone(), center.to(viewmats)
+
     def _start_round(self) -> None:
         """Fresh Gaussians (visual hull carved with the current poses), their optimizer and densification state.
 
         Called at iteration 0 and at each later round's first iteration: the poses carry over, the Gaussians
         (which have partly absorbed the old pose errors) do not.
         """
+        self._use_level(self.pyramid_level())
         self.params = self._initial_params()
         self.optimizer = self._make_optimizer()
         self.strategy = DensifyStrategy(self.config.densify, self.scene_extent)
@@ -161,11 +198,6 @@ class Trainer:
         return torch.optim.Adam(groups, lr=0.0, eps=lr.adam_eps)
 
     # ----------------------------------------------------------------------------------------------- state
-    @property
-    def pose_deltas(self) -> torch.Tensor:
-        """[C,6] se(3) corrections [wx, wy, wz, vx, vy, vz] (camera 0's is zero with the fixed gauge)."""
-        return torch.cat([self.pose_rotations, self.pose_translations], dim=1) * self.gauge_mask
-
     @property
     def round_length(self) -> int:
         # Rounds re-carve the hull with improved poses; with frozen poses (the baseline) they would only throw
@@ -196,12 +228,16 @@ class Trainer:
         return config.blur_sigma_px * max(0.0, 1.0 - self.round_iteration / config.blur_until)
 
     def pose_active(self) -> bool:
-        return self.config.pose_opt and self.iteration >= self.config.pose_opt_start
+        """Poses are updated from `pose_opt_start` on, in the first `pose_round_share` of every coarse round (and
+        in the repair stage)."""
+        config = self.config
+        if not config.pose_opt or self.iteration < config.pose_opt_start:
+            return False
+        return self.in_repair or self.round_iteration < config.pose_round_share * self.round_length
 
     def current_viewmats(self) -> torch.Tensor:
-        """[C,4,4] the poses as currently estimated: exp(delta) @ initial."""
-        with torch.no_grad():
-            return apply_pose_deltas(self.viewmats_init, self.pose_deltas)
+        """[C,4,4] the poses as currently estimated (the starting poses before the camera optimizer exists)."""
+        return self.viewmats_start if self.cameras is None else self.cameras.viewmats()
 
     def pose_error(self, viewmats: torch.Tensor | None = None) -> dict[str, float]:
         """Mean rotation (deg) and camera-centre errors of `viewmats` (default: current) against the truth."""
@@ -219,16 +255,14 @@ class Trainer:
             fraction = 1.0
         for group in self.optimizer.param_groups:
             if group["name"] == "means":
-                group["lr"] = _exponential(config.lr.means_init, config.lr.means_final, fraction) * self.scene_extent
+                group["lr"] = exponential_lr(config.lr.means_init, config.lr.means_final, fraction) * self.scene_extent
         # The pose lr decays within each round from the later of the round's start and pose_opt_start (a warm
         # restart per round: each round is a fresh coarse-to-fine fit).
         round_start = self.iteration - self.round_iteration
         pose_start = max(round_start, config.pose_opt_start)
-        pose_end = min(round_start + self.round_length, config.iters)
+        pose_end = min(round_start + math.ceil(config.pose_round_share * self.round_length), config.iters)
         pose_fraction = 1.0 if self.in_repair else (self.iteration - pose_start) / max(pose_end - pose_start - 1, 1)
-        pose_lr = _exponential(config.lr.pose, config.lr.pose_final, pose_fraction)
-        for group in self.pose_optimizer.param_groups:
-            group["lr"] = pose_lr * (config.lr.pose_translation_scale if group["name"] == "translation" else 1.0)
+        self.cameras.set_learning_rate(exponential_lr(config.lr.pose, config.lr.pose_final, pose_fraction))
 
     # ----------------------------------------------------------------------------------------------- step
     def _views(self) -> torch.Tensor:
@@ -252,14 +286,13 @@ class Trainer:
 
     def render(self, views: torch.Tensor, pose_grad: bool = True, sh_degree: int | None = None):
         """Render training views `views` ([B] long) at the current poses; returns (colors, alphas, meta)."""
-        deltas = self.pose_deltas
-        if not pose_grad:
-            deltas = deltas.detach()
-        return render_gaussians(
-            self.params, self.viewmats_init[views], self.Ks[views], self.scene.width, self.scene.height,
+        viewmats = self.cameras.apply(views) if pose_grad else self.cameras.viewmats()[views]
+        colors, alphas, meta = render_gaussians(
+            self.params, viewmats, self.Ks[views], self.scene.width, self.scene.height,
             sh_degree=self.sh_degree() if sh_degree is None else sh_degree, backgrounds=self.backgrounds[views],
-            pose_deltas=deltas[views], render_mode="RGB+ED", cpu_threads=self.config.render_threads or None,
+            render_mode="RGB+ED", cpu_threads=self.config.render_threads or None,
         )
+        return colors, alphas, meta
 
     def _loss(self, views: torch.Tensor) -> tuple[torch.Tensor, dict, dict]:
         config = self.config
@@ -281,6 +314,18 @@ class Trainer:
                 mask_term = mask_loss(alphas, masks)
             loss = loss + config.lambda_mask * mask_term
             terms["mask"] = mask_term.item()
+        silhouette_active = config.silhouette_until <= 0 or self.round_iteration < config.silhouette_until
+        if self.silhouettes is not None and silhouette_active and not self.in_repair:
+            if config.lambda_mask_distance > 0:
+                distance_term = self.silhouettes.distance_loss(alphas, views.to(self.device))
+                loss = loss + config.lambda_mask_distance * distance_term
+                terms["mask_distance"] = distance_term.item()
+            if config.lambda_chamfer > 0:
+                chamfer_term = self.silhouettes.chamfer_loss(
+                    self.params["means"], torch.sigmoid(self.params["opacities"]), meta["viewmats"], self.Ks[views],
+                    views.to(self.device))
+                loss = loss + config.lambda_chamfer * chamfer_term
+                terms["chamfer"] = chamfer_term.item()
         depth_active = not self.in_repair and self.round_iteration < config.depth_until and config.lambda_depth > 0
         if self.depths is not None and depth_active:
             depth_term = depth_loss(depths, alphas, self.depths[views], None if self.masks is None else self.masks[views],
@@ -293,7 +338,7 @@ class Trainer:
     def _check_finite(self, loss: torch.Tensor) -> None:
         bad = None if torch.isfinite(loss) else f"loss is {loss.item()}"
         if bad is None:
-            for name, param in [*self.params.items(), ("pose_deltas", self.pose_deltas.detach())]:
+            for name, param in [*self.params.items(), ("camera parameters", self.cameras.params().detach())]:
                 if not torch.isfinite(param).all():
                     bad = f"parameter {name} has NaN/inf values"
                     break
@@ -311,28 +356,30 @@ class Trainer:
             self._start_round()
             # Same optimizer object, moments cleared on purpose: the pose lr restarts with the round, and Adam's
             # second moments from the converged end of the last round would turn its first steps into jumps.
-            self.pose_optimizer.state.clear()
+            self.cameras.reset_moments()
         self._set_learning_rates()
         views = self._views()
         loss, terms, meta = self._loss(views)
-        self._optimize(loss, after_backward=lambda: self.strategy.accumulate(self.round_iteration, meta))
+        self._optimize(loss, views, after_backward=lambda: self.strategy.accumulate(self.round_iteration, meta))
         densify = self.strategy.step(self.round_iteration or self.round_length, self.params, self.optimizer,
                                      self.generator)
         return self._record("coarse", loss, {**terms, **densify}, started)
 
-    def _optimize(self, loss: torch.Tensor, after_backward: Callable[[], None] | None = None) -> None:
-        """Backward, one Adam step of the Gaussians and (while active) of the poses, then the iteration count."""
+    def _optimize(self, loss: torch.Tensor, views: torch.Tensor | None,
+                  after_backward: Callable[[], None] | None = None) -> None:
+        """Backward, one Adam step of the Gaussians and (while active) of the rendered cameras `views` (None: no
+        real view was rendered), then the iteration count."""
         self._check_finite(loss)
         loss.backward()
         if after_backward is not None:
             after_backward()
         self.optimizer.step()
         self.optimizer.zero_grad(set_to_none=True)
-        # The gauge camera's gradient is already zero (pose_deltas is masked); a pose delta without a gradient
-        # this step (no real view rendered) is skipped by Adam, so momentum does not move it.
-        if self.pose_active():
-            self.pose_optimizer.step()
-        self.pose_optimizer.zero_grad(set_to_none=True)
+        # Only the rendered cameras step (the others keep their values and moments); the gauge camera's gradient
+        # is zero.
+        if self.pose_active() and views is not None:
+            self.cameras.step(views)
+        self.cameras.zero_grad()
         self.iteration += 1
 
     def _record(self, stage: str, loss: torch.Tensor, terms: dict, started: float) -> dict:
@@ -349,14 +396,15 @@ class Trainer:
             if self._repair_state is not None:
                 self.repair_stage.load_state_dict(self._repair_state)
         self._set_learning_rates()
-        loss, terms = torch.zeros((), device=self.device), {"pseudo_ratio": ratio}
+        loss, terms, views = torch.zeros((), device=self.device), {"pseudo_ratio": ratio}, None
         if ratio < 1:
-            real, real_terms, _ = self._loss(self._views())
+            views = self._views()
+            real, real_terms, _ = self._loss(views)
             loss, terms = (1 - ratio) * real, {**terms, **real_terms}
         if ratio > 0:
             pseudo, pseudo_terms = self.repair_stage.loss(self)
             loss, terms = loss + ratio * pseudo, {**terms, **pseudo_terms}
-        self._optimize(loss)
+        self._optimize(loss, views)
         return self._record("repair", loss, terms, started)
 
     def continue_from(self, other: Trainer) -> None:
@@ -380,9 +428,7 @@ class Trainer:
             "config": self.config.to_dict(),
             "params": {name: param.detach().cpu() for name, param in self.params.items()},
             "optimizer": self.optimizer.state_dict(),
-            "pose_rotations": self.pose_rotations.detach().cpu(),
-            "pose_translations": self.pose_translations.detach().cpu(),
-            "pose_optimizer": self.pose_optimizer.state_dict(),
+            "cameras": self.cameras.state(),
             "strategy": self.strategy.state_dict(),
             "generator": self.generator.get_state(),
             "viewmats_init": self.viewmats_init.cpu(),
@@ -401,13 +447,12 @@ class Trainer:
         self.params = {name: torch.nn.Parameter(value.to(self.device)) for name, value in state["params"].items()}
         self.optimizer = self._make_optimizer()
         self.optimizer.load_state_dict(state["optimizer"])
-        with torch.no_grad():
-            self.pose_rotations.copy_(state["pose_rotations"])
-            self.pose_translations.copy_(state["pose_translations"])
-        self.pose_optimizer.load_state_dict(state["pose_optimizer"])
+        self.cameras.load_state(state["cameras"])
         self.strategy.load_state_dict(state["strategy"])
         self.generator.set_state(state["generator"])
         self.viewmats_init = state["viewmats_init"].to(self.device)
+        self.viewmats_start = self.cameras.viewmats_init
+        self._use_level(self.pyramid_level())
         self.repair_stage, self._repair_state = None, state.get("repair")
 
     def resume(self) -> bool:
@@ -428,15 +473,17 @@ class Trainer:
         """config.json, poses_true.npy, poses_init.npy, intrinsics.npy into `folder` (default: the run folder)."""
         folder = self.out_dir if folder is None else folder
         folder.mkdir(parents=True, exist_ok=True)
-        normalization = self.scene.normalization
-        info = {"config": self.config.to_dict(), "scene": self.scene.name, "image_names": self.scene.image_names,
-                "scene_root": str(Path(self.scene.root).resolve()), "resolution": self.scene.resolution,
+        scene = self.full_scene  # the full training resolution, whatever level a round trains at
+        normalization = scene.normalization
+        info = {"config": self.config.to_dict(), "scene": scene.name, "image_names": scene.image_names,
+                "scene_root": str(Path(scene.root).resolve()), "resolution": scene.resolution,
                 "normalization": {"center": list(normalization.center), "scale": normalization.scale},
-                "width": self.scene.width, "height": self.scene.height, "device": str(self.device), **(extra or {})}
+                "width": scene.width, "height": scene.height, "device": str(self.device), **(extra or {})}
         (folder / "config.json").write_text(json.dumps(info, indent=2))
         np.save(folder / "poses_true.npy", self.viewmats_true.cpu().numpy())
         np.save(folder / "poses_init.npy", self.viewmats_init.cpu().numpy())
-        np.save(folder / "intrinsics.npy", self.Ks.cpu().numpy())
+        np.save(folder / "poses_start.npy", self.viewmats_start.cpu().numpy())
+        np.save(folder / "intrinsics.npy", scene.Ks.cpu().numpy())
 
     def write_results(self, folder: Path | None = None) -> None:
         """gaussians.ply and poses_final.npy into `folder` (default: the run folder)."""
@@ -496,8 +543,11 @@ class Trainer:
         return record
 
 
-def training_scene(scene: Scene | str | Path, config: TrainConfig, data_root: str | Path | None = None) -> Scene:
+def training_scene(scene: Scene | str | Path, config: TrainConfig, data_root: str | Path | None = None,
+                   log: Callable[[str], None] | None = None) -> Scene:
     """The training views of a scene (a loaded Scene, a preset name or a folder), downscaled per `config`.
+
+    The views are the scene's `sparse_{views}.txt` split, or else a farthest-point choice (said through `log`).
 
     Raises:
         WarpbagsError: unknown scene, missing data, or fewer images than `config.views`.
@@ -506,7 +556,11 @@ def training_scene(scene: Scene | str | Path, config: TrainConfig, data_root: st
         from warpbags.data import open_scene
 
         scene = open_scene(scene, root=data_root, resolution=config.resolution)
-    return scene.subset(scene.train_views(config.views)).downscaled(config.max_image_size)
+    views = scene.train_views(config.views)
+    if log is not None and str(config.views) not in scene.splits:
+        log(f"{scene.name} has no sparse_{config.views}.txt: {config.views} training views chosen by farthest-point "
+            "sampling of the camera centres")
+    return scene.subset(views).downscaled(config.max_image_size)
 
 
 def default_run_dir(scene_name: str, views: int, root: str | Path = "runs") -> Path:

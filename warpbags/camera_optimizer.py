@@ -1,0 +1,248 @@
+"""`CameraOptimizer`: the one home of the learnable camera corrections (nerfstudio's CameraOptimizer, CamP's deltas).
+
+It holds the per-camera parameters, the gauge, the optional CamP preconditioner, the Adam optimizer with its two
+groups (rotation, translation) and its learning rate, and turns the parameters into corrected world-to-camera
+matrices with `apply(views)`. The trainer, evaluation's test-pose refinement and export all go through it.
+
+Parameterizations (`kernels/pose.py` has the maths, one Warp kernel each):
+    "camera"  se(3) twist [w, v] composed on the left of world-to-camera: a rotation about the camera centre (BARF).
+    "object"  [w, u, s]: rotation about the object centre, image-plane shift of the object (u, in focal lengths)
+              and log depth s (CamP's object-centric deltas). A rotation about the camera centre and a sideways
+              shift move a small distant object's image almost alike; here the strong image motion is u alone.
+
+Preconditioning (CamP, Park et al. 2023): the latent parameters z are mapped to the real ones by a fixed per-camera
+P = (M + diag(max(1e-8, r diag M)))^(-1/2), M = J^T J / n, J the Jacobian of the object's projected points (pixels
+divided by max(W, H)) with respect to the 6 parameters at zero. A unit step of z then moves the image by about the
+same amount in every direction, so one learning rate fits rotation and translation alike, and directions that
+barely move the image (a viewpoint turn about a far object) are not starved by Adam.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+
+from warpbags.errors import WarpbagsError
+from warpbags.kernels.pose import apply_object_deltas_kernel
+from warpbags.wrapper import _TapedKernel, apply_pose_deltas
+
+PARAMETERIZATIONS = ("camera", "object")
+
+
+def apply_object_deltas(viewmats: torch.Tensor, params: torch.Tensor, object_centers: torch.Tensor) -> torch.Tensor:
+    """Object-centric corrections (see `kernels/pose.py`).
+
+    Args:
+        viewmats: [C, 4, 4] world-to-camera matrices.
+        params: [C, 6] [wx, wy, wz, ux, uy, s]: rotation about the object centre, image shift (focal lengths), log
+            depth.
+        object_centers: [C, 3] the object centre (world) each camera turns about.
+
+    Returns:
+        [C, 4, 4] corrected world-to-camera matrices; differentiable in every input.
+    """
+    cams = viewmats.shape[0]
+    (out,) = _TapedKernel.apply(
+        apply_object_deltas_kernel, cams, ("mat44", "scalar", "vec3"), [("mat44", (cams,))],
+        viewmats, params, object_centers,
+    )
+    return out
+
+
+def corrected_viewmats(parameterization: str, viewmats: torch.Tensor, params: torch.Tensor,
+                       object_centers: torch.Tensor | None = None) -> torch.Tensor:
+    """[C, 4, 4] `viewmats` corrected by [C, 6] `params` of the given parameterization ("camera" or "object")."""
+    if parameterization == "camera":
+        return apply_pose_deltas(viewmats, params)
+    if parameterization == "object":
+        if object_centers is None:
+            raise ValueError("the object parameterization needs object_centers")
+        return apply_object_deltas(viewmats, params, object_centers)
+    raise WarpbagsError(f"camera parameterization must be one of {', '.join(PARAMETERIZATIONS)}, got {parameterization!r}")
+
+
+def project_points(viewmats: torch.Tensor, Ks: torch.Tensor, points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Pinhole projection of world points into each camera.
+
+    Args:
+        viewmats: [C, 4, 4] world-to-camera. Ks: [C, 3, 3]. points: [P, 3] world.
+
+    Returns:
+        (pixels [C, P, 2] with pixel centres at +0.5, depths [C, P]).
+    """
+    cam = points @ viewmats[:, :3, :3].transpose(1, 2) + viewmats[:, None, :3, 3]
+    depth = cam[..., 2]
+    safe = depth.clamp_min(1e-6)
+    uv = torch.stack([cam[..., 0] / safe, cam[..., 1] / safe], dim=-1)
+    pixels = uv * torch.stack([Ks[:, 0, 0], Ks[:, 1, 1]], -1)[:, None] + Ks[:, None, :2, 2]
+    return pixels, depth
+
+
+def preconditioner(parameterization: str, viewmats: torch.Tensor, Ks: torch.Tensor, width: int, height: int,
+                   points: torch.Tensor, object_centers: torch.Tensor, regularization: float,
+                   step: float = 1e-4) -> torch.Tensor:
+    """CamP's P = (M + diag(max(1e-8, r diag M)))^(-1/2) per camera, M = J^T J / n.
+
+    J is the Jacobian of the projected `points` (in image sizes) with respect to the 6 parameters at zero, by central
+    differences of the real pose transform in float64 (exact to ~step^2). Points behind a camera are left out.
+
+    Returns:
+        [C, 6, 6] symmetric positive-definite matrices (real params = P @ latent).
+    """
+    cams = viewmats.shape[0]
+    viewmats, Ks, points = viewmats.double(), Ks.double(), points.double()
+    centers = object_centers.double()
+    scale = float(max(width, height))
+    columns = []
+    for k in range(6):
+        offset = torch.zeros(cams, 6, dtype=torch.float64)
+        offset[:, k] = step
+        plus, _ = project_points(corrected_viewmats(parameterization, viewmats, offset, centers), Ks, points)
+        minus, _ = project_points(corrected_viewmats(parameterization, viewmats, -offset, centers), Ks, points)
+        columns.append((plus - minus) / (2 * step * scale))  # [C, P, 2]
+    jacobian = torch.stack(columns, dim=-1)  # [C, P, 2, 6]
+    _, depths = project_points(viewmats, Ks, points)
+    visible = (depths > 1e-3).double()[..., None, None]
+    jacobian = (jacobian * visible).reshape(cams, -1, 6)
+    count = (visible.reshape(cams, -1).sum(-1) * 2).clamp_min(1.0)
+    moments = jacobian.transpose(1, 2) @ jacobian / count[:, None, None]  # [C, 6, 6]
+    diagonal = torch.diagonal(moments, dim1=1, dim2=2)
+    damped = moments + torch.diag_embed((regularization * diagonal).clamp_min(1e-8))
+    eigenvalues, eigenvectors = torch.linalg.eigh(damped)
+    return (eigenvectors * eigenvalues.rsqrt()[:, None, :]) @ eigenvectors.transpose(1, 2)
+
+
+@dataclass(frozen=True)
+class CameraOptimizerSettings:
+    """What a CameraOptimizer needs beyond the cameras (filled from `configs.train.CameraConfig` and the lr group).
+
+    Attributes:
+        parameterization: "camera" or "object".
+        precondition: use CamP's preconditioner (computed once, at construction).
+        precondition_reg: its damping r.
+        fix_first_camera: gauge; camera 0 keeps its starting pose.
+        lr: rotation-group learning rate at the start of a schedule; translation gets lr * translation_scale.
+        translation_scale: translation lr relative to rotation.
+    """
+
+    parameterization: str = "object"
+    precondition: bool = True
+    precondition_reg: float = 0.1
+    fix_first_camera: bool = False
+    lr: float = 1e-2
+    translation_scale: float = 1.0
+
+
+class CameraOptimizer(torch.nn.Module):
+    """Per-camera pose corrections of C cameras, their gauge, preconditioner and Adam optimizer.
+
+    Args:
+        viewmats_init: [C, 4, 4] starting world-to-camera poses (the corrections are relative to them).
+        settings: parameterization, preconditioning, gauge and learning rate.
+        object_center: [3] world point the object-centric parameterization turns about.
+        Ks, width, height, points: cameras and [P, 3] object points for the preconditioner (needed only with
+            `settings.precondition`).
+    """
+
+    def __init__(self, viewmats_init: torch.Tensor, settings: CameraOptimizerSettings, object_center: torch.Tensor,
+                 Ks: torch.Tensor | None = None, width: int = 0, height: int = 0, points: torch.Tensor | None = None):
+        super().__init__()
+        if settings.parameterization not in PARAMETERIZATIONS:
+            raise WarpbagsError(f"camera.parameterization must be one of {', '.join(PARAMETERIZATIONS)}, "
+                                f"got {settings.parameterization!r}")
+        self.settings = settings
+        cams, options = viewmats_init.shape[0], dict(dtype=viewmats_init.dtype, device=viewmats_init.device)
+        self.register_buffer("viewmats_init", viewmats_init.detach().clone())
+        self.register_buffer("object_centers", object_center.to(**options).expand(cams, 3).contiguous())
+        gauge = torch.ones(cams, 1, **options)
+        if settings.fix_first_camera:
+            gauge[0] = 0.0
+        self.register_buffer("gauge", gauge)
+        if settings.precondition:
+            if points is None or Ks is None:
+                raise ValueError("preconditioning needs Ks and object points")
+            matrix = preconditioner(settings.parameterization, viewmats_init.detach(), Ks.detach(), width, height,
+                                    points.detach(), self.object_centers, settings.precondition_reg)
+        else:
+            matrix = torch.eye(6, dtype=torch.float64).expand(cams, 6, 6)
+        self.register_buffer("preconditioner", matrix.to(**options).contiguous())
+        # Rotation and translation latents: two Adam groups, each created once (resume loads into them).
+        self.rotations = torch.nn.Parameter(torch.zeros(cams, 3, **options))
+        self.translations = torch.nn.Parameter(torch.zeros(cams, 3, **options))
+        self.optimizer = torch.optim.Adam([
+            {"params": [self.rotations], "lr": settings.lr, "name": "rotation"},
+            {"params": [self.translations], "lr": settings.lr * settings.translation_scale, "name": "translation"},
+        ])
+
+    @property
+    def num_cameras(self) -> int:
+        return self.viewmats_init.shape[0]
+
+    def params(self) -> torch.Tensor:
+        """[C, 6] the real parameters, P @ latent, zero for the gauge camera."""
+        latent = torch.cat([self.rotations, self.translations], dim=1)
+        return (self.preconditioner @ latent[..., None])[..., 0] * self.gauge
+
+    def apply(self, views: torch.Tensor | None = None) -> torch.Tensor:
+        """[B, 4, 4] corrected world-to-camera matrices of cameras `views` ([B] long, default all); differentiable."""
+        params = self.params()
+        if views is None:
+            return corrected_viewmats(self.settings.parameterization, self.viewmats_init, params, self.object_centers)
+        return corrected_viewmats(self.settings.parameterization, self.viewmats_init[views].contiguous(),
+                                  params[views].contiguous(), self.object_centers[views].contiguous())
+
+    def viewmats(self) -> torch.Tensor:
+        """[C, 4, 4] the current estimate of every camera, without a graph."""
+        with torch.no_grad():
+            return self.apply()
+
+    def set_learning_rate(self, lr: float) -> None:
+        for group in self.optimizer.param_groups:
+            group["lr"] = lr * (self.settings.translation_scale if group["name"] == "translation" else 1.0)
+
+    def step(self, views: torch.Tensor | None = None) -> None:
+        """One Adam step of the cameras in `views` (default all); the others keep their values and Adam moments.
+
+        Adam would move a camera that was not rendered this step through its momentum (its gradient row is zero,
+        not absent): those rows are put back after the step.
+        """
+        if views is None or len(views) == self.num_cameras:
+            self.optimizer.step()
+            return
+        resting = torch.ones(self.num_cameras, dtype=torch.bool, device=self.viewmats_init.device)
+        resting[views] = False
+        kept = []
+        for param in (self.rotations, self.translations):
+            state = self.optimizer.state.get(param, {})
+            rows = {key: value[resting].clone() for key, value in state.items() if torch.is_tensor(value) and value.dim() == 2}
+            kept.append((param, param.detach()[resting].clone(), rows))
+        self.optimizer.step()
+        with torch.no_grad():
+            for param, values, rows in kept:
+                param[resting] = values
+                state = self.optimizer.state[param]
+                for key, value in rows.items():
+                    state[key][resting] = value
+
+    def zero_grad(self, set_to_none: bool = True) -> None:
+        self.optimizer.zero_grad(set_to_none=set_to_none)
+
+    def reset_moments(self) -> None:
+        """Clear Adam's moments (a warm restart of the schedule)."""
+        self.optimizer.state.clear()
+
+    def state(self) -> dict:
+        """Checkpoint content: parameters, buffers and optimizer state."""
+        return {"module": self.state_dict(), "optimizer": self.optimizer.state_dict()}
+
+    def load_state(self, state: dict) -> None:
+        self.load_state_dict(state["module"])
+        self.optimizer.load_state_dict(state["optimizer"])
+
+
+def exponential_lr(initial: float, final: float, fraction: float) -> float:
+    """Log-linear interpolation from `initial` (fraction 0) to `final` (fraction 1), clamped to [0, 1]."""
+    fraction = min(max(fraction, 0.0), 1.0)
+    return math.exp((1 - fraction) * math.log(initial) + fraction * math.log(final))
