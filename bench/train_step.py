@@ -17,9 +17,11 @@ the gradient passes them, and each interval between stamps goes to the stage it 
 (activations, compositing the background, autograd bookkeeping, Python) is "other". Warp CPU launches run
 serially in the calling thread; warpbags' rasterizer runs host threads over tiles (warpbags/wrapper.py).
 
-Printed per configuration: mean Gaussians per pixel in the tile lists the rasterizer walks, ms per phase (median
-over the timed steps), the whole step (median of un-instrumented steps), Warp launches per step and the peak RSS.
-torch runs with 1 thread, as the trainer sets it.
+Printed per configuration: mean Gaussians per pixel in the tile lists the rasterizer walks, wall ms and CPU ms
+(all threads of the process) per phase (medians over the timed steps), the whole step (median of un-instrumented
+steps), Warp launches per step and the peak RSS. torch runs with 1 thread, as the trainer sets it. The default
+50 warm-up steps match the OpenSplat comparison (/work/shared/tools/opensplat, median after step 50): a random
+init's large, overlapping Gaussians shrink and fade over the first steps, so early steps cost more.
 """
 
 from __future__ import annotations
@@ -28,7 +30,6 @@ import argparse
 import json
 import os
 import re
-import resource
 import statistics
 import subprocess
 import sys
@@ -269,7 +270,7 @@ def run_configuration(init: str, views_per_step: int, points: int, steps: int, w
         "step_ms": statistics.median(plain), "step_cpu_ms": statistics.median(plain_cpu), "step_ms_instrumented": statistics.median(
             [sum(values[i] for values in per_phase.values()) for i in range(steps)]),
         "launches": statistics.median(launch_counts), "visits_per_pixel": statistics.fmean(visits),
-        "peak_rss_mib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
+        "peak_rss_mib": _high_water_kib(os.getpid()) / 1024,
     }
 
 
@@ -327,16 +328,29 @@ def run_opensplat(binary: Path, points: int, steps: int, warmup: int) -> dict:
         process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, bufsize=1)
         step_line = re.compile(r"^Step ([0-9]+):")
         stamps = {}
+        peak_kib = 0
         for line in process.stdout:
             match = step_line.match(line)
             if match:
                 stamps[int(match.group(1))] = time.perf_counter()
-        _, status, usage = os.wait4(process.pid, 0)
-        process.returncode = os.waitstatus_to_exitcode(status)
+                peak_kib = max(peak_kib, _high_water_kib(process.pid))
+        process.wait()
     if process.returncode != 0 or len(stamps) < warmup + 2:
         raise RuntimeError(f"opensplat exited with {process.returncode} after {len(stamps)} steps: {' '.join(command)}")
     intervals = [stamps[s] - stamps[s - 1] for s in sorted(stamps) if s > warmup and s - 1 in stamps]
-    return {"step_ms": 1e3 * statistics.median(intervals), "peak_rss_mib": usage.ru_maxrss / 1024}
+    return {"step_ms": 1e3 * statistics.median(intervals), "peak_rss_mib": peak_kib / 1024}
+
+
+def _high_water_kib(pid: int) -> int:
+    """VmHWM of a running process: its peak RSS since exec (a child's ru_maxrss would include the forked copy
+    of this Python process)."""
+    try:
+        for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+            if line.startswith("VmHWM:"):
+                return int(line.split()[1])
+    except OSError:  # it has just exited
+        pass
+    return 0
 
 
 def _child(arguments: list[str]) -> dict:
@@ -374,8 +388,8 @@ def main() -> None:
     parser.add_argument("--inits", default="random,hull", help="comma-separated: random, hull")
     parser.add_argument("--views", default="1,4", help="comma-separated views per step")
     parser.add_argument("--points", type=int, default=10_000, help="initial Gaussians")
-    parser.add_argument("--steps", type=int, default=15, help="timed steps per configuration")
-    parser.add_argument("--warmup", type=int, default=3, help="untimed steps first (compilation, caches)")
+    parser.add_argument("--steps", type=int, default=20, help="timed steps per configuration")
+    parser.add_argument("--warmup", type=int, default=50, help="untimed steps first (compilation, the early steps)")
     parser.add_argument("--opensplat", type=Path, help="an OpenSplat binary built with its CPU backend")
     parser.add_argument("--json", type=Path, help="also write the results here")
     parser.add_argument("--one", nargs=2, metavar=("INIT", "VIEWS"), help=argparse.SUPPRESS)  # a child process
@@ -390,7 +404,7 @@ def main() -> None:
                                 "--warmup", str(args.warmup)]))
     opensplat = None
     if args.opensplat is not None:
-        opensplat = run_opensplat(args.opensplat, args.points, max(args.steps, 20), max(args.warmup, 10))
+        opensplat = run_opensplat(args.opensplat, args.points, args.steps, args.warmup)
     first = rows[0]
     print(f"maryrose {first['width']}x{first['height']}, 4 training views, torch {torch.__version__} (1 thread), "
           f"{len(os.sched_getaffinity(0))} cores; init: " + "; ".join(f"{r['init']}: {r['init_note']}" for r in rows[::len(args.views.split(','))]))
