@@ -265,3 +265,14 @@ def test_cli_any_view_count_through_the_farthest_point_split(scene_dir, tmp_path
     assert result.exit_code == 0, result.output
     assert "no sparse_5.txt" in result.output and "farthest-point" in result.output
     assert np.load(out / "poses_final.npy").shape == (5, 4, 4)
+
+
+def test_training_leaves_the_callers_torch_threads_alone(scene_dir, tmp_path):
+    previous = torch.get_num_threads()
+    torch.set_num_threads(2)
+    try:
+        trainer = make_trainer(scene_dir, tmp_path, iters=2)
+        trainer.train()
+        assert torch.get_num_threads() == 2
+    finally:
+        torch.set_num_threads(previous)

@@ -35,6 +35,7 @@ from warpbags.files import atomic_output
 from warpbags.gaussians import read_ply, render_gaussians, sh_degree_of, to_source_frame, write_ply
 from warpbags.losses import load_lpips, photometric_loss
 from warpbags.report import write_image_grid, write_run_report
+from warpbags.threads import torch_threads
 from warpbags.pose import align_viewmats, pose_errors, turntable_viewmats
 
 ALIGNMENTS = ("procrustes", "pairwise")
@@ -188,6 +189,7 @@ def _save_comparison(path: Path, target: torch.Tensor, image: torch.Tensor) -> N
     write_image_grid(path, [[target, image, (image - target).abs() * 4]])
 
 
+@torch_threads(1)  # Warp's host threads render; torch's OpenMP workers would fight them
 def evaluate_run(path: str | Path, *, alignment: str = "procrustes", refine_iters: int = 100,
                  log=print) -> dict:
     """Evaluate a run folder; writes eval.json, eval/<view>.png (truth | render | error) and report.md into it.
@@ -204,7 +206,6 @@ def evaluate_run(path: str | Path, *, alignment: str = "procrustes", refine_iter
         raise WarpbagsError(f"alignment must be one of {', '.join(ALIGNMENTS)}, got {alignment!r}")
     if refine_iters < 0:
         raise WarpbagsError(f"--refine-iters must be >= 0, got {refine_iters}")
-    torch.set_num_threads(1)  # Warp's host threads render; torch's OpenMP workers would fight them
     run = load_run(path)
     test = held_out_views(run)
     poses = pose_accuracy(run)
@@ -280,13 +281,13 @@ def export_run(path: str | Path, out: str | Path | None = None) -> Path:
     return out
 
 
+@torch_threads(1)
 def render_turntable(path: str | Path, frames: int = 36, video: bool = True) -> Path:
     """Novel views on a full orbit of the object: `<run>/turntable/frame_XXX.png` and, with `video`,
     `<run>/turntable.mp4` (OpenCV, mp4v, 12 fps). The orbit starts at training camera 0 and turns about the
     training cameras' mean up axis through the object centre. Returns the frame folder."""
     if frames < 1:
         raise WarpbagsError(f"--frames must be >= 1, got {frames}")
-    torch.set_num_threads(1)
     run = load_run(path)
     width, height = run.info["width"], run.info["height"]
     if not (run.path / "intrinsics.npy").is_file():

@@ -6,7 +6,9 @@ Conventions (binding; the renderer uses them):
   z forward): ``x_cam = R @ x_world + t`` with ``R = viewmats[..., :3, :3]``, ``t = viewmats[..., :3, 3]``.
 * A pose delta is an se(3) 6-vector ordered ``[wx, wy, wz, vx, vy, vz]`` (axis-angle rotation first, then
   translation, as in BARF) and is composed on the LEFT of world-to-camera:
-  ``viewmat' = se3_exp(delta) @ viewmat``, i.e. the correction is expressed in the camera frame.
+  ``viewmat' = se3_exp(delta) @ viewmat``, i.e. the correction is expressed in the camera frame. It is applied by
+  one implementation, the Warp kernel behind `warpbags.wrapper.apply_pose_deltas`; `warpbags.camera_optimizer`
+  holds the parameterizations built on it.
 * Everything is plain torch, batched over leading dimensions, works in float32 and float64 and on whatever
   device its inputs live on.
 
@@ -26,16 +28,17 @@ import torch
 __all__ = [
     "Sim3",
     "align_viewmats",
-    "apply_pose_deltas",
     "azimuth_order",
     "camera_centers",
     "interpolated_viewmats",
+    "mean_up_axis",
     "perturb_viewmats",
     "pose_errors",
     "rotation_error_deg",
     "se3_exp",
     "so3_exp",
     "so3_log",
+    "turntable_viewmats",
     "umeyama",
 ]
 
@@ -192,19 +195,6 @@ def se3_exp(xi: torch.Tensor) -> torch.Tensor:
     bottom = torch.zeros(*xi.shape[:-1], 1, 4, dtype=xi.dtype, device=xi.device)
     bottom[..., 0, 3] = 1.0
     return torch.cat([top, bottom], dim=-2)
-
-
-def apply_pose_deltas(viewmats: torch.Tensor, deltas: torch.Tensor) -> torch.Tensor:
-    """Compose se(3) corrections on the left of world-to-camera matrices: ``se3_exp(deltas) @ viewmats``.
-
-    Args:
-        viewmats: ``[..., C, 4, 4]`` world-to-camera matrices.
-        deltas: ``[..., C, 6]`` twists ``[wx, wy, wz, vx, vy, vz]`` in the camera frame (zero = no change).
-
-    Returns:
-        ``[..., C, 4, 4]`` corrected world-to-camera matrices (differentiable in both inputs).
-    """
-    return se3_exp(deltas) @ viewmats
 
 
 def camera_centers(viewmats: torch.Tensor) -> torch.Tensor:

@@ -21,6 +21,7 @@ Run folder layout (`out_dir`):
 
 from __future__ import annotations
 
+import contextlib
 import copy
 import json
 import math
@@ -46,6 +47,7 @@ from warpbags.repair import RepairStage, repairer_factory
 from warpbags.repair.stage import pseudo_ratio
 from warpbags.silhouette import SilhouetteTargets, centroid_start, rays_meeting_point
 from warpbags.strategy import DensifyStrategy
+from warpbags.threads import torch_threads
 
 CHECKPOINTS_KEPT = 3
 
@@ -76,9 +78,6 @@ class Trainer:
             raise WarpbagsError(f"--device must be cpu or cuda, got {device!r}")
         if config.repair.iters > 0:
             repairer_factory(config.repair.repairer)  # a bad --repairer fails now, not after the coarse stage
-        if device == "cpu":
-            # Warp runs its own host threads; torch's OpenMP workers would fight them.
-            torch.set_num_threads(1)
         self.config, self.device, self.log = config, torch.device(device), log
         self.out_dir = Path(out_dir)
         self.checkpoint_dir = self.out_dir / "checkpoints"
@@ -518,8 +517,10 @@ class Trainer:
         except ValueError:  # not the main thread: Ctrl-C is handled by the caller
             pass
         record: dict = {}
+        # On the CPU Warp runs its own host threads; torch's OpenMP workers would fight them.
+        threads = torch_threads(1) if self.device.type == "cpu" else contextlib.nullcontext()
         try:
-            with open(self.out_dir / "log.jsonl", "a") as log_file:
+            with threads, open(self.out_dir / "log.jsonl", "a") as log_file:
                 while self.iteration < stop_at:
                     record = self.train_step()
                     log_file.write(json.dumps(record) + "\n")

@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import importlib
 import math
-import os
 from typing import Callable, Protocol, runtime_checkable
 
 import torch
@@ -24,6 +23,7 @@ from torch import nn
 from warpbags.configs.train import RepairConfig
 from warpbags.errors import WarpbagsError
 from warpbags.repair.pairs import NOISE, RepairPairs
+from warpbags.threads import torch_threads, usable_cores
 
 
 @runtime_checkable
@@ -170,10 +170,8 @@ class UNetRepairer:
             validation = pairs.select([view == held_out_view for view in pairs.views])
         training = pairs.select([view != held_out_view for view in pairs.views])
         before = self.l1_by_kind(pairs, repaired=False)
-        threads = torch.get_num_threads()
         # Convolutions use every core the process may run on; the renderer is idle meanwhile.
-        torch.set_num_threads(len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1)
-        try:
+        with torch_threads(usable_cores()):
             check_every = max(config.fit_steps // 10, 1)
             _, checks = self._train(training, config.fit_steps, size, validation, check_every)
             identity = ((validation.corrupted - validation.targets) ** 2).mean().item()
@@ -182,8 +180,6 @@ class UNetRepairer:
             self._fresh_network(self.seed)
             losses = self._train(pairs, steps, size)[0] if steps else []
             after = self.l1_by_kind(pairs, repaired=True)
-        finally:
-            torch.set_num_threads(threads)
         stats = {"steps": steps, "crop": size, "validation_view": held_out_view, "validation_mse_identity": identity,
                  "validation_mse": checks, "final_crop_l1": losses[-1] if losses else None,
                  "l1_identity": before, "l1_repaired": after}
