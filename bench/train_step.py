@@ -161,7 +161,6 @@ def instrumented(clock: PhaseClock):
 def build_problem(init: str, points: int, seed: int = 0) -> dict:
     """The 4 training views of maryrose at full resolution, initial Gaussians and optimizers (as the trainer)."""
     from warpbags.configs.train import DensifyConfig, load_preset
-    from warpbags.gaussians import render_gaussians  # noqa: F401 - imported here so timing excludes import
     from warpbags.init import hull_or_random_points, initial_gaussians
     from warpbags.pose import camera_centers
     from warpbags.strategy import DensifyStrategy
