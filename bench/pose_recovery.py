@@ -12,7 +12,9 @@ Procrustes alignment. Variants:
     bags          the method (the preset as shipped)
     fixed-noisy   the same pipeline with the noisy poses frozen (GaussianObject's baseline)
     --ablations   bags with one part switched off in turn: no-centroid-start, no-silhouette (mask distance and
-                  chamfer terms), no-precondition, camera-param (se(3) about the camera centre, no preconditioner)
+                  chamfer terms), no-precondition, camera-param (se(3) about the camera centre, no preconditioner),
+                  poses-whole-round and poses-first-half (the pose window of each round, instead of from a quarter
+                  of the round to its end)
 A true-pose model (poses frozen at the truth) is trained once per scene, view count and seed, for the PSNR/SSIM it
 reaches. Per row, means over the seeds: mean and max rotation error (deg), mean translation error (% of the orbit
 radius), the share of cameras ending under 1 deg, held-out PSNR/SSIM (test cameras aligned by the same sim(3)) and
@@ -42,8 +44,11 @@ VARIANTS = {
     "no-silhouette": dict(lambda_mask_distance=0.0, lambda_chamfer=0.0),
     "no-precondition": dict(camera={"precondition": False}),
     "camera-param": dict(camera={"parameterization": "camera", "precondition": False}),
+    "poses-whole-round": dict(pose_round_window=(0.0, 1.0)),
+    "poses-first-half": dict(pose_round_window=(0.0, 0.5)),
 }
-ABLATIONS = ["no-centroid-start", "no-silhouette", "no-precondition", "camera-param"]
+ABLATIONS = ["no-centroid-start", "no-silhouette", "no-precondition", "camera-param", "poses-whole-round",
+             "poses-first-half"]
 
 
 def _merge(base: dict, extra: dict) -> dict:

@@ -26,8 +26,8 @@ def scene_dir(tmp_path_factory):
 
 
 def tiny_config(**overrides) -> TrainConfig:
-    base = dict(iters=40, rounds=1, pose_opt_start=10, depth_until=10, checkpoint_every=10, init_points=800,
-                hull_resolution=32, render_threads=1)
+    base = dict(iters=40, rounds=1, pose_opt_start=10, pose_round_window=(0.0, 1.0), depth_until=10,
+                checkpoint_every=10, init_points=800, hull_resolution=32, render_threads=1)
     base.update(overrides)
     return load_preset("quick", **base)
 
@@ -141,7 +141,7 @@ def test_rounds_restart_gaussians_and_keep_poses(scene_dir, tmp_path):
     assert trainer.cameras is cameras
     # One more Adam step (at most the learning rate per coordinate) from where round one ended, not a restart.
     step = (torch.cat([cameras.rotations, cameras.translations], 1).detach() - latent).abs().max().item()
-    assert latent.abs().max() > 2 * trainer.config.lr.pose and 0 < step <= 1.001 * trainer.config.lr.pose
+    assert latent.abs().max() > trainer.config.lr.pose and 0 < step <= 1.001 * trainer.config.lr.pose
 
 
 @pytest.mark.parametrize("init, note", [("sfm", "SfM points"), ("random", "random points"), ("hull", "visual hull")])
@@ -276,3 +276,15 @@ def test_training_leaves_the_callers_torch_threads_alone(scene_dir, tmp_path):
         assert torch.get_num_threads() == 2
     finally:
         torch.set_num_threads(previous)
+
+
+def test_pyramid_levels_train_early_rounds_at_lower_resolution(scene_dir, tmp_path):
+    trainer = make_trainer(scene_dir, tmp_path, iters=6, rounds=3, pyramid_levels=2, pose_opt_start=0,
+                           rot_noise_deg=5.0)
+    full = trainer.full_scene.width
+    sizes = []
+    trainer.train(callback=lambda record: sizes.append(trainer.scene.width))
+    assert sizes == [full // 2] * 4 + [full] * 2  # rounds 1-2 at the coarse level, the last at full resolution
+    assert trainer.render(torch.arange(2))[0].shape[1:3] == (full, full)
+    trainer.write_run_files()
+    assert np.load(tmp_path / "intrinsics.npy")[0, 0, 2] == pytest.approx(trainer.full_scene.Ks[0, 0, 2].item())

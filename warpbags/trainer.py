@@ -227,12 +227,13 @@ class Trainer:
         return config.blur_sigma_px * max(0.0, 1.0 - self.round_iteration / config.blur_until)
 
     def pose_active(self) -> bool:
-        """Poses are updated from `pose_opt_start` on, in the first `pose_round_share` of every coarse round (and
-        in the repair stage)."""
+        """Poses are updated from `pose_opt_start` on, inside `pose_round_window` of every coarse round (and in the
+        repair stage)."""
         config = self.config
         if not config.pose_opt or self.iteration < config.pose_opt_start:
             return False
-        return self.in_repair or self.round_iteration < config.pose_round_share * self.round_length
+        start, end = config.pose_round_window
+        return self.in_repair or start * self.round_length <= self.round_iteration < end * self.round_length
 
     def current_viewmats(self) -> torch.Tensor:
         """[C,4,4] the poses as currently estimated (the starting poses before the camera optimizer exists)."""
@@ -255,11 +256,12 @@ class Trainer:
         for group in self.optimizer.param_groups:
             if group["name"] == "means":
                 group["lr"] = exponential_lr(config.lr.means_init, config.lr.means_final, fraction) * self.scene_extent
-        # The pose lr decays within each round from the later of the round's start and pose_opt_start (a warm
+        # The pose lr decays within each round's pose window, from the later of its start and pose_opt_start (a warm
         # restart per round: each round is a fresh coarse-to-fine fit).
         round_start = self.iteration - self.round_iteration
-        pose_start = max(round_start, config.pose_opt_start)
-        pose_end = min(round_start + math.ceil(config.pose_round_share * self.round_length), config.iters)
+        window_start, window_end = config.pose_round_window
+        pose_start = max(round_start + math.ceil(window_start * self.round_length), config.pose_opt_start)
+        pose_end = min(round_start + math.ceil(window_end * self.round_length), config.iters)
         pose_fraction = 1.0 if self.in_repair else (self.iteration - pose_start) / max(pose_end - pose_start - 1, 1)
         self.cameras.set_learning_rate(exponential_lr(config.lr.pose, config.lr.pose_final, pose_fraction))
 
