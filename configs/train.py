@@ -350,6 +350,9 @@ class TrainConfig:
         Raises:
             WarpbagsError: an unknown field or a value of the wrong type.
         """
+        values = dict(values)
+        if "fix_first_camera" in values:  # before the camera group existed (runs of warpbags <= 2026-11)
+            values["camera"] = {**values.get("camera", {}), "fix_first_camera": values.pop("fix_first_camera")}
         return _replaced(TrainConfig(), values)
 
 

@@ -119,11 +119,8 @@ def apply_object_deltas_kernel(
     cam = wp.tid()
     viewmat = viewmats[cam]
     center = object_centers[cam]
-    pivot = wp.vector(
-        viewmat[0, 0] * center[0] + viewmat[0, 1] * center[1] + viewmat[0, 2] * center[2] + viewmat[0, 3],
-        viewmat[1, 0] * center[0] + viewmat[1, 1] * center[1] + viewmat[1, 2] * center[2] + viewmat[1, 3],
-        viewmat[2, 0] * center[0] + viewmat[2, 1] * center[1] + viewmat[2, 2] * center[2] + viewmat[2, 3],
-    )
+    in_camera = viewmat @ wp.vector(center[0], center[1], center[2], type(center[0])(1.0))
+    pivot = wp.vector(in_camera[0], in_camera[1], in_camera[2])
     omega = wp.vector(object_params[cam, 0], object_params[cam, 1], object_params[cam, 2])
     delta = object_centric_delta(omega, object_params[cam, 3], object_params[cam, 4], object_params[cam, 5], pivot)
     out_viewmats[cam] = delta @ viewmat

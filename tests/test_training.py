@@ -194,20 +194,22 @@ def test_nan_is_caught_and_last_checkpoint_kept(scene_dir, tmp_path):
 @pytest.fixture(scope="module")
 def pose_run(scene_dir, tmp_path_factory):
     trainer = make_trainer(scene_dir, tmp_path_factory.mktemp("pose"), **POSE_TEST)
-    before = trainer.pose_error()["rot_err_deg"]
+    before = trainer.pose_error(trainer.viewmats_init)
     trainer.train()
-    return before, trainer.pose_error()["rot_err_deg"]
+    return before, trainer.pose_error()
 
 
-def test_ten_degree_rotation_noise_is_at_least_halved(pose_run):
+def test_fifteen_degree_noise_on_every_camera_is_at_least_quartered(pose_run):
     before, after = pose_run
-    assert before > 4.0
-    assert after <= 0.5 * before, (before, after)  # measured 5.74 -> 0.63 deg (bench/pose_recovery.py)
+    assert before["rot_err_deg"] > 12.0
+    # Measured 14.17 -> 1.39 deg and 0.357 -> 0.043 (bench/pose_recovery.py synthetic-small --seeds 0).
+    assert after["rot_err_deg"] <= 0.25 * before["rot_err_deg"], (before, after)
+    assert after["trans_err"] <= 0.5 * before["trans_err"], (before, after)
 
 
-# The quick preset as shipped (3 rounds of 200 iterations), on both cores.
-POSE_TEST = dict(iters=600, rounds=3, rot_noise_deg=10.0, pose_opt_start=0, depth_until=60, init_points=3000,
-                 hull_resolution=48, render_threads=0)
+# The quick preset as shipped (free gauge, 3 rounds of 200 iterations, its pose window), on both cores.
+POSE_TEST = dict(iters=600, rounds=3, rot_noise_deg=15.0, trans_noise=0.3, pose_opt_start=0,
+                 pose_round_window=(0.25, 1.0), depth_until=60, init_points=3000, hull_resolution=48, render_threads=0)
 
 
 # ------------------------------------------------------------------------------------------------ CLI
@@ -288,3 +290,25 @@ def test_pyramid_levels_train_early_rounds_at_lower_resolution(scene_dir, tmp_pa
     assert trainer.render(torch.arange(2))[0].shape[1:3] == (full, full)
     trainer.write_run_files()
     assert np.load(tmp_path / "intrinsics.npy")[0, 0, 2] == pytest.approx(trainer.full_scene.Ks[0, 0, 2].item())
+
+
+def test_cli_without_a_terminal_prints_compact_lines_and_no_warp_driver_warning(scene_dir, tmp_path):
+    import subprocess
+    import sys
+
+    out = tmp_path / "run"
+    command = [sys.executable, "-c", "from warpbags.cli.main import app; app()", "train", str(scene_dir), "--iters",
+               "4", "--log-every", "2", "--max-image-size", "32", "--out", str(out), "--set", "init_points=300",
+               "--set", "hull_resolution=16", "--rounds", "1"]
+    result = subprocess.run(command, capture_output=True, text=True, timeout=600)
+    assert result.returncode == 0, result.stderr
+    lines = [line for line in result.stdout.splitlines() if line.startswith("iter ")]
+    assert [line.split()[1] for line in lines] == ["2/4", "4/4"], result.stdout
+    assert all("loss" in line and "rot" in line and "s/it" in line and "eta" in line for line in lines)
+    assert "CUDA driver" not in result.stderr + result.stdout and "Warp 1." not in result.stdout
+
+
+def test_configs_of_older_runs_still_load():
+    # Runs written before the camera group held the gauge at the top level.
+    assert TrainConfig.from_dict({"fix_first_camera": True, "iters": 7}).camera.fix_first_camera is True
+    assert TrainConfig.from_dict({"iters": 7}).camera.fix_first_camera is False

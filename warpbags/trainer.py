@@ -444,6 +444,9 @@ class Trainer:
     def load_checkpoint(self, path: Path) -> None:
         """Restore everything a checkpoint holds (into the existing pose parameter and optimizer objects)."""
         state = torch.load(path, map_location=self.device, weights_only=False)
+        if "cameras" not in state:
+            raise WarpbagsError(f"{path} was written by an older warpbags (no camera-optimizer state); it cannot be "
+                                "resumed, start a new run")
         self.iteration = state["iteration"]
         self.params = {name: torch.nn.Parameter(value.to(self.device)) for name, value in state["params"].items()}
         self.optimizer = self._make_optimizer()
