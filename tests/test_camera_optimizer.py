@@ -10,15 +10,9 @@ import torch
 import warp as wp
 from conftest import look_at
 
-from warpbags.camera_optimizer import (
-    CameraOptimizer,
-    CameraOptimizerSettings,
-    apply_object_deltas,
-    corrected_viewmats,
-    preconditioner,
-    project_points,
-)
-from warpbags.pose import se3_exp
+from warpbags.camera_optimizer import CameraOptimizer, CameraOptimizerSettings, corrected_viewmats, preconditioner
+from warpbags.pose import project_points, se3_exp
+from warpbags.wrapper import apply_object_deltas
 
 F64 = torch.float64
 

@@ -9,7 +9,8 @@ import pytest
 import torch
 
 import warpbags
-from warpbags.camera_optimizer import CameraOptimizer, CameraOptimizerSettings, corrected_viewmats, project_points
+from warpbags.camera_optimizer import CameraOptimizer, CameraOptimizerSettings, corrected_viewmats
+from warpbags.pose import project_points
 from warpbags.data import SyntheticOptions, ensure_synthetic_scene, load_scene
 from warpbags.losses import mask_loss
 from warpbags.pose import pose_errors, so3_exp

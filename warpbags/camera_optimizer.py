@@ -24,31 +24,12 @@ from dataclasses import dataclass
 
 import torch
 
+from warpbags.configs.train import CameraConfig
 from warpbags.errors import WarpbagsError
-from warpbags.kernels.pose import apply_object_deltas_kernel
-from warpbags.wrapper import _TapedKernel, apply_pose_deltas
+from warpbags.pose import project_points
+from warpbags.wrapper import apply_object_deltas, apply_pose_deltas
 
 PARAMETERIZATIONS = ("camera", "object")
-
-
-def apply_object_deltas(viewmats: torch.Tensor, params: torch.Tensor, object_centers: torch.Tensor) -> torch.Tensor:
-    """Object-centric corrections (see `kernels/pose.py`).
-
-    Args:
-        viewmats: [C, 4, 4] world-to-camera matrices.
-        params: [C, 6] [wx, wy, wz, ux, uy, s]: rotation about the object centre, image shift (focal lengths), log
-            depth.
-        object_centers: [C, 3] the object centre (world) each camera turns about.
-
-    Returns:
-        [C, 4, 4] corrected world-to-camera matrices; differentiable in every input.
-    """
-    cams = viewmats.shape[0]
-    (out,) = _TapedKernel.apply(
-        apply_object_deltas_kernel, cams, ("mat44", "scalar", "vec3"), [("mat44", (cams,))],
-        viewmats, params, object_centers,
-    )
-    return out
 
 
 def corrected_viewmats(parameterization: str, viewmats: torch.Tensor, params: torch.Tensor,
@@ -61,23 +42,6 @@ def corrected_viewmats(parameterization: str, viewmats: torch.Tensor, params: to
             raise ValueError("the object parameterization needs object_centers")
         return apply_object_deltas(viewmats, params, object_centers)
     raise WarpbagsError(f"camera parameterization must be one of {', '.join(PARAMETERIZATIONS)}, got {parameterization!r}")
-
-
-def project_points(viewmats: torch.Tensor, Ks: torch.Tensor, points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """Pinhole projection of world points into each camera.
-
-    Args:
-        viewmats: [C, 4, 4] world-to-camera. Ks: [C, 3, 3]. points: [P, 3] world.
-
-    Returns:
-        (pixels [C, P, 2] with pixel centres at +0.5, depths [C, P]).
-    """
-    cam = points @ viewmats[:, :3, :3].transpose(1, 2) + viewmats[:, None, :3, 3]
-    depth = cam[..., 2]
-    safe = depth.clamp_min(1e-6)
-    uv = torch.stack([cam[..., 0] / safe, cam[..., 1] / safe], dim=-1)
-    pixels = uv * torch.stack([Ks[:, 0, 0], Ks[:, 1, 1]], -1)[:, None] + Ks[:, None, :2, 2]
-    return pixels, depth
 
 
 def preconditioner(parameterization: str, viewmats: torch.Tensor, Ks: torch.Tensor, width: int, height: int,
@@ -133,6 +97,13 @@ class CameraOptimizerSettings:
     fix_first_camera: bool = False
     lr: float = 1e-2
     translation_scale: float = 1.0
+
+    @classmethod
+    def from_config(cls, camera: CameraConfig, lr: float = 1e-2, translation_scale: float = 1.0) -> CameraOptimizerSettings:
+        """The settings of a training config's `camera` group, with the given learning rate."""
+        return cls(parameterization=camera.parameterization, precondition=camera.precondition,
+                   precondition_reg=camera.precondition_reg, fix_first_camera=camera.fix_first_camera, lr=lr,
+                   translation_scale=translation_scale)
 
 
 class CameraOptimizer(torch.nn.Module):

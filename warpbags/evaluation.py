@@ -238,9 +238,7 @@ def evaluate_run(path: str | Path, *, alignment: str = "procrustes", refine_iter
         "images": image_metrics(images, targets, lpips_metric),
     }
     if refine_iters > 0:
-        camera = run.config.camera
-        settings = CameraOptimizerSettings(parameterization=camera.parameterization, precondition=camera.precondition,
-                                           precondition_reg=camera.precondition_reg)
+        settings = CameraOptimizerSettings.from_config(run.config.camera)
         refined = refine_poses(run.params, test_viewmats, test.Ks, targets, test.width, test.height, sh_degree,
                                refine_iters, settings=settings)
         images = render(refined)

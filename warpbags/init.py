@@ -19,6 +19,8 @@ import cv2
 import numpy as np
 import torch
 
+from warpbags.pose import project_points
+
 SH_C0 = 0.28209479177387814
 """Degree-0 real spherical-harmonic constant: colour = SH_C0 * sh0 + 0.5."""
 
@@ -29,11 +31,8 @@ def _project(points: torch.Tensor, viewmats: torch.Tensor, Ks: torch.Tensor, wid
     Returns:
         rows, cols: [C, P] long pixel indices (clamped), in_image: [C, P] bool (in front and inside the image).
     """
-    cam = points[None] @ viewmats[:, :3, :3].transpose(1, 2) + viewmats[:, None, :3, 3]  # [C,P,3]
-    z = cam[..., 2]
-    safe_z = torch.where(z > 1e-6, z, torch.ones_like(z))
-    u = Ks[:, None, 0, 0] * cam[..., 0] / safe_z + Ks[:, None, 0, 2]
-    v = Ks[:, None, 1, 1] * cam[..., 1] / safe_z + Ks[:, None, 1, 2]
+    pixels, z = project_points(viewmats, Ks, points)
+    u, v = pixels.unbind(-1)
     in_image = (z > 1e-6) & (u >= 0) & (u < width) & (v >= 0) & (v < height)
     cols = u.floor().long().clamp(0, width - 1)
     rows = v.floor().long().clamp(0, height - 1)

@@ -33,6 +33,7 @@ __all__ = [
     "interpolated_viewmats",
     "mean_up_axis",
     "perturb_viewmats",
+    "project_points",
     "pose_errors",
     "rotation_error_deg",
     "se3_exp",
@@ -209,6 +210,24 @@ def camera_centers(viewmats: torch.Tensor) -> torch.Tensor:
     rotations = viewmats[..., :3, :3]
     translations = viewmats[..., :3, 3]
     return -(rotations.transpose(-1, -2) @ translations[..., None])[..., 0]
+
+
+def project_points(viewmats: torch.Tensor, Ks: torch.Tensor, points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Pinhole projection of world points into every camera.
+
+    Args:
+        viewmats: [C, 4, 4] world-to-camera. Ks: [C, 3, 3]. points: [P, 3] world.
+
+    Returns:
+        (pixels [C, P, 2] in the image's continuous coordinates (pixel centres at +0.5), depths [C, P]). Points at
+        or behind depth 1e-6 get finite but meaningless pixels: mask them by depth.
+    """
+    cam = points[None] @ viewmats[:, :3, :3].transpose(1, 2) + viewmats[:, None, :3, 3]  # [C, P, 3]
+    depths = cam[..., 2]
+    safe = torch.where(depths > 1e-6, depths, torch.ones_like(depths))
+    u = Ks[:, None, 0, 0] * cam[..., 0] / safe + Ks[:, None, 0, 2]
+    v = Ks[:, None, 1, 1] * cam[..., 1] / safe + Ks[:, None, 1, 2]
+    return torch.stack([u, v], dim=-1), depths
 
 
 def _viewmats_from(rotations: torch.Tensor, centers: torch.Tensor) -> torch.Tensor:

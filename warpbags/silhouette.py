@@ -20,8 +20,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from warpbags.camera_optimizer import project_points
-from warpbags.pose import camera_centers, so3_exp
+from warpbags.pose import camera_centers, project_points, so3_exp
 
 EDGE_POINTS = 300  # mask edge pixels per view for the chamfer (NeRS's count)
 
@@ -51,12 +50,6 @@ def rays_meeting_point(origins: torch.Tensor, directions: torch.Tensor) -> torch
     return torch.linalg.solve(projectors.sum(0), (projectors @ origins[..., None]).sum(0))[:, 0]
 
 
-def object_center(masks: torch.Tensor, viewmats: torch.Tensor, Ks: torch.Tensor) -> torch.Tensor:
-    """[3] world point where the cameras' mask-centroid rays (nearly) meet: the object centre they agree on."""
-    _, world = centroid_rays(masks, viewmats, Ks)
-    return rays_meeting_point(camera_centers(viewmats), world)
-
-
 def _rotation_between(source: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
     """[C, 3, 3] the smallest rotations taking unit vectors source [C, 3] onto target [C, 3]."""
     axis = torch.linalg.cross(source, target)
@@ -76,9 +69,8 @@ def centroid_start(masks: torch.Tensor, viewmats: torch.Tensor, Ks: torch.Tensor
         (the turned [C, 4, 4] world-to-camera matrices, the [3] object centre they now agree on exactly).
     """
     viewmats = viewmats.double()
-    Ks = Ks.double()
-    center = object_center(masks.double(), viewmats, Ks)
-    ray_camera, _ = centroid_rays(masks.double(), viewmats, Ks)
+    ray_camera, ray_world = centroid_rays(masks.double(), viewmats, Ks.double())
+    center = rays_meeting_point(camera_centers(viewmats), ray_world)
     to_center = (viewmats[:, :3, :3] @ center + viewmats[:, :3, 3])
     to_center = to_center / to_center.norm(dim=-1, keepdim=True)
     turn = torch.eye(4, dtype=torch.float64).repeat(len(viewmats), 1, 1)

@@ -84,6 +84,7 @@ class Trainer:
         self.num_cameras = scene.num_views
         to = dict(device=self.device)
         self.full_scene = scene
+        self._levels: dict[int, Scene] = {}  # the scene at each pyramid level used so far
         self._use_level(0)
         self.viewmats_true = scene.viewmats.to(**to)
         if viewmats_init is None:
@@ -106,11 +107,8 @@ class Trainer:
         # the first round's initial points.
         self.cameras: CameraOptimizer | None = None
         self._start_round()
-        camera = config.camera
-        settings = CameraOptimizerSettings(
-            parameterization=camera.parameterization, precondition=camera.precondition,
-            precondition_reg=camera.precondition_reg, fix_first_camera=camera.fix_first_camera, lr=config.lr.pose,
-            translation_scale=config.lr.pose_translation_scale)
+        settings = CameraOptimizerSettings.from_config(config.camera, lr=config.lr.pose,
+                                                       translation_scale=config.lr.pose_translation_scale)
         self.cameras = CameraOptimizer(self.viewmats_start, settings, self.object_center, self.Ks, self.scene.width,
                                        self.scene.height, self.params["means"].detach())
         self.repair_stage: RepairStage | None = None  # built when the repair stage first uses pseudo views
@@ -123,7 +121,9 @@ class Trainer:
         masks, depths, intrinsics, masked targets and silhouette targets at that size."""
         config, to = self.config, dict(device=self.device)
         full = self.full_scene
-        scene = full if level == 0 else full.downscaled(max(8, max(full.width, full.height) >> level))
+        if level not in self._levels:
+            self._levels[level] = full if level == 0 else full.downscaled(max(8, max(full.width, full.height) >> level))
+        scene = self._levels[level]
         if getattr(self, "scene", None) is scene:
             return
         self.scene = scene
@@ -229,11 +229,19 @@ class Trainer:
     def pose_active(self) -> bool:
         """Poses are updated from `pose_opt_start` on, inside `pose_round_window` of every coarse round (and in the
         repair stage)."""
-        config = self.config
-        if not config.pose_opt or self.iteration < config.pose_opt_start:
+        if not self.config.pose_opt or self.iteration < self.config.pose_opt_start:
             return False
-        start, end = config.pose_round_window
-        return self.in_repair or start * self.round_length <= self.round_iteration < end * self.round_length
+        start, end = self._pose_window()
+        return self.in_repair or start <= self.iteration < end
+
+    def _pose_window(self) -> tuple[int, int]:
+        """[start, end) iterations of the current round in which poses are updated (`pose_round_window`, no
+        earlier than `pose_opt_start`)."""
+        config = self.config
+        round_start = self.iteration - self.round_iteration
+        window_start, window_end = config.pose_round_window
+        start = max(round_start + math.ceil(window_start * self.round_length), config.pose_opt_start)
+        return start, min(round_start + math.ceil(window_end * self.round_length), config.iters)
 
     def current_viewmats(self) -> torch.Tensor:
         """[C,4,4] the poses as currently estimated (the starting poses before the camera optimizer exists)."""
@@ -256,12 +264,9 @@ class Trainer:
         for group in self.optimizer.param_groups:
             if group["name"] == "means":
                 group["lr"] = exponential_lr(config.lr.means_init, config.lr.means_final, fraction) * self.scene_extent
-        # The pose lr decays within each round's pose window, from the later of its start and pose_opt_start (a warm
-        # restart per round: each round is a fresh coarse-to-fine fit).
-        round_start = self.iteration - self.round_iteration
-        window_start, window_end = config.pose_round_window
-        pose_start = max(round_start + math.ceil(window_start * self.round_length), config.pose_opt_start)
-        pose_end = min(round_start + math.ceil(window_end * self.round_length), config.iters)
+        # The pose lr decays within each round's pose window (a warm restart per round: each round is a fresh
+        # coarse-to-fine fit).
+        pose_start, pose_end = self._pose_window()
         pose_fraction = 1.0 if self.in_repair else (self.iteration - pose_start) / max(pose_end - pose_start - 1, 1)
         self.cameras.set_learning_rate(exponential_lr(config.lr.pose, config.lr.pose_final, pose_fraction))
 
@@ -288,12 +293,11 @@ class Trainer:
     def render(self, views: torch.Tensor, pose_grad: bool = True, sh_degree: int | None = None):
         """Render training views `views` ([B] long) at the current poses; returns (colors, alphas, meta)."""
         viewmats = self.cameras.apply(views) if pose_grad else self.cameras.viewmats()[views]
-        colors, alphas, meta = render_gaussians(
+        return render_gaussians(
             self.params, viewmats, self.Ks[views], self.scene.width, self.scene.height,
             sh_degree=self.sh_degree() if sh_degree is None else sh_degree, backgrounds=self.backgrounds[views],
             render_mode="RGB+ED", cpu_threads=self.config.render_threads or None,
         )
-        return colors, alphas, meta
 
     def _loss(self, views: torch.Tensor) -> tuple[torch.Tensor, dict, dict]:
         config = self.config

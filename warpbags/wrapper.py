@@ -24,7 +24,7 @@ from warpbags.kernels.bin import (
     fill_tiles_front_to_back_kernel,
     tile_histogram_kernel,
 )
-from warpbags.kernels.pose import apply_pose_deltas_kernel
+from warpbags.kernels.pose import apply_object_deltas_kernel, apply_pose_deltas_kernel
 from warpbags.kernels.project import project_gaussians_kernel
 from warpbags.kernels.rasterize import rasterize_backward_kernel, rasterize_forward_kernel
 from warpbags.kernels.sh import sh_to_colors_kernel
@@ -144,6 +144,27 @@ def apply_pose_deltas(viewmats: torch.Tensor, pose_deltas: torch.Tensor) -> torc
     cams = viewmats.shape[0]
     (out,) = _TapedKernel.apply(
         apply_pose_deltas_kernel, cams, ("mat44", "scalar"), [("mat44", (cams,))], viewmats, pose_deltas
+    )
+    return out
+
+
+
+def apply_object_deltas(viewmats: torch.Tensor, params: torch.Tensor, object_centers: torch.Tensor) -> torch.Tensor:
+    """Object-centric corrections (CamP's; see kernels/pose.py).
+
+    Args:
+        viewmats: [C, 4, 4] world-to-camera matrices.
+        params: [C, 6] [wx, wy, wz, ux, uy, s]: rotation about the object centre, image shift (focal lengths), log
+            depth.
+        object_centers: [C, 3] the object centre (world) each camera turns about.
+
+    Returns:
+        [C, 4, 4] corrected world-to-camera matrices; differentiable in every input.
+    """
+    cams = viewmats.shape[0]
+    (out,) = _TapedKernel.apply(
+        apply_object_deltas_kernel, cams, ("mat44", "scalar", "vec3"), [("mat44", (cams,))],
+        viewmats, params, object_centers,
     )
     return out
 
