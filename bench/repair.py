@@ -30,11 +30,11 @@ from pathlib import Path
 
 import torch
 
+from warpbags.alignment import align_viewmats, pose_errors
 from warpbags.configs.train import load_preset, parse_settings
 from warpbags.data import SyntheticOptions, ensure_synthetic_scene, load_scene, open_scene
 from warpbags.evaluation import evaluate_run, held_out_views, load_run
 from warpbags.gaussians import render_gaussians, sh_degree_of
-from warpbags.pose import align_viewmats, pose_errors
 from warpbags.repair import RepairStage
 from warpbags.trainer import Trainer, training_scene
 

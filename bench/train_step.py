@@ -160,9 +160,9 @@ def instrumented(clock: PhaseClock):
 
 def build_problem(init: str, points: int, seed: int = 0) -> dict:
     """The 4 training views of maryrose at full resolution, initial Gaussians and optimizers (as the trainer)."""
+    from warpbags.cameras import camera_centers
     from warpbags.configs.train import DensifyConfig, load_preset
     from warpbags.init import hull_or_random_points, initial_gaussians
-    from warpbags.pose import camera_centers
     from warpbags.strategy import DensifyStrategy
     from warpbags.trainer import training_scene
 

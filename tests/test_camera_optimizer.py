@@ -11,7 +11,8 @@ import warp as wp
 from conftest import look_at
 
 from warpbags.camera_optimizer import CameraOptimizer, CameraOptimizerSettings, corrected_viewmats, preconditioner
-from warpbags.pose import project_points, se3_exp
+from warpbags.cameras import project_points
+from warpbags.lie import se3_exp
 from warpbags.wrapper import apply_object_deltas
 
 F64 = torch.float64

@@ -113,7 +113,8 @@ def test_turntable_frames_and_video(finished_run):
 
 
 def test_turntable_orbits_about_the_up_axis():
-    from warpbags.pose import camera_centers, turntable_viewmats
+    from warpbags.camera_paths import turntable_viewmats
+    from warpbags.cameras import camera_centers
     from conftest import look_at
 
     eye = torch.tensor([4.0, 0.0, 1.0], dtype=torch.float64)

@@ -121,7 +121,7 @@ def test_perturbed_gaussians_follow_the_noise_statistics():
 
 
 def test_distance_weights_favour_views_away_from_the_training_cameras():
-    from warpbags.pose import turntable_viewmats
+    from warpbags.camera_paths import turntable_viewmats
 
     base = torch.eye(4, dtype=torch.float64)
     base[2, 3] = 4.0

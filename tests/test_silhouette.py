@@ -9,11 +9,12 @@ import pytest
 import torch
 
 import warpbags
+from warpbags.alignment import pose_errors
 from warpbags.camera_optimizer import CameraOptimizer, CameraOptimizerSettings, corrected_viewmats
-from warpbags.pose import project_points
+from warpbags.cameras import project_points
 from warpbags.data import SyntheticOptions, ensure_synthetic_scene, load_scene
+from warpbags.lie import so3_exp
 from warpbags.losses import mask_loss
-from warpbags.pose import pose_errors, so3_exp
 from warpbags.silhouette import SilhouetteTargets, centroid_start, rays_meeting_point
 
 

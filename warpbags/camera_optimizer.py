@@ -26,7 +26,7 @@ import torch
 
 from warpbags.configs.train import CameraConfig
 from warpbags.errors import WarpbagsError
-from warpbags.pose import project_points
+from warpbags.cameras import project_points
 from warpbags.wrapper import apply_object_deltas, apply_pose_deltas
 
 PARAMETERIZATIONS = ("camera", "object")

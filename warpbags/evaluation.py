@@ -27,7 +27,9 @@ import numpy as np
 import torch
 from skimage.metrics import peak_signal_noise_ratio, structural_similarity
 
+from warpbags.alignment import align_viewmats, pose_errors
 from warpbags.camera_optimizer import CameraOptimizer, CameraOptimizerSettings
+from warpbags.camera_paths import turntable_viewmats
 from warpbags.configs.train import TrainConfig
 from warpbags.data import ORBIT_RADIUS, Scene, SceneNormalization, load_scene
 from warpbags.errors import WarpbagsError
@@ -36,7 +38,6 @@ from warpbags.gaussians import read_ply, render_gaussians, sh_degree_of, to_sour
 from warpbags.losses import load_lpips, photometric_loss
 from warpbags.report import write_image_grid, write_run_report
 from warpbags.threads import torch_threads
-from warpbags.pose import align_viewmats, pose_errors, turntable_viewmats
 
 ALIGNMENTS = ("procrustes", "pairwise")
 

@@ -19,7 +19,7 @@ import cv2
 import numpy as np
 import torch
 
-from warpbags.pose import project_points
+from warpbags.cameras import project_points
 
 SH_C0 = 0.28209479177387814
 """Degree-0 real spherical-harmonic constant: colour = SH_C0 * sh0 + 0.5."""

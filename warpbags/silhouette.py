@@ -20,7 +20,8 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from warpbags.pose import camera_centers, project_points, so3_exp
+from warpbags.cameras import camera_centers, project_points
+from warpbags.lie import so3_exp
 
 EDGE_POINTS = 300  # mask edge pixels per view for the chamfer (NeRS's count)
 

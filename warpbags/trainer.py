@@ -42,7 +42,8 @@ from warpbags.gaussians import render_gaussians, write_ply
 from warpbags.init import hull_or_random_points, initial_gaussians
 from warpbags.losses import depth_loss, gaussian_blur, mask_loss, photometric_loss
 from warpbags.camera_optimizer import CameraOptimizer, CameraOptimizerSettings, exponential_lr
-from warpbags.pose import camera_centers, pose_errors
+from warpbags.alignment import pose_errors
+from warpbags.cameras import camera_centers
 from warpbags.repair import RepairStage, repairer_factory
 from warpbags.repair.stage import pseudo_ratio
 from warpbags.silhouette import SilhouetteTargets, centroid_start, rays_meeting_point

@@ -22,6 +22,7 @@ import cv2
 import numpy as np
 import torch
 
+from warpbags.cameras import camera_centers
 from warpbags.data.colmap import read_model
 from warpbags.data.scene import ORBIT_RADIUS, Scene, SceneNormalization, farthest_views
 from warpbags.errors import WarpbagsError
@@ -121,7 +122,7 @@ def load_scene(
     normalization = SceneNormalization.identity()
     if normalize:
         center = object_center(cameras.viewmats, Ks, masks, cameras.points)
-        centers = _camera_centers(cameras.viewmats)
+        centers = camera_centers(torch.from_numpy(cameras.viewmats)).numpy()
         mean_radius = float(np.linalg.norm(centers - center, axis=1).mean())
         if not mean_radius > 0:
             raise WarpbagsError(f"{root}: all cameras sit at the object centre, cannot normalize")
@@ -457,10 +458,6 @@ def _undistort(
 # Object centre and splits
 
 
-def _camera_centers(viewmats: np.ndarray) -> np.ndarray:
-    return -np.einsum("cji,cj->ci", viewmats[:, :3, :3], viewmats[:, :3, 3])
-
-
 def object_center(
     viewmats: np.ndarray, Ks: np.ndarray, masks: np.ndarray | None = None, points: np.ndarray | None = None
 ) -> np.ndarray:
@@ -484,7 +481,7 @@ def object_center(
     rays_camera = np.linalg.solve(Ks, np.concatenate([pixels, np.ones((len(Ks), 1))], axis=1)[:, :, None])[..., 0]
     directions = np.einsum("cji,cj->ci", viewmats[:, :3, :3], rays_camera)
     directions /= np.linalg.norm(directions, axis=1, keepdims=True)
-    origins = _camera_centers(viewmats)
+    origins = camera_centers(torch.from_numpy(viewmats)).numpy()
     projectors = np.eye(3)[None] - directions[:, :, None] * directions[:, None, :]
     system, rhs = projectors.sum(0), np.einsum("cij,cj->i", projectors, origins)
     eigenvalues = np.linalg.eigvalsh(system)

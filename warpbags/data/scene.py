@@ -16,6 +16,7 @@ import cv2
 import numpy as np
 import torch
 
+from warpbags.cameras import camera_centers
 from warpbags.errors import WarpbagsError
 
 ORBIT_RADIUS = 4.0
@@ -125,9 +126,8 @@ class Scene:
         return len(self.image_names)
 
     def camera_centers(self) -> torch.Tensor:
-        """[C,3] camera centres in normalized world: -R^T t."""
-        rotations = self.viewmats[:, :3, :3]
-        return -(rotations.transpose(1, 2) @ self.viewmats[:, :3, 3:]).squeeze(-1)
+        """[C,3] camera centres in normalized world."""
+        return camera_centers(self.viewmats)
 
     def orbit_radius(self) -> float:
         """Mean distance of the camera centres from the world origin (the object centre)."""

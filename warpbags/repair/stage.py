@@ -25,10 +25,11 @@ from typing import Callable
 
 import torch
 
+from warpbags.camera_paths import interpolated_viewmats
+from warpbags.cameras import camera_centers
 from warpbags.configs.train import RepairConfig
 from warpbags.files import atomic_output
 from warpbags.losses import load_lpips, repair_loss
-from warpbags.pose import camera_centers, interpolated_viewmats
 from warpbags.repair.network import Repairer, make_repairer
 from warpbags.repair.pairs import LEAVE_ONE_OUT, NOISE, RepairPairs, build_pairs
 from warpbags.report import write_image_grid

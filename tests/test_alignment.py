@@ -1,0 +1,206 @@
+"""warpbags.alignment: Umeyama, Sim(3), pose alignment and pose errors (CPU, float64)."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+from random_poses import F64, generator, random_sim3, random_viewmats
+
+from warpbags.alignment import Sim3, align_viewmats, pose_errors, umeyama
+from warpbags.cameras import camera_centers
+from warpbags.data.noise import perturb_viewmats
+from warpbags.lie import so3_exp
+
+# ----------------------------------------------------------------------------------------------- umeyama / Sim3
+
+
+@pytest.mark.parametrize("num_points", [3, 10])
+def test_umeyama_recovers_known_sim3(num_points):
+    gen = generator(15)
+    truth = random_sim3(gen, scale=2.7)
+    src = torch.randn(num_points, 3, generator=gen, dtype=F64)
+    scale, rotation, translation = umeyama(src, truth.apply(src))
+    torch.testing.assert_close(scale, truth.scale, rtol=1e-12, atol=0)
+    torch.testing.assert_close(rotation, truth.rotation, rtol=0, atol=1e-12)
+    torch.testing.assert_close(translation, truth.translation, rtol=0, atol=1e-11)
+
+
+def test_umeyama_without_scale():
+    gen = generator(16)
+    rigid = random_sim3(gen, scale=1.0)
+    src = torch.randn(10, 3, generator=gen, dtype=F64)
+    scale, rotation, translation = umeyama(src, rigid.apply(src), with_scale=False)
+    assert scale.item() == 1.0
+    torch.testing.assert_close(rotation, rigid.rotation, rtol=0, atol=1e-12)
+    torch.testing.assert_close(translation, rigid.translation, rtol=0, atol=1e-11)
+    # With a real scale in the data, the rigid fit keeps s = 1 but still finds the rotation.
+    scaled = Sim3(torch.tensor(0.4, dtype=F64), rigid.rotation, rigid.translation)
+    scale, rotation, _ = umeyama(src, scaled.apply(src), with_scale=False)
+    assert scale.item() == 1.0
+    torch.testing.assert_close(rotation, rigid.rotation, rtol=0, atol=1e-12)
+
+
+def test_umeyama_is_the_least_squares_optimum_under_noise():
+    gen = generator(17)
+    truth = random_sim3(gen, scale=0.6)
+    src = torch.randn(12, 3, generator=gen, dtype=F64)
+    dst = truth.apply(src) + 0.05 * torch.randn(12, 3, generator=gen, dtype=F64)
+    fit = Sim3(*umeyama(src, dst))
+
+    def residual(sim3: Sim3) -> float:
+        return (sim3.apply(src) - dst).square().sum().item()
+
+    assert residual(fit) <= residual(truth)
+    # Any small perturbation of the fitted parameters increases the residual (first-order optimality).
+    for k in range(7):
+        step = torch.zeros(7, dtype=F64)
+        step[k] = 1e-4
+        for sign in (1.0, -1.0):
+            rotated = so3_exp(sign * step[:3]) @ fit.rotation
+            moved = Sim3(fit.scale * (1 + sign * step[6]), rotated, fit.translation + sign * step[3:6])
+            assert residual(moved) > residual(fit)
+    assert abs(fit.scale.item() - 0.6) < 0.05
+
+
+def test_umeyama_fixes_reflections():
+    gen = generator(18)
+    src = torch.randn(10, 3, generator=gen, dtype=F64)
+    mirrored = src * torch.tensor([1.0, 1.0, -1.0], dtype=F64)  # no proper rotation maps src onto this
+    scale, rotation, translation = umeyama(src, mirrored)
+    torch.testing.assert_close(torch.det(rotation), torch.tensor(1.0, dtype=F64), rtol=0, atol=1e-12)
+    torch.testing.assert_close(rotation @ rotation.T, torch.eye(3, dtype=F64), rtol=0, atol=1e-12)
+    # Given the rotation, scale and translation must be the least-squares optimum for it:
+    # s = <dst_c, R src_c> / |src_c|^2 on centred points, t = mean(dst) - s R mean(src).
+    src_c, dst_c = src - src.mean(0), mirrored - mirrored.mean(0)
+    best_scale = (dst_c * (src_c @ rotation.T)).sum() / src_c.square().sum()
+    torch.testing.assert_close(scale, best_scale, rtol=1e-12, atol=0)
+    torch.testing.assert_close(translation, mirrored.mean(0) - scale * rotation @ src.mean(0), rtol=0, atol=1e-12)
+
+
+def test_umeyama_rejects_degenerate_input():
+    src = torch.randn(5, 3, generator=generator(19), dtype=F64)
+    with pytest.raises(ValueError, match="at least 3"):
+        umeyama(src[:2], src[:2])
+    collinear = torch.linspace(0, 1, 5, dtype=F64)[:, None] * torch.tensor([1.0, 2.0, 3.0], dtype=F64)
+    with pytest.raises(ValueError, match="collinear"):
+        umeyama(collinear, collinear)
+    with pytest.raises(ValueError, match="collinear"):
+        umeyama(torch.ones(4, 3, dtype=F64), src[:4])
+    with pytest.raises(ValueError, match="same shape"):
+        umeyama(src, src[:4])
+    nan_src = src.clone()
+    nan_src[0, 0] = float("nan")
+    with pytest.raises(ValueError, match="non-finite"):
+        umeyama(nan_src, src)
+
+
+def test_sim3_inverse_and_align_viewmats():
+    gen = generator(20)
+    sim3 = random_sim3(gen, scale=1.8)
+    viewmats = random_viewmats(5, gen)
+    points = torch.randn(7, 3, generator=gen, dtype=F64)
+    torch.testing.assert_close(sim3.inverse().apply(sim3.apply(points)), points, rtol=0, atol=1e-13)
+
+    aligned = align_viewmats(viewmats, sim3)
+    torch.testing.assert_close(camera_centers(aligned), sim3.apply(camera_centers(viewmats)), rtol=0, atol=1e-12)
+    c2w_aligned = aligned[:, :3, :3].transpose(-1, -2)
+    torch.testing.assert_close(c2w_aligned, sim3.rotation @ viewmats[:, :3, :3].transpose(-1, -2), rtol=0, atol=1e-14)
+    torch.testing.assert_close(aligned[:, 3], torch.tensor([0.0, 0, 0, 1], dtype=F64).expand(5, 4), rtol=0, atol=0)
+    torch.testing.assert_close(align_viewmats(aligned, sim3.inverse()), viewmats, rtol=0, atol=1e-12)
+    # Points keep their camera-frame coordinates: the map is a change of world frame (up to scale).
+    homogeneous = torch.cat([points, torch.ones(7, 1, dtype=F64)], dim=-1)
+    moved = torch.cat([sim3.apply(points), torch.ones(7, 1, dtype=F64)], dim=-1)
+    before = (viewmats[0] @ homogeneous.T).T[:, :3]
+    after = (aligned[0] @ moved.T).T[:, :3]
+    torch.testing.assert_close(after, sim3.scale * before, rtol=0, atol=1e-12)
+
+
+# ----------------------------------------------------------------------------------------------- pose errors
+
+
+@pytest.mark.parametrize("alignment", ["procrustes", "pairwise"])
+@pytest.mark.parametrize("num_cameras", [4, 9])
+def test_pose_errors_vanish_after_a_known_sim3(alignment, num_cameras):
+    gen = generator(21)
+    reference = random_viewmats(num_cameras, gen)
+    world_change = random_sim3(gen, scale=0.35)
+    estimated = align_viewmats(reference, world_change)  # same cameras, another world frame
+
+    result = pose_errors(estimated, reference, alignment=alignment)
+    assert result["rotation_errors_deg"].shape == (num_cameras,)
+    assert result["rotation_errors_deg"].max() < 1e-9
+    assert result["translation_errors"].max() < 1e-11
+    assert result["rotation_error_deg_mean"] < 1e-9 and result["translation_error_median"] < 1e-11
+    recovered = result["sim3"]
+    expected = world_change.inverse()
+    torch.testing.assert_close(recovered.scale, expected.scale, rtol=1e-12, atol=0)
+    torch.testing.assert_close(recovered.rotation, expected.rotation, rtol=0, atol=1e-12)
+    torch.testing.assert_close(recovered.translation, expected.translation, rtol=0, atol=1e-11)
+
+    unaligned = pose_errors(estimated, reference, alignment="none")
+    assert unaligned["translation_error_mean"] > 1.0 and unaligned["rotation_error_deg_mean"] > 1.0
+
+
+@pytest.mark.parametrize("alignment", ["procrustes", "pairwise"])
+def test_pose_errors_are_invariant_to_the_estimated_world_frame(alignment):
+    gen = generator(22)
+    reference = random_viewmats(6, gen)
+    noisy = perturb_viewmats(reference, rot_std_deg=3.0, trans_std=0.2, seed=5)
+    baseline = pose_errors(noisy, reference, alignment=alignment)
+    moved = pose_errors(align_viewmats(noisy, random_sim3(gen, scale=4.0)), reference, alignment=alignment)
+    assert baseline["rotation_error_deg_mean"] > 0.5  # the noise is really there
+    torch.testing.assert_close(moved["rotation_errors_deg"], baseline["rotation_errors_deg"], rtol=1e-9, atol=1e-9)
+    torch.testing.assert_close(moved["translation_errors"], baseline["translation_errors"], rtol=1e-9, atol=1e-11)
+
+
+def test_pose_errors_summary_statistics():
+    gen = generator(23)
+    reference = random_viewmats(5, gen)
+    noisy = perturb_viewmats(reference, rot_std_deg=5.0, trans_std=0.3, seed=1)
+    result = pose_errors(noisy, reference, alignment="none")
+    rotation, translation = result["rotation_errors_deg"], result["translation_errors"]
+    assert result["rotation_error_deg_mean"] == pytest.approx(rotation.mean().item())
+    assert result["rotation_error_deg_median"] == pytest.approx(rotation.sort().values[2].item())
+    assert result["translation_error_mean"] == pytest.approx(translation.mean().item())
+    assert result["translation_error_median"] == pytest.approx(translation.sort().values[2].item())
+    expected_translation = (camera_centers(noisy) - camera_centers(reference)).norm(dim=-1)
+    torch.testing.assert_close(translation, expected_translation, rtol=0, atol=1e-12)
+
+
+def test_pairwise_alignment_matches_brute_force_over_pairs():
+    gen = generator(24)
+    reference = random_viewmats(5, gen)
+    noisy = perturb_viewmats(reference, rot_std_deg=8.0, trans_std=0.5, seed=3)
+    result = pose_errors(noisy, reference, alignment="pairwise")
+
+    centers_est, centers_ref = camera_centers(noisy), camera_centers(reference)
+    best = math.inf
+    for i in range(5):
+        rotation = reference[i, :3, :3].T @ noisy[i, :3, :3]  # c2w_ref_i @ c2w_est_i^T
+        for j in range(5):
+            if i == j:
+                continue
+            scale = (centers_ref[i] - centers_ref[j]).norm() / (centers_est[i] - centers_est[j]).norm()
+            sim3 = Sim3(scale, rotation, centers_ref[i] - scale * rotation @ centers_est[i])
+            candidate = pose_errors(align_viewmats(noisy, sim3), reference, alignment="none")
+            best = min(best, candidate["rotation_error_deg_mean"] * candidate["translation_error_mean"])
+            # By construction camera i coincides with its reference.
+            assert candidate["rotation_errors_deg"][i] < 1e-9 and candidate["translation_errors"][i] < 1e-12
+    chosen = result["rotation_error_deg_mean"] * result["translation_error_mean"]
+    assert chosen == pytest.approx(best, rel=1e-9)
+    assert (result["translation_errors"] < 1e-12).any()  # the anchor camera
+
+
+def test_pose_errors_camera_count_requirements():
+    reference = random_viewmats(2, generator(25))
+    estimated = align_viewmats(reference, random_sim3(generator(26), scale=2.0))
+    result = pose_errors(estimated, reference, alignment="pairwise")
+    assert result["translation_errors"].max() < 1e-11 and result["rotation_errors_deg"].max() < 1e-9
+    with pytest.raises(ValueError, match="procrustes"):
+        pose_errors(estimated, reference, alignment="procrustes")
+    with pytest.raises(ValueError, match="alignment must be"):
+        pose_errors(estimated, reference, alignment="icp")
+    with pytest.raises(ValueError, match="equal shape"):
+        pose_errors(estimated[:1], reference)

@@ -1,0 +1,100 @@
+"""warpbags.data.noise: pose noise of the stated size, in the camera frame, reproducible (CPU, float64)."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+from random_poses import F64, generator, random_viewmats
+
+from warpbags.alignment import pose_errors
+from warpbags.cameras import camera_centers
+from warpbags.data.noise import perturb_viewmats
+from warpbags.lie import so3_log
+
+# ----------------------------------------------------------------------------------------------- pose noise
+
+
+@pytest.mark.parametrize("dtype, atol", [(torch.float64, 1e-9), (torch.float32, 2e-3)])
+def test_perturb_fixed_angle_gives_exact_rotation_error(dtype, atol):
+    reference = random_viewmats(50, generator(27)).to(dtype)
+    noisy = perturb_viewmats(reference, rot_std_deg=0.0, trans_std=0.0, seed=7, rot_fixed_deg=15.0)
+    assert noisy.dtype == dtype
+    result = pose_errors(noisy, reference, alignment="none")
+    torch.testing.assert_close(
+        result["rotation_errors_deg"], torch.full((50,), 15.0, dtype=dtype), rtol=0, atol=atol
+    )
+    assert result["translation_errors"].max() < 100 * torch.finfo(dtype).eps * 10  # centres stay put
+    torch.testing.assert_close(noisy[:, 3], reference[:, 3], rtol=0, atol=0)
+
+
+def test_perturb_rotation_rms_matches_sigma():
+    # The geodesic error of a camera is |angle| with angle ~ N(0, sigma^2): E[error^2] = sigma^2 and
+    # mean(error^2) / sigma^2 ~ chi^2_n / n, so RMS / sigma has standard deviation ~ 1 / sqrt(2 n) = 0.005 for
+    # n = 20000. The tolerance is 5 standard deviations.
+    num_cameras, sigma = 20000, 10.0
+    reference = torch.eye(4, dtype=F64).repeat(num_cameras, 1, 1)
+    noisy = perturb_viewmats(reference, rot_std_deg=sigma, trans_std=0.0, seed=11)
+    errors = pose_errors(noisy, reference, alignment="none")["rotation_errors_deg"]
+    rms = errors.square().mean().sqrt().item()
+    assert abs(rms / sigma - 1.0) < 5.0 / math.sqrt(2 * num_cameras)
+    # Mean |angle| = sigma sqrt(2/pi); relative std of the sample mean is sqrt(pi/2 - 1)/sqrt(n) ~ 0.0053.
+    mean_ratio = errors.mean().item() / (sigma * math.sqrt(2 / math.pi))
+    assert abs(mean_ratio - 1.0) < 5.0 * math.sqrt(math.pi / 2 - 1) / math.sqrt(num_cameras)
+    # Axes are uniform on the sphere: each component of the unit axis has mean 0 and variance 1/3.
+    axes = so3_log(noisy[:, :3, :3])
+    axes = axes / axes.norm(dim=-1, keepdim=True)
+    assert axes.mean(dim=0).abs().max() < 5.0 * math.sqrt(1 / 3) / math.sqrt(num_cameras)
+
+
+def test_perturb_translation_rms_matches_sigma():
+    # Each of the 3 n centre offsets ~ N(0, sigma^2); RMS / sigma has standard deviation ~ 1 / sqrt(6 n).
+    num_cameras, sigma = 20000, 0.3
+    reference = random_viewmats(num_cameras, generator(28))
+    noisy = perturb_viewmats(reference, rot_std_deg=0.0, trans_std=sigma, seed=12)
+    offsets = camera_centers(noisy) - camera_centers(reference)
+    rms = offsets.square().mean().sqrt().item()
+    assert abs(rms / sigma - 1.0) < 5.0 / math.sqrt(6 * num_cameras)
+    assert offsets.mean(dim=0).abs().max() < 5.0 * sigma / math.sqrt(num_cameras)
+    result = pose_errors(noisy, reference, alignment="none")
+    assert result["rotation_errors_deg"].max() < 1e-9  # rotation untouched
+    torch.testing.assert_close(result["translation_errors"], offsets.norm(dim=-1), rtol=0, atol=1e-12)
+
+
+def test_perturb_rotates_in_the_camera_frame_about_the_camera_centre():
+    gen = generator(29)
+    first, second = random_viewmats(6, gen), random_viewmats(6, gen)
+    noisy_first = perturb_viewmats(first, rot_std_deg=20.0, trans_std=0.0, seed=4)
+    noisy_second = perturb_viewmats(second, rot_std_deg=20.0, trans_std=0.0, seed=4)
+    # R' = R_noise @ R: the left factor R' R^T depends only on the seed, not on the camera's rotation.
+    noise_first = noisy_first[:, :3, :3] @ first[:, :3, :3].transpose(-1, -2)
+    noise_second = noisy_second[:, :3, :3] @ second[:, :3, :3].transpose(-1, -2)
+    torch.testing.assert_close(noise_first, noise_second, rtol=0, atol=1e-13)
+    torch.testing.assert_close(camera_centers(noisy_first), camera_centers(first), rtol=0, atol=1e-12)
+
+
+def test_perturb_is_reproducible_and_leaves_global_rng_alone():
+    reference = random_viewmats(8, generator(30))
+    rng_state = torch.get_rng_state()
+    one = perturb_viewmats(reference, rot_std_deg=5.0, trans_std=0.1, seed=123)
+    again = perturb_viewmats(reference, rot_std_deg=5.0, trans_std=0.1, seed=123)
+    other = perturb_viewmats(reference, rot_std_deg=5.0, trans_std=0.1, seed=124)
+    assert torch.equal(torch.get_rng_state(), rng_state)
+    assert torch.equal(one, again)
+    assert not torch.allclose(one, other)
+    # The centre noise for a seed does not depend on how the rotation angle is chosen.
+    fixed = perturb_viewmats(reference, rot_std_deg=0.0, trans_std=0.1, seed=123, rot_fixed_deg=15.0)
+    torch.testing.assert_close(camera_centers(fixed), camera_centers(one), rtol=0, atol=1e-12)
+    # Zero noise is the identity.
+    torch.testing.assert_close(perturb_viewmats(reference, 0.0, 0.0, seed=1), reference, rtol=0, atol=1e-12)
+
+
+def test_perturb_rejects_bad_arguments():
+    reference = random_viewmats(2, generator(31))
+    with pytest.raises(ValueError, match="not both"):
+        perturb_viewmats(reference, rot_std_deg=5.0, trans_std=0.0, seed=0, rot_fixed_deg=15.0)
+    with pytest.raises(ValueError, match=">= 0"):
+        perturb_viewmats(reference, rot_std_deg=-1.0, trans_std=0.0, seed=0)
+    with pytest.raises(ValueError, match=r"\[C, 4, 4\]"):
+        perturb_viewmats(reference[0], rot_std_deg=1.0, trans_std=0.0, seed=0)
