@@ -12,6 +12,7 @@ import math
 import torch
 
 from warpbags.configs.train import DensifyConfig
+from warpbags.errors import WarpbagsError
 from warpbags.init import mean_neighbour_distance
 
 
@@ -83,15 +84,19 @@ class DensifyStrategy:
 
     @torch.no_grad()
     def accumulate(self, iteration: int, meta: dict) -> None:
-        """Add this step's view-space positional gradient norms (needs ``meta["means2d"].grad``).
+        """Add this step's view-space positional gradient norms.
 
         Pixel gradients are scaled to NDC (x W/2, y H/2) so the threshold means what it means in 3DGS.
+
+        Raises:
+            WarpbagsError: ``meta["means2d"].grad`` is None (its gradient was not retained before backward).
         """
         if iteration >= self.config.stop:
             return
         means2d, radii = meta["means2d"], meta["radii"]  # [C,N,2], [C,N]
-        if means2d.grad is None:
-            return
+        if means2d.grad is None:  # densifying on no statistics would silently stop adding Gaussians (gsplat asserts)
+            raise WarpbagsError("densification needs the gradient of meta['means2d']: call "
+                                "meta['means2d'].retain_grad() before backward()")
         count = means2d.shape[1]
         if self.grad_sum is None or len(self.grad_sum) != count:
             self._reset_stats(count, means2d.device)
