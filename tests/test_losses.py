@@ -1,11 +1,15 @@
-"""The fused photometric loss (kernels/loss.py) against the plain torch formula it replaces."""
+"""Losses: the fused photometric loss (kernels/loss.py) against the plain torch formula it replaces; LPIPS loading."""
 
 from __future__ import annotations
+
+import sys
+import types
+import urllib.error
 
 import pytest
 import torch
 
-from warpbags.losses import photometric_loss, ssim
+from warpbags.losses import load_lpips, photometric_loss, ssim
 
 
 def torch_photometric_loss(images, targets, lambda_dssim):
@@ -70,3 +74,33 @@ def test_targets_that_need_gradients_take_the_torch_path():
     loss, _ = photometric_loss(images, targets, 0.2)
     loss.backward()
     assert targets.grad is not None and targets.grad.abs().sum() > 0
+
+
+# ------------------------------------------------------------------------------------------------ LPIPS loading
+def _lpips_package_raising(monkeypatch, error: Exception) -> None:
+    """An `lpips` package whose network constructor fails with `error`."""
+    package = types.ModuleType("lpips")
+
+    def failing_constructor(**options):
+        raise error
+
+    package.LPIPS = failing_constructor
+    monkeypatch.setitem(sys.modules, "lpips", package)
+
+
+def test_lpips_without_the_package_is_unavailable_with_the_reason(monkeypatch):
+    monkeypatch.setitem(sys.modules, "lpips", None)  # `import lpips` raises ModuleNotFoundError
+    network, reason = load_lpips()
+    assert network is None and reason.startswith("ModuleNotFoundError")
+
+
+def test_lpips_weights_that_cannot_be_downloaded_are_unavailable_with_the_reason(monkeypatch):
+    _lpips_package_raising(monkeypatch, urllib.error.URLError("no route to the weights"))
+    network, reason = load_lpips()
+    assert network is None and "URLError" in reason and "no route to the weights" in reason
+
+
+def test_a_failure_that_is_not_unavailability_propagates(monkeypatch):
+    _lpips_package_raising(monkeypatch, TypeError("LPIPS() got an unexpected keyword argument 'verbose'"))
+    with pytest.raises(TypeError, match="verbose"):
+        load_lpips()

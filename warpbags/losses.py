@@ -199,12 +199,16 @@ def depth_loss(
 
 def load_lpips() -> tuple[torch.nn.Module | None, str | None]:
     """LPIPS-VGG from the `lpips` package (GaussianObject's metric and repair loss): (network, None), or
-    (None, why it is unavailable) when the package or its weights cannot be had offline."""
+    (None, why it is unavailable) when the package or its weights cannot be had offline.
+
+    Only a missing package (ImportError) or weights that cannot be read or downloaded (OSError, which covers
+    urllib's URLError) mean "unavailable"; any other exception is a real failure and propagates.
+    """
     try:
         import lpips  # noqa: PLC0415 - optional dependency (it pulls torchvision and downloads weights)
 
         network = lpips.LPIPS(net="vgg", verbose=False)
-    except Exception as error:  # noqa: BLE001 - any failure to build it means "unavailable", with the reason
+    except (ImportError, OSError) as error:
         return None, f"{type(error).__name__}: {str(error).splitlines()[0] if str(error) else ''}"[:200]
     for parameter in network.parameters():
         parameter.requires_grad_(False)
