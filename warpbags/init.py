@@ -8,7 +8,7 @@ the silhouette by about ``f * tan(a)`` pixels, so a few pixels absorb small nois
 ``hull_missed_views`` allows more views to disagree. Over-estimating the hull is cheap (densification prunes
 transparent Gaussians; the mask loss pushes them out), under-estimating loses parts for good, so the quick
 preset dilates. If carving leaves fewer than ``min_voxels`` voxels, points are drawn at random in the
-region every camera sees (`random_points`).
+region every camera sees (`random_points`; the note says when too little of it is seen by every camera).
 """
 
 from __future__ import annotations
@@ -111,12 +111,17 @@ def point_colors(points: torch.Tensor, images: torch.Tensor, masks: torch.Tensor
 
 
 def random_points(count: int, viewmats: torch.Tensor, Ks: torch.Tensor, width: int, height: int, generator: torch.Generator,
-                  bound: float = 1.5) -> torch.Tensor:
-    """[count, 3] points uniform in the cube [-bound, bound]^3, keeping those every camera sees where possible."""
+                  bound: float = 1.5) -> tuple[torch.Tensor, int]:
+    """Points uniform in the cube [-bound, bound]^3, kept only where every camera sees them, if enough are.
+
+    Returns:
+        [count, 3] points, and how many of the 8 x `count` drawn points every camera sees: when fewer than
+        `count`, the points come from the whole cube instead.
+    """
     points = (torch.rand(count * 8, 3, generator=generator) * 2 - 1) * bound
     _, _, in_image = _project(points, viewmats.float().cpu(), Ks.float().cpu(), width, height)
     seen = points[in_image.all(0)]
-    return (seen if len(seen) >= count else points)[:count]
+    return (seen if len(seen) >= count else points)[:count], len(seen)
 
 
 def mean_neighbour_distance(points: torch.Tensor, k: int, chunk: int = 1024) -> torch.Tensor:
@@ -188,6 +193,10 @@ def hull_or_random_points(
     else:
         note = {"random": "random points", "random-fallback": "no SfM points: random points"}.get(
             method, "no masks: random points")
-    points = random_points(count, viewmats, Ks, width, height, generator)
+    points, drawn_points_seen_by_all = random_points(count, viewmats, Ks, width, height, generator)
     colors = torch.rand(len(points), 3, generator=generator)
-    return points, colors, f"{note} ({len(points)})"
+    note = f"{note} ({len(points)})"
+    if drawn_points_seen_by_all < count:
+        note += (f"; only {drawn_points_seen_by_all} of {8 * count} drawn points are seen by every camera, so they "
+                 "come from the whole cube")
+    return points, colors, note

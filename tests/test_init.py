@@ -1,0 +1,39 @@
+"""Initial points: random points say when the cameras share too little of the scene to keep only what they see."""
+
+from __future__ import annotations
+
+import torch
+from conftest import look_at
+
+from warpbags.cameras import project_points
+from warpbags.init import hull_or_random_points
+
+WIDTH = HEIGHT = 32
+KS = torch.tensor([[40.0, 0.0, 16.0], [0.0, 40.0, 16.0], [0.0, 0.0, 1.0]]).expand(2, 3, 3)
+
+
+def _random_points(viewmats: torch.Tensor) -> tuple[torch.Tensor, str]:
+    images = torch.zeros(len(viewmats), HEIGHT, WIDTH, 3)
+    points, _, note = hull_or_random_points(images, None, viewmats, KS, method="random", count=200, resolution=8,
+                                            dilation_px=0, missed_views=1, generator=torch.Generator().manual_seed(0))
+    return points, note
+
+
+def test_random_points_are_seen_by_every_camera_when_enough_are():
+    eyes = torch.tensor([[4.0, 0.0, 0.5], [0.0, 4.0, 0.5]])
+    viewmats = torch.stack([look_at(eye, torch.zeros(3)) for eye in eyes])
+    points, note = _random_points(viewmats)
+    assert note == "random points (200)"
+    pixels, depths = project_points(viewmats, KS, points)
+    assert (depths > 0).all() and ((pixels >= 0) & (pixels < WIDTH)).all()  # inside both images
+
+
+def test_random_points_say_so_when_no_region_is_seen_by_every_camera():
+    # Two cameras at the origin looking in opposite directions share nothing of the cube.
+    eyes = torch.zeros(2, 3)
+    viewmats = torch.stack([look_at(eyes[0], torch.tensor([1.0, 0.0, 0.0])),
+                            look_at(eyes[1], torch.tensor([-1.0, 0.0, 0.0]))])
+    points, note = _random_points(viewmats)
+    assert len(points) == 200
+    assert note == ("random points (200); only 0 of 1600 drawn points are seen by every camera, so they come from "
+                    "the whole cube")
