@@ -13,6 +13,7 @@ import numpy as np
 import pycolmap
 import pytest
 import torch
+from conftest import look_at
 from typer.testing import CliRunner
 from warpbags.cli.main import app
 
@@ -23,6 +24,7 @@ from warpbags.data import (
     farthest_views,
     generate_synthetic_scene,
     load_scene,
+    object_center,
     open_scene,
 )
 from warpbags.data.colmap import read_model, write_model
@@ -345,6 +347,24 @@ def test_missing_split_files_use_preset_then_farthest_point(scene_copy, caplog):
     assert not train & set(scene.splits["test"])
     assert "farthest-point" in caplog.text
     assert load_scene(scene_copy).splits == load_scene(scene_copy).splits  # deterministic
+
+
+def test_object_centre_of_forward_facing_views_falls_back_with_a_warning(caplog):
+    # Three cameras side by side, all looking down +z: their optical axes never meet.
+    viewmats = np.tile(np.eye(4), (3, 1, 1))
+    viewmats[:, 0, 3] = [1.0, 0.0, -1.0]  # centres at x = -1, 0, 1
+    Ks = np.tile(np.array([[50.0, 0.0, 16.0], [0.0, 50.0, 16.0], [0.0, 0.0, 1.0]]), (3, 1, 1))
+    points = np.array([[0.0, 0.0, 5.0], [1.0, 0.0, 6.0], [0.0, 1.0, 9.0]])
+    np.testing.assert_array_equal(object_center(viewmats, Ks, None, points), [0.0, 0.0, 6.0])
+    assert "nearly parallel" in caplog.text and "median of the 3 SfM points" in caplog.text
+    caplog.clear()
+    np.testing.assert_array_equal(object_center(viewmats, Ks), [0.0, 0.0, 0.0])
+    assert "nearly parallel" in caplog.text and "mean camera centre" in caplog.text
+    caplog.clear()
+    eyes = torch.tensor([[4.0, 0.0, 1.0], [0.0, 4.0, 1.0], [-4.0, 0.0, 1.0]], dtype=torch.float64)
+    converging = torch.stack([look_at(eye, torch.zeros(3, dtype=torch.float64)) for eye in eyes]).numpy()
+    np.testing.assert_allclose(object_center(converging, Ks, None, points), [0.0, 0.0, 0.0], atol=1e-12)
+    assert caplog.text == ""  # the rays meet: no fallback, no warning
 
 
 def test_train_views_and_noise(synthetic):

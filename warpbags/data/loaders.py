@@ -467,7 +467,8 @@ def object_center(
         viewmats: [C,4,4] world-to-camera.
         Ks: [C,3,3] intrinsics at the masks' resolution.
         masks: [C,H,W] object masks, or None.
-        points: [P,3] SfM points, the fallback (median) when the rays are near parallel (forward-facing captures).
+        points: [P,3] SfM points, the fallback (median) when the rays are near parallel (forward-facing captures);
+            without them, the mean camera centre. Either fallback is logged as a warning.
 
     Returns:
         [3] float64 object centre in the viewmats' world.
@@ -486,7 +487,13 @@ def object_center(
     system, rhs = projectors.sum(0), np.einsum("cij,cj->i", projectors, origins)
     eigenvalues = np.linalg.eigvalsh(system)
     if eigenvalues[0] < 1e-3 * eigenvalues[-1]:
-        return np.median(points, axis=0) if points is not None and len(points) else origins.mean(0)
+        if points is not None and len(points):
+            logger.warning("object centre: the views' rays through the object are nearly parallel (forward-facing "
+                           "capture?); using the median of the %d SfM points instead", len(points))
+            return np.median(points, axis=0)
+        logger.warning("object centre: the views' rays through the object are nearly parallel (forward-facing "
+                       "capture?) and there are no SfM points; using the mean camera centre instead")
+        return origins.mean(0)
     return np.linalg.solve(system, rhs)
 
 
