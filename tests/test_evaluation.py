@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import shutil
 
 import numpy as np
 import pytest
@@ -141,6 +142,29 @@ def test_eval_of_an_unfinished_run_names_the_missing_file(finished_run, tmp_path
     (partial / "config.json").write_text((finished_run / "config.json").read_text())
     result = runner.invoke(app, ["eval", str(partial)])
     assert result.exit_code == 2 and "gaussians.ply is missing" in result.output
+
+
+def _two_camera_copy(finished_run, folder):
+    """The finished run with only its first two training cameras (too few for procrustes alignment)."""
+    shutil.copytree(finished_run, folder)
+    for name in ("poses_true", "poses_init", "poses_final"):
+        np.save(folder / f"{name}.npy", np.load(finished_run / f"{name}.npy")[:2])
+    return folder
+
+
+def test_pose_accuracy_leaves_out_the_alignment_two_cameras_cannot_fit(finished_run, tmp_path):
+    run = load_run(_two_camera_copy(finished_run, tmp_path / "two"))
+    lines = []
+    report = pose_accuracy(run, log=lines.append)
+    assert list(report) == ["pairwise"] and len(report["pairwise"]["final"]["rotation_deg"]) == 2
+    assert len(lines) == 1 and "procrustes left out" in lines[0] and "at least 3" in lines[0], lines
+
+
+def test_eval_with_an_alignment_the_cameras_cannot_fit_is_one_line(finished_run, tmp_path):
+    result = runner.invoke(app, ["eval", str(_two_camera_copy(finished_run, tmp_path / "two")), "--procrustes"])
+    assert result.exit_code == 2, result.output
+    lines = result.output.strip().splitlines()
+    assert len(lines) == 1 and "cannot map the test cameras" in lines[0] and "at least 3" in lines[0], result.output
 
 
 def test_sweep_runs_every_combination_once_and_skips_finished_runs(finished_run, tmp_path):

@@ -113,13 +113,22 @@ def held_out_views(run: TrainingRun) -> Scene:
     return scene.subset(test).downscaled(config.max_image_size)
 
 
-def pose_accuracy(run: TrainingRun) -> dict:
-    """Initial and final pose errors of the training cameras under each alignment."""
+def pose_accuracy(run: TrainingRun, log=print) -> dict:
+    """Initial and final pose errors of the training cameras under each alignment the cameras allow.
+
+    An alignment that cannot be fitted (procrustes with fewer than 3 or collinear camera centres, pairwise with
+    one camera) is left out of the report, with a logged line saying why.
+    """
     report = {}
     for alignment in ALIGNMENTS:
+        try:
+            errors_by_stage = {stage: pose_errors(poses, run.poses_true, alignment=alignment)
+                               for stage, poses in (("initial", run.poses_init), ("final", run.poses_final))}
+        except ValueError as error:
+            log(f"pose errors: {alignment} left out: {error}")
+            continue
         entry = {}
-        for stage, poses in (("initial", run.poses_init), ("final", run.poses_final)):
-            errors = pose_errors(poses, run.poses_true, alignment=alignment)
+        for stage, errors in errors_by_stage.items():
             entry[stage] = {
                 "rotation_deg": errors["rotation_errors_deg"].tolist(),
                 "translation": errors["translation_errors"].tolist(),
@@ -209,8 +218,11 @@ def evaluate_run(path: str | Path, *, alignment: str = "procrustes", refine_iter
         raise WarpbagsError(f"--refine-iters must be >= 0, got {refine_iters}")
     run = load_run(path)
     test = held_out_views(run)
-    poses = pose_accuracy(run)
-    sim3 = pose_errors(run.poses_final, run.poses_true, alignment=alignment)["sim3"]
+    try:
+        sim3 = pose_errors(run.poses_final, run.poses_true, alignment=alignment)["sim3"]
+    except ValueError as error:
+        raise WarpbagsError(f"{run.path}: cannot map the test cameras into the model's frame: {error}") from None
+    poses = pose_accuracy(run, log)
     test_viewmats = align_viewmats(test.viewmats.double(), sim3.inverse()).float()
 
     masks = test.masks[..., None] if test.masks is not None else torch.ones_like(test.images[..., :1])
