@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import json
 import shutil
+import sys
+import types
 
 import numpy as np
 import pytest
@@ -15,6 +17,7 @@ from warpbags.cli.main import app
 from warpbags.data import SyntheticOptions, ensure_synthetic_scene
 from warpbags.evaluation import LpipsMetric, image_metrics, load_run, pose_accuracy
 from warpbags.gaussians import read_ply, write_ply
+from warpbags.losses import load_lpips
 
 runner = CliRunner()
 
@@ -39,14 +42,19 @@ def test_eval_writes_metrics_and_pictures(finished_run):
         for stage in ("initial", "final"):
             entry = report["poses"][name][stage]
             assert len(entry["rotation_deg"]) == 4 and entry["rotation_deg_mean"] >= 0
-    # camera 0 is the noise-free gauge; the other three carry the injected 4 deg noise
+    # free gauge: all four cameras carry the injected noise (std 4 deg, so a mean |angle| of about 3.2 deg)
     initial = report["poses"]["procrustes"]["initial"]["rotation_deg"]
     assert 0.5 < float(np.mean(initial)) < 8.0
     for key in ("images", "images_after_test_pose_refinement"):
         mean = report[key]["mean"]
         assert 5.0 < mean["psnr"] < 60.0 and 0.0 < mean["ssim"] <= 1.0
         assert len(report[key]["per_view"]) == report["test_views"]
-    assert report["lpips_unavailable"] is None or mean["lpips"] is None  # never a made-up number
+    # LPIPS is a number exactly when its network loads here (offline: never, and never a made-up number).
+    _, unavailable = load_lpips()
+    assert report["lpips_unavailable"] == unavailable
+    for key in ("images", "images_after_test_pose_refinement"):
+        values = [report[key]["mean"]["lpips"]] + [view["lpips"] for view in report[key]["per_view"]]
+        assert all(value is None for value in values) if unavailable else all(value >= 0 for value in values)
     pictures = sorted((finished_run / "eval").glob("*.png"))
     assert len(pictures) == report["test_views"]
 
@@ -71,6 +79,39 @@ def test_image_metrics_match_scikit_image():
             structural_similarity(t, i, channel_axis=-1, data_range=1.0))
     mse = ((image - target) ** 2).mean(dim=(1, 2, 3))
     assert metrics["mean"]["psnr"] == pytest.approx(float((-10 * torch.log10(mse)).mean()), rel=1e-5)
+
+
+class MeanAbsoluteDifference(torch.nn.Module):
+    """Stands in for LPIPS-VGG: one distance per image pair, [B, 1, 1, 1], as `lpips.LPIPS` returns."""
+
+    def forward(self, images, targets):
+        return (images - targets).abs().mean(dim=(1, 2, 3), keepdim=True)
+
+
+def test_image_metrics_report_the_lpips_network_distance(monkeypatch):
+    package = types.ModuleType("lpips")
+    package.LPIPS = lambda **options: MeanAbsoluteDifference()
+    monkeypatch.setitem(sys.modules, "lpips", package)
+    g = torch.Generator().manual_seed(1)
+    target = torch.rand(2, 12, 10, 3, generator=g)
+    image = (target + 0.1 * torch.randn(2, 12, 10, 3, generator=g)).clamp(0, 1)
+    lpips_metric = LpipsMetric()
+    assert lpips_metric.unavailable is None
+    metrics = image_metrics(image, target, lpips_metric)
+    # LPIPS takes images in [-1, 1]: the distance of (2x - 1) images is twice the [0, 1] one.
+    expected = 2 * (image.double() - target.double()).abs().mean(dim=(1, 2, 3))
+    for view in range(2):
+        assert metrics["per_view"][view]["lpips"] == pytest.approx(expected[view].item(), rel=1e-5)
+    assert metrics["mean"]["lpips"] == pytest.approx(expected.mean().item(), rel=1e-5)
+
+
+def test_image_metrics_without_lpips_report_none(monkeypatch):
+    monkeypatch.setitem(sys.modules, "lpips", None)
+    lpips_metric = LpipsMetric()
+    assert lpips_metric.unavailable.startswith("ModuleNotFoundError")
+    target = torch.rand(2, 8, 8, 3, generator=torch.Generator().manual_seed(2))
+    metrics = image_metrics(target * 0.9, target, lpips_metric)
+    assert metrics["mean"]["lpips"] is None and all(view["lpips"] is None for view in metrics["per_view"])
 
 
 def test_ply_round_trip(finished_run, tmp_path):
