@@ -84,17 +84,18 @@ def project_reference(means, quats, scales, opacities, colors, viewmat, K, width
             z[order], valid[order])
 
 
-def composite_reference(projected, pixels):
+def composite_reference(projected, pixels, early_termination=True):
     """Front-to-back compositing of every Gaussian at every pixel centre [P, 2]: (rgb [P,3], depth [P,1],
-    alpha [P,1]), no background."""
+    alpha [P,1]), no background. `early_termination=False` composites every Gaussian (to show what stopping
+    changes)."""
     mean2d, conic_a, conic_b, conic_c, opacity, rgb, z, valid = projected
     d = pixels[:, None, :] - mean2d[None]  # [P, N, 2]
     sigma = 0.5 * (conic_a * d[..., 0] ** 2 + conic_c * d[..., 1] ** 2) + conic_b * d[..., 0] * d[..., 1]
     alpha = torch.clamp(opacity * torch.exp(-sigma), max=0.99)
     keep = valid & (sigma >= 0) & (alpha >= 1 / 255)
     alpha = torch.where(keep, alpha, torch.zeros_like(alpha))
-    # Compositing stops before a Gaussian that would bring T to 1e-4 or below (T only decreases).
-    alpha = torch.where(torch.cumprod(1 - alpha, dim=1) > 1e-4, alpha, torch.zeros_like(alpha))
+    if early_termination:  # compositing stops before a Gaussian that would bring T to 1e-4 or below
+        alpha = torch.where(torch.cumprod(1 - alpha, dim=1) > 1e-4, alpha, torch.zeros_like(alpha))
     t_before = torch.cumprod(torch.cat([torch.ones_like(alpha[:, :1]), 1 - alpha[:, :-1]], 1), dim=1)
     weights = alpha * t_before  # [P, N]
     return weights @ rgb, (weights @ z)[:, None], weights.sum(1, keepdim=True)
@@ -107,7 +108,8 @@ def pixel_centers(width, height, dtype=torch.float64, device="cpu"):
 
 
 def render_reference(means, quats, scales, opacities, colors, viewmats, Ks, width, height, *, sh_degree=None,
-                     backgrounds=None, pose_deltas=None, near_plane=0.01, far_plane=1e10, eps2d=0.3):
+                     backgrounds=None, pose_deltas=None, near_plane=0.01, far_plane=1e10, eps2d=0.3,
+                     early_termination=True):
     """Same contract as warpbags.rasterization (render_mode "RGB+D"); returns (rgb [C,H,W,3], depth [C,H,W,1],
     alpha [C,H,W,1])."""
     if pose_deltas is not None:
@@ -118,7 +120,7 @@ def render_reference(means, quats, scales, opacities, colors, viewmats, Ks, widt
         projected = project_reference(means, quats, scales, opacities, colors, viewmats[cam], Ks[cam], width, height,
                                       sh_degree=sh_degree, cam=cam, near_plane=near_plane, far_plane=far_plane,
                                       eps2d=eps2d)
-        image, depth, alpha = composite_reference(projected, pixels)
+        image, depth, alpha = composite_reference(projected, pixels, early_termination)
         if backgrounds is not None:
             image = image + (1 - alpha) * backgrounds[cam]
         rgbs.append(image.reshape(height, width, 3))
