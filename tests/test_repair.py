@@ -13,7 +13,8 @@ from warpbags.cli.main import app
 from warpbags.configs.train import RepairConfig, load_preset
 from warpbags.data import SyntheticOptions, ensure_synthetic_scene, load_scene
 from warpbags.errors import WarpbagsError
-from warpbags.evaluation import evaluate_run
+from warpbags.evaluation import evaluate_run, held_out_views, load_run
+from warpbags.gaussians import render_gaussians, sh_degree_of
 from warpbags.losses import gaussian_blur
 from warpbags.repair import RepairPairs, UNetRepairer, make_repairer
 from warpbags.repair.pairs import LEAVE_ONE_OUT, NOISE, NOISY_PARAMETERS, NoiseStatistics, perturbed_gaussians
@@ -157,15 +158,26 @@ def test_repair_stage_runs_end_to_end_and_writes_its_samples(scene_dir, tmp_path
     assert pairs.corrupted.shape == pairs.targets.shape == (16, 96, 96, 3)
     # A leave-one-out render of a view is worse than the coarse model's render of it, which saw the view.
     loo = [i for i, kind in enumerate(pairs.kinds) if kind == LEAVE_ONE_OUT]
-    assert (pairs.corrupted[loo] - pairs.targets[loo]).abs().mean() > 0.01
+    views = [pairs.views[i] for i in loo]
+    coarse = load_run(tmp_path / "coarse")
+    coarse_renders, _, _ = render_gaussians(coarse.params, coarse.poses_final[views].float(), trainer.Ks[views],
+                                            trainer.scene.width, trainer.scene.height,
+                                            sh_degree=sh_degree_of(coarse.params), backgrounds=torch.ones(len(views), 3))
+    loo_errors = (pairs.corrupted[loo] - pairs.targets[loo]).abs().mean(dim=(1, 2, 3))
+    coarse_errors = (coarse_renders.clamp(0, 1) - pairs.targets[loo]).abs().mean(dim=(1, 2, 3))
+    assert (loo_errors > coarse_errors).all(), (loo_errors, coarse_errors)
     assert (tmp_path / "repair" / "samples" / "pairs.png").is_file()
     pseudo_samples = sorted((tmp_path / "repair" / "samples").glob("pseudo_*.png"))
     assert [p.name for p in pseudo_samples] == ["pseudo_000035.png", "pseudo_000040.png"]  # refreshes, newest 2 kept
 
-    for folder in (tmp_path / "coarse", tmp_path):  # both results evaluate as runs
+    for folder in (tmp_path / "coarse", tmp_path):  # both results evaluate as runs, and show the object
         assert (folder / "gaussians.ply").is_file() and (folder / "poses_final.npy").is_file()
         report = evaluate_run(folder, refine_iters=0, log=lambda message: None)
-        assert np.isfinite(report["images"]["mean"]["psnr"])
+        test = held_out_views(load_run(folder))
+        masks = test.masks[..., None]
+        blank_psnr = (-10 * torch.log10((1 - (test.images * masks + 1 - masks)).square().mean(dim=(1, 2, 3)))).mean()
+        assert len(report["images"]["per_view"]) == report["test_views"] == len(test.image_names)
+        assert report["images"]["mean"]["psnr"] > blank_psnr.item() + 1.0  # better than a blank white render
     coarse_poses, final_poses = np.load(tmp_path / "coarse" / "poses_final.npy"), np.load(tmp_path / "poses_final.npy")
     assert not np.allclose(coarse_poses, final_poses)  # the poses kept optimizing through the repair stage
 
