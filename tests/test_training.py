@@ -191,9 +191,6 @@ def test_nan_is_caught_and_last_checkpoint_kept(scene_dir, tmp_path):
     assert torch.load(good, weights_only=False)["iteration"] == 10
 
 
-@pytest.mark.xfail(strict=True, raises=ValueError,
-                   reason="Trainer.pyramid_level() is -1 once every coarse iteration is done without a repair stage, "
-                          "so loading the final checkpoint fails with 'negative shift count'")
 def test_resuming_a_finished_run_trains_nothing(scene_dir, tmp_path):
     finished = make_trainer(scene_dir, tmp_path, iters=4)
     finished.write_run_files()

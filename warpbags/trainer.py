@@ -149,7 +149,8 @@ class Trainer:
         if self.in_repair:
             return 0
         rounds = math.ceil(self.config.iters / self.round_length)
-        return min(self.config.pyramid_levels - 1, rounds - 1 - self.iteration // self.round_length)
+        current = min(self.iteration // self.round_length, rounds - 1)  # a finished run stays in its last round
+        return min(self.config.pyramid_levels - 1, rounds - 1 - current)
 
     def _starting_poses(self) -> tuple[torch.Tensor, torch.Tensor]:
         """The poses the optimization starts from and the object centre (world) the cameras agree on.
