@@ -9,8 +9,15 @@ The backward is written by hand and walks the same list back to front, recoverin
 Warp's automatic adjoint of this dynamic loop is silently wrong (dynamic loops are not replayed), so neither
 kernel is differentiated by Warp.
 
-Pixels are visited tile-major (all pixels of a tile, then the next tile) so a launch over a range of tiles touches
-one Gaussian list at a time; `first_pixel` offsets the launch so host threads can take disjoint tile ranges.
+One thread composites a block of block_w x block_h pixels of one tile (`lanes` = block_w * block_h, a kernel built
+per lane count): it reads each Gaussian of the tile's list once for all its pixels, and the backward sums the
+block's gradients of a Gaussian before adding them to the buffers once. Each pixel keeps its own transmittance,
+colour, end of range and termination, with the same arithmetic as one pixel per thread, so the image is the same
+bit for bit and the gradients differ only by float rounding of the per-block sums. CUDA runs one pixel per thread
+(lanes = 1, gsplat's layout); the CPU a small block (see warpbags/wrapper.py).
+
+Blocks are visited tile-major (all blocks of a tile, then the next tile) so a launch over a range of tiles touches
+one Gaussian list at a time; `first_block` offsets the launch so host threads can take disjoint tile ranges.
 Gradient buffers are written with atomic adds: on CUDA one buffer, on CPU one private buffer per host thread
 (CPU atomics are plain adds).
 """
@@ -23,25 +30,6 @@ ALPHA_THRESHOLD = 1.0 / 255.0
 SIGMA_CUTOFF = 5.545177444479562  # ln(255)
 MAX_ALPHA = 0.99
 TRANSMITTANCE_MIN = 1.0e-4
-
-
-@wp.func
-def locate_pixel(index: int, width: int, height: int, tile_size: int, tiles_x: int, tiles_y: int):
-    """Tile-major pixel index -> (camera, global tile, x, y, flat output index or -1 outside the image)."""
-    pixels_per_tile = tile_size * tile_size
-    tiles_per_cam = tiles_x * tiles_y
-    tile = index / pixels_per_tile
-    local = index - tile * pixels_per_tile
-    cam = tile / tiles_per_cam
-    tile_in_cam = tile - cam * tiles_per_cam
-    ty = tile_in_cam / tiles_x
-    tx = tile_in_cam - ty * tiles_x
-    x = tx * tile_size + local % tile_size
-    y = ty * tile_size + local / tile_size
-    out = -1
-    if x < width and y < height:
-        out = (cam * height + y) * width + x
-    return cam, tile, x, y, out
 
 
 @wp.func
@@ -73,146 +61,294 @@ def splat_alpha(opacity: Any, sigma: Any):
     return alpha, falloff
 
 
-@wp.kernel(enable_backward=False)
-def rasterize_forward_kernel(
-    means2d: wp.array(dtype=Any),
-    conics: wp.array(dtype=Any),
-    colors: wp.array(dtype=Any),
-    opacities: wp.array(dtype=Any),
-    depths: wp.array(dtype=Any),
-    tile_offsets: wp.array(dtype=wp.int32),
-    isect_ids: wp.array(dtype=wp.int32),
-    num_gaussians: int,
-    width: int,
-    height: int,
-    tile_size: int,
-    tiles_x: int,
-    tiles_y: int,
-    first_pixel: int,
-    out_colors: wp.array(dtype=Any),
-    out_depths: wp.array(dtype=Any),
-    out_alphas: wp.array(dtype=Any),
-    final_transmittance: wp.array(dtype=Any),
-    isect_end: wp.array(dtype=wp.int32),
-):
-    cam, tile, x, y, pix = locate_pixel(first_pixel + wp.tid(), width, height, tile_size, tiles_x, tiles_y)
-    if pix < 0:
-        return
-    # isect ids are flat (camera, Gaussian) indices and opacities per Gaussian: one subtraction per visit instead
-    # of an integer division
-    first_gaussian = cam * num_gaussians
-    px = out_depths.dtype(x) + out_depths.dtype(0.5)
-    py = out_depths.dtype(y) + out_depths.dtype(0.5)
-    start = tile_offsets[tile]
-    end = tile_offsets[tile + 1]
-
-    transmittance = out_depths.dtype(1.0)
-    color = wp.vector(out_depths.dtype(0.0), out_depths.dtype(0.0), out_depths.dtype(0.0))
-    depth = out_depths.dtype(0.0)
-    last = start
-    for i in range(start, end):
-        g = isect_ids[i]
-        sigma, dx, dy = gaussian_falloff(means2d[g], conics[g], px, py)
-        if out_of_reach(sigma):
-            continue
-        alpha, falloff = splat_alpha(opacities[g - first_gaussian], sigma)
-        if alpha == out_depths.dtype(0.0):
-            continue
-        next_transmittance = transmittance * (out_depths.dtype(1.0) - alpha)
-        if next_transmittance <= out_depths.dtype(TRANSMITTANCE_MIN):
-            break
-        weight = alpha * transmittance
-        color = color + weight * colors[g]
-        depth = depth + weight * depths[g]
-        transmittance = next_transmittance
-        last = i + 1
-
-    out_colors[pix] = color
-    out_depths[pix] = depth
-    out_alphas[pix] = out_depths.dtype(1.0) - transmittance
-    final_transmittance[pix] = transmittance
-    isect_end[pix] = last
+@wp.func
+def locate_block(index: int, tile_size: int, tiles_x: int, tiles_y: int, block_w: int, block_h: int):
+    """Tile-major block index -> (camera, global tile, x, y of the block's top-left pixel). A tile's blocks of
+    block_w x block_h pixels (both dividing tile_size) are numbered row-major within it."""
+    blocks_x = tile_size / block_w
+    blocks_per_tile = blocks_x * (tile_size / block_h)
+    tiles_per_cam = tiles_x * tiles_y
+    tile = index / blocks_per_tile
+    local = index - tile * blocks_per_tile
+    cam = tile / tiles_per_cam
+    tile_in_cam = tile - cam * tiles_per_cam
+    ty = tile_in_cam / tiles_x
+    tx = tile_in_cam - ty * tiles_x
+    by = local / blocks_x
+    x = tx * tile_size + (local - by * blocks_x) * block_w
+    y = ty * tile_size + by * block_h
+    return cam, tile, x, y
 
 
-@wp.kernel(enable_backward=False)
-def rasterize_backward_kernel(
-    means2d: wp.array(dtype=Any),
-    conics: wp.array(dtype=Any),
-    colors: wp.array(dtype=Any),
-    opacities: wp.array(dtype=Any),
-    depths: wp.array(dtype=Any),
-    tile_offsets: wp.array(dtype=wp.int32),
-    isect_ids: wp.array(dtype=wp.int32),
-    num_gaussians: int,
-    width: int,
-    height: int,
-    tile_size: int,
-    tiles_x: int,
-    tiles_y: int,
-    first_pixel: int,
-    final_transmittance: wp.array(dtype=Any),
-    isect_end: wp.array(dtype=wp.int32),
-    v_out_colors: wp.array(dtype=Any),
-    v_out_depths: wp.array(dtype=Any),
-    v_out_alphas: wp.array(dtype=Any),
-    v_means2d: wp.array(dtype=Any),
-    v_conics: wp.array(dtype=Any),
-    v_colors: wp.array(dtype=Any),
-    v_opacities: wp.array(dtype=Any),
-    v_depths: wp.array(dtype=Any),
-):
-    cam, tile, x, y, pix = locate_pixel(first_pixel + wp.tid(), width, height, tile_size, tiles_x, tiles_y)
-    if pix < 0:
-        return
-    first_gaussian = cam * num_gaussians
-    px = v_out_depths.dtype(x) + v_out_depths.dtype(0.5)
-    py = v_out_depths.dtype(y) + v_out_depths.dtype(0.5)
-    start = tile_offsets[tile]
+def _forward_kernel(lanes: int):
+    """The forward kernel for blocks of `lanes` pixels per thread (block_w * block_h == lanes)."""
 
-    t_final = final_transmittance[pix]
-    v_color = v_out_colors[pix]
-    v_depth = v_out_depths[pix]
-    v_alpha_out = v_out_alphas[pix]
+    @wp.kernel(enable_backward=False)
+    def rasterize_forward_kernel(
+        means2d: wp.array(dtype=Any),
+        conics: wp.array(dtype=Any),
+        colors: wp.array(dtype=Any),
+        opacities: wp.array(dtype=Any),
+        depths: wp.array(dtype=Any),
+        tile_offsets: wp.array(dtype=wp.int32),
+        isect_ids: wp.array(dtype=wp.int32),
+        num_gaussians: int,
+        width: int,
+        height: int,
+        tile_size: int,
+        tiles_x: int,
+        tiles_y: int,
+        block_w: int,
+        block_h: int,
+        first_block: int,
+        out_colors: wp.array(dtype=Any),
+        out_depths: wp.array(dtype=Any),
+        out_alphas: wp.array(dtype=Any),
+        final_transmittance: wp.array(dtype=Any),
+        isect_end: wp.array(dtype=wp.int32),
+    ):
+        cam, tile, x0, y0 = locate_block(first_block + wp.tid(), tile_size, tiles_x, tiles_y, block_w, block_h)
+        zero = out_depths.dtype(0.0)
+        one = out_depths.dtype(1.0)
+        # per-lane state: pixel centre, output index, transmittance, colour, depth, end of the contributing range,
+        # and whether the lane still composites (inside the image, not terminated)
+        px = wp.vector(zero, length=wp.static(lanes))
+        py = wp.vector(zero, length=wp.static(lanes))
+        pix = wp.vector(wp.int32(-1), length=wp.static(lanes))
+        live = wp.vector(wp.int32(0), length=wp.static(lanes))
+        transmittance = wp.vector(one, length=wp.static(lanes))
+        red = wp.vector(zero, length=wp.static(lanes))
+        green = wp.vector(zero, length=wp.static(lanes))
+        blue = wp.vector(zero, length=wp.static(lanes))
+        depth = wp.vector(zero, length=wp.static(lanes))
+        sigma = wp.vector(zero, length=wp.static(lanes))
+        start = tile_offsets[tile]
+        end = tile_offsets[tile + 1]
+        last = wp.vector(start, length=wp.static(lanes))
+        remaining = int(0)
+        for k in range(wp.static(lanes)):
+            x = x0 + k % block_w
+            y = y0 + k / block_w
+            px[k] = out_depths.dtype(x) + out_depths.dtype(0.5)
+            py[k] = out_depths.dtype(y) + out_depths.dtype(0.5)
+            if x < width and y < height:
+                pix[k] = (cam * height + y) * width + x
+                live[k] = 1
+                remaining += 1
+        if remaining == 0:
+            return
+        # isect ids are flat (camera, Gaussian) indices and opacities per Gaussian: one subtraction per visit
+        first_gaussian = cam * num_gaussians
 
-    transmittance = t_final
-    color_behind = wp.vector(v_out_depths.dtype(0.0), v_out_depths.dtype(0.0), v_out_depths.dtype(0.0))  # sum of c_j alpha_j T_j over the Gaussians behind the current one
-    depth_behind = v_out_depths.dtype(0.0)
-    i = isect_end[pix]
-    while i > start:
-        i -= 1
-        g = isect_ids[i]
-        sigma, dx, dy = gaussian_falloff(means2d[g], conics[g], px, py)
-        if out_of_reach(sigma):
-            continue
-        opacity = opacities[g - first_gaussian]
-        alpha, falloff = splat_alpha(opacity, sigma)
-        if alpha == v_out_depths.dtype(0.0):
-            continue
-        raw_alpha = opacity * falloff
-        one_minus_alpha_inv = v_out_depths.dtype(1.0) / (v_out_depths.dtype(1.0) - alpha)
-        transmittance = transmittance * one_minus_alpha_inv
-        weight = alpha * transmittance
-        c = colors[g]
-        z = depths[g]
-        wp.atomic_add(v_colors, g, weight * v_color)
-        wp.atomic_add(v_depths, g, weight * v_depth)
+        for i in range(start, end):
+            g = isect_ids[i]
+            mean = means2d[g]
+            conic = conics[g]
+            # one read of the Gaussian's geometry for every lane; the rest of it only if some lane is in reach
+            reached = int(0)
+            for k in range(wp.static(lanes)):
+                s, dx, dy = gaussian_falloff(mean, conic, px[k], py[k])
+                sigma[k] = s
+                if live[k] != 0 and not out_of_reach(s):
+                    reached = 1
+            if reached == 0:
+                continue
+            opacity = opacities[g - first_gaussian]
+            c = colors[g]
+            z = depths[g]
+            for k in range(wp.static(lanes)):
+                if live[k] != 0 and not out_of_reach(sigma[k]):
+                    alpha, falloff = splat_alpha(opacity, sigma[k])
+                    if alpha != zero:
+                        next_transmittance = transmittance[k] * (one - alpha)
+                        if next_transmittance <= out_depths.dtype(TRANSMITTANCE_MIN):
+                            live[k] = 0  # this pixel stops before this Gaussian
+                            remaining -= 1
+                        else:
+                            weight = alpha * transmittance[k]
+                            red[k] = red[k] + weight * c[0]
+                            green[k] = green[k] + weight * c[1]
+                            blue[k] = blue[k] + weight * c[2]
+                            depth[k] = depth[k] + weight * z
+                            transmittance[k] = next_transmittance
+                            last[k] = i + 1
+            if remaining == 0:
+                break
 
-        v_alpha = (
-            wp.dot(c * transmittance - color_behind * one_minus_alpha_inv, v_color)
-            + (z * transmittance - depth_behind * one_minus_alpha_inv) * v_depth
-            + t_final * one_minus_alpha_inv * v_alpha_out
-        )
-        color_behind = color_behind + weight * c
-        depth_behind = depth_behind + weight * z
+        for k in range(wp.static(lanes)):
+            if pix[k] >= 0:
+                out_colors[pix[k]] = wp.vector(red[k], green[k], blue[k])
+                out_depths[pix[k]] = depth[k]
+                out_alphas[pix[k]] = one - transmittance[k]
+                final_transmittance[pix[k]] = transmittance[k]
+                isect_end[pix[k]] = last[k]
 
-        if raw_alpha <= v_out_depths.dtype(MAX_ALPHA):  # the 0.99 clamp has zero gradient
-            wp.atomic_add(v_opacities, g - first_gaussian, falloff * v_alpha)
-            v_sigma = -raw_alpha * v_alpha
-            half = v_out_depths.dtype(0.5)
-            wp.atomic_add(v_conics, g, wp.vector(half * dx * dx * v_sigma, dx * dy * v_sigma, half * dy * dy * v_sigma))
-            # d = pixel - mean, so d(sigma)/d(mean) = -(conic d)
-            wp.atomic_add(
-                v_means2d,
-                g,
-                wp.vector(-(conics[g][0] * dx + conics[g][1] * dy) * v_sigma, -(conics[g][1] * dx + conics[g][2] * dy) * v_sigma),
-            )
+    return rasterize_forward_kernel
+
+
+def _backward_kernel(lanes: int):
+    """The backward kernel for blocks of `lanes` pixels per thread: the lanes' gradients of one Gaussian are
+    summed in registers and added to the buffers once."""
+
+    @wp.kernel(enable_backward=False)
+    def rasterize_backward_kernel(
+        means2d: wp.array(dtype=Any),
+        conics: wp.array(dtype=Any),
+        colors: wp.array(dtype=Any),
+        opacities: wp.array(dtype=Any),
+        depths: wp.array(dtype=Any),
+        tile_offsets: wp.array(dtype=wp.int32),
+        isect_ids: wp.array(dtype=wp.int32),
+        num_gaussians: int,
+        width: int,
+        height: int,
+        tile_size: int,
+        tiles_x: int,
+        tiles_y: int,
+        block_w: int,
+        block_h: int,
+        first_block: int,
+        final_transmittance: wp.array(dtype=Any),
+        isect_end: wp.array(dtype=wp.int32),
+        v_out_colors: wp.array(dtype=Any),
+        v_out_depths: wp.array(dtype=Any),
+        v_out_alphas: wp.array(dtype=Any),
+        v_means2d: wp.array(dtype=Any),
+        v_conics: wp.array(dtype=Any),
+        v_colors: wp.array(dtype=Any),
+        v_opacities: wp.array(dtype=Any),
+        v_depths: wp.array(dtype=Any),
+    ):
+        cam, tile, x0, y0 = locate_block(first_block + wp.tid(), tile_size, tiles_x, tiles_y, block_w, block_h)
+        zero = v_out_depths.dtype(0.0)
+        one = v_out_depths.dtype(1.0)
+        half = v_out_depths.dtype(0.5)
+        px = wp.vector(zero, length=wp.static(lanes))
+        py = wp.vector(zero, length=wp.static(lanes))
+        t_final = wp.vector(one, length=wp.static(lanes))
+        v_red = wp.vector(zero, length=wp.static(lanes))
+        v_green = wp.vector(zero, length=wp.static(lanes))
+        v_blue = wp.vector(zero, length=wp.static(lanes))
+        v_depth = wp.vector(zero, length=wp.static(lanes))
+        v_alpha_out = wp.vector(zero, length=wp.static(lanes))
+        last = wp.vector(wp.int32(0), length=wp.static(lanes))  # lane k composited list entries [start, last[k])
+        transmittance = wp.vector(one, length=wp.static(lanes))
+        # sums of c_j alpha_j T_j and z_j alpha_j T_j over the Gaussians behind the current one
+        red_behind = wp.vector(zero, length=wp.static(lanes))
+        green_behind = wp.vector(zero, length=wp.static(lanes))
+        blue_behind = wp.vector(zero, length=wp.static(lanes))
+        depth_behind = wp.vector(zero, length=wp.static(lanes))
+        sigma = wp.vector(zero, length=wp.static(lanes))
+        i = int(0)
+        for k in range(wp.static(lanes)):
+            x = x0 + k % block_w
+            y = y0 + k / block_w
+            px[k] = v_out_depths.dtype(x) + v_out_depths.dtype(0.5)
+            py[k] = v_out_depths.dtype(y) + v_out_depths.dtype(0.5)
+            if x < width and y < height:
+                pix = (cam * height + y) * width + x
+                t_final[k] = final_transmittance[pix]
+                transmittance[k] = t_final[k]
+                v_color = v_out_colors[pix]
+                v_red[k] = v_color[0]
+                v_green[k] = v_color[1]
+                v_blue[k] = v_color[2]
+                v_depth[k] = v_out_depths[pix]
+                v_alpha_out[k] = v_out_alphas[pix]
+                last[k] = isect_end[pix]
+                i = wp.max(i, last[k])
+        first_gaussian = cam * num_gaussians
+        start = tile_offsets[tile]
+
+        while i > start:
+            i -= 1
+            g = isect_ids[i]
+            mean = means2d[g]
+            conic = conics[g]
+            reached = int(0)
+            for k in range(wp.static(lanes)):
+                s, dx, dy = gaussian_falloff(mean, conic, px[k], py[k])
+                sigma[k] = s
+                if i < last[k] and not out_of_reach(s):
+                    reached = 1
+            if reached == 0:
+                continue
+            opacity = opacities[g - first_gaussian]
+            c = colors[g]
+            z = depths[g]
+            v_c = wp.vector(zero, zero, zero)
+            v_z = zero
+            v_o = zero
+            v_conic = wp.vector(zero, zero, zero)
+            v_mean = wp.vector(zero, zero)
+            colored = int(0)
+            shaped = int(0)
+            for k in range(wp.static(lanes)):
+                if i < last[k] and not out_of_reach(sigma[k]):
+                    alpha, falloff = splat_alpha(opacity, sigma[k])
+                    if alpha != zero:
+                        raw_alpha = opacity * falloff
+                        one_minus_alpha_inv = one / (one - alpha)
+                        transmittance[k] = transmittance[k] * one_minus_alpha_inv
+                        weight = alpha * transmittance[k]
+                        v_color = wp.vector(v_red[k], v_green[k], v_blue[k])
+                        v_c = v_c + weight * v_color
+                        v_z = v_z + weight * v_depth[k]
+                        color_behind = wp.vector(red_behind[k], green_behind[k], blue_behind[k])
+                        v_alpha = (
+                            wp.dot(c * transmittance[k] - color_behind * one_minus_alpha_inv, v_color)
+                            + (z * transmittance[k] - depth_behind[k] * one_minus_alpha_inv) * v_depth[k]
+                            + t_final[k] * one_minus_alpha_inv * v_alpha_out[k]
+                        )
+                        red_behind[k] = red_behind[k] + weight * c[0]
+                        green_behind[k] = green_behind[k] + weight * c[1]
+                        blue_behind[k] = blue_behind[k] + weight * c[2]
+                        depth_behind[k] = depth_behind[k] + weight * z
+                        colored = 1
+                        if raw_alpha <= v_out_depths.dtype(MAX_ALPHA):  # the 0.99 clamp has zero gradient
+                            v_o = v_o + falloff * v_alpha
+                            v_sigma = -raw_alpha * v_alpha
+                            dx = px[k] - mean[0]
+                            dy = py[k] - mean[1]
+                            v_conic = v_conic + wp.vector(half * dx * dx * v_sigma, dx * dy * v_sigma,
+                                                          half * dy * dy * v_sigma)
+                            # d = pixel - mean, so d(sigma)/d(mean) = -(conic d)
+                            v_mean = v_mean + wp.vector(-(conic[0] * dx + conic[1] * dy) * v_sigma,
+                                                        -(conic[1] * dx + conic[2] * dy) * v_sigma)
+                            shaped = 1
+            if colored != 0:
+                wp.atomic_add(v_colors, g, v_c)
+                wp.atomic_add(v_depths, g, v_z)
+            if shaped != 0:
+                wp.atomic_add(v_opacities, g - first_gaussian, v_o)
+                wp.atomic_add(v_conics, g, v_conic)
+                wp.atomic_add(v_means2d, g, v_mean)
+
+    return rasterize_backward_kernel
+
+
+# Pixels per thread the kernels are built for. One pixel per thread is the CUDA layout (gsplat's); on the CPU a
+# thread composites a block of a tile so that each Gaussian read serves several pixels (warpbags/wrapper.py picks).
+LANES = (1, 2, 4, 8)
+FORWARD_KERNELS = {lanes: _forward_kernel(lanes) for lanes in LANES}
+BACKWARD_KERNELS = {lanes: _backward_kernel(lanes) for lanes in LANES}
+
+
+def _declare_overloads() -> None:
+    """Every (lanes, precision) variant, declared up front: the module builds once with all of them (instead of
+    once more at each variant's first launch), and the CUDA variants are in it whatever ran first."""
+    for scalar in (wp.float32, wp.float64):
+        vec2, vec3 = wp.types.vector(2, scalar), wp.types.vector(3, scalar)
+        splats = [wp.array(dtype=vec2), wp.array(dtype=vec3), wp.array(dtype=vec3), wp.array(dtype=scalar),
+                  wp.array(dtype=scalar), wp.array(dtype=wp.int32), wp.array(dtype=wp.int32), *([int] * 9)]
+        for lanes in LANES:
+            wp.overload(FORWARD_KERNELS[lanes], [
+                *splats, wp.array(dtype=vec3), wp.array(dtype=scalar), wp.array(dtype=scalar), wp.array(dtype=scalar),
+                wp.array(dtype=wp.int32)])
+            wp.overload(BACKWARD_KERNELS[lanes], [
+                *splats, wp.array(dtype=scalar), wp.array(dtype=wp.int32), wp.array(dtype=vec3),
+                wp.array(dtype=scalar), wp.array(dtype=scalar), wp.array(dtype=vec2), wp.array(dtype=vec3),
+                wp.array(dtype=vec3), wp.array(dtype=scalar), wp.array(dtype=scalar)])
+
+
+_declare_overloads()

@@ -26,7 +26,7 @@ from warpbags.kernels.bin import (
 )
 from warpbags.kernels.pose import apply_object_deltas_kernel, apply_pose_deltas_kernel
 from warpbags.kernels.project import project_gaussians_kernel
-from warpbags.kernels.rasterize import rasterize_backward_kernel, rasterize_forward_kernel
+from warpbags.kernels.rasterize import BACKWARD_KERNELS, FORWARD_KERNELS
 from warpbags.kernels.sh import sh_to_colors_kernel
 
 _WP_SCALARS = {torch.float32: wp.float32, torch.float64: wp.float64}
@@ -324,14 +324,15 @@ def _default_cpu_threads() -> int:
     return max(1, len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1))
 
 
-def _pixel_ranges(num_tiles: int, pixels_per_tile: int, num_chunks: int) -> list[tuple[int, int]]:
-    """Split the tile-major pixel index space into tile-aligned [start, stop) ranges: the first tile alone (it
-    runs before the threads start, see `_for_each_worker`), then `num_chunks` ranges over the rest."""
+def _pixel_ranges(num_tiles: int, items_per_tile: int, num_chunks: int) -> list[tuple[int, int]]:
+    """Split the tile-major index space (pixels or pixel blocks, `items_per_tile` per tile) into tile-aligned
+    [start, stop) ranges: the first tile alone (it runs before the threads start, see `_for_each_worker`), then
+    `num_chunks` ranges over the rest."""
     if num_tiles == 0:
         return []
     bounds = torch.linspace(1, num_tiles, num_chunks + 1).round().long().tolist()
     tiles = [(0, 1)] + [(a, b) for a, b in zip(bounds[:-1], bounds[1:]) if b > a]
-    return [(a * pixels_per_tile, b * pixels_per_tile) for a, b in tiles]
+    return [(a * items_per_tile, b * items_per_tile) for a, b in tiles]
 
 
 def _for_each_worker(work, ranges: list[tuple[int, int]], workers: int) -> None:
@@ -356,6 +357,24 @@ def _for_each_worker(work, ranges: list[tuple[int, int]], workers: int) -> None:
         list(pool.map(run, range(workers)))
 
 
+# Pixels one rasterizer thread composites, (width, height) within a tile. On CUDA one pixel per thread (gsplat's
+# layout: threads are cheap, registers are not). On the CPU a thread walks its tile's list once for a block of
+# pixels, so each Gaussian's loads (and the gradient adds of the backward) serve every pixel of the block:
+# measured in bench/rasterize.py --blocks.
+DEFAULT_PIXEL_BLOCK = {"cuda": (1, 1), "cpu": (2, 2)}
+
+
+def _pixel_block(device: torch.device, tile_size: int, block: tuple[int, int] | None) -> tuple[int, int]:
+    """The block for this device and tile: each side the largest divisor of the tile size not above the asked one
+    (a block never spans two tiles), and a pixel count the kernels are built for."""
+    block_w, block_h = block or DEFAULT_PIXEL_BLOCK["cuda" if device.type == "cuda" else "cpu"]
+    block_w = max(d for d in range(1, min(block_w, tile_size) + 1) if tile_size % d == 0)
+    block_h = max(d for d in range(1, min(block_h, tile_size) + 1) if tile_size % d == 0)
+    if block_w * block_h not in FORWARD_KERNELS:
+        raise ValueError(f"pixel block {block_w}x{block_h}: the rasterizer is built for {sorted(FORWARD_KERNELS)} pixels per thread")
+    return block_w, block_h
+
+
 # Per-Gaussian rasterizer inputs in kernel argument order (means2d, conics, colors, opacities, depths), flattened
 # over cameras; the backward kernel's gradient outputs come in the same order.
 _SPLAT_KINDS = ("vec2", "vec3", "vec3", "scalar", "scalar")
@@ -371,7 +390,8 @@ class _RasterizeToPixels(torch.autograd.Function):
     """Forward and hand-written backward rasterization kernels; see kernels/rasterize.py."""
 
     @staticmethod
-    def forward(ctx, means2d, conics, colors, opacities, depths, bins: TileBins, width, height, cpu_threads):
+    def forward(ctx, means2d, conics, colors, opacities, depths, bins: TileBins, width, height, cpu_threads,
+                pixel_block):
         cams, n = depths.shape
         device, scalar = means2d.device, means2d.dtype
         splats = (
@@ -389,17 +409,22 @@ class _RasterizeToPixels(torch.autograd.Function):
         isect_end = torch.zeros(cams, height, width, dtype=torch.int32, device=device)
 
         ctx.geometry = (n, width, height, bins.tile_size, bins.tiles_x, bins.tiles_y)
-        common = _splat_arguments(splats, bins, ctx.geometry)
         outputs = [
             _to_warp(out_colors.view(pixels, 3), "vec3"), _to_warp(out_depths.view(pixels), "scalar"),
             _to_warp(out_alphas.view(pixels), "scalar"), _to_warp(final_transmittance.view(pixels), "scalar"),
             _to_warp(isect_end.view(pixels), "int32"),
         ]
         workers = 1 if device.type == "cuda" else (cpu_threads or _default_cpu_threads())
-        ranges = _pixel_ranges(cams * bins.tiles_x * bins.tiles_y, bins.tile_size**2, 1 if workers == 1 else 8 * workers)
+        block_w, block_h = _pixel_block(device, bins.tile_size, pixel_block)
+        ctx.lanes = block_w * block_h
+        ctx.geometry = (*ctx.geometry, block_w, block_h)
+        common = _splat_arguments(splats, bins, ctx.geometry)
+        blocks_per_tile = bins.tile_size**2 // ctx.lanes
+        ranges = _pixel_ranges(cams * bins.tiles_x * bins.tiles_y, blocks_per_tile, 1 if workers == 1 else 8 * workers)
+        kernel = FORWARD_KERNELS[ctx.lanes]
 
         def work(worker, start, stop):
-            wp.launch(rasterize_forward_kernel, dim=stop - start, inputs=[*common, start], outputs=outputs)
+            wp.launch(kernel, dim=stop - start, inputs=[*common, start], outputs=outputs)
 
         with _launch_scope(device):
             _for_each_worker(work, ranges, workers)
@@ -431,8 +456,10 @@ class _RasterizeToPixels(torch.autograd.Function):
         buffers = [[torch.zeros_like(t) for t in splats] for _ in range(workers)]
         wp_buffers = [[_to_warp(t, kind) for t, kind in zip(b, _SPLAT_KINDS)] for b in buffers]
 
+        kernel = BACKWARD_KERNELS[ctx.lanes]
+
         def work(worker, start, stop):
-            wp.launch(rasterize_backward_kernel, dim=stop - start, inputs=[*common, start, *saved], outputs=wp_buffers[worker])
+            wp.launch(kernel, dim=stop - start, inputs=[*common, start, *saved], outputs=wp_buffers[worker])
 
         with _launch_scope(device):
             _for_each_worker(work, ctx.ranges, workers)
@@ -441,7 +468,7 @@ class _RasterizeToPixels(torch.autograd.Function):
         cams, n = final_transmittance.shape[0], ctx.geometry[0]
         return (
             v_means2d.view(cams, n, 2), v_conics.view(cams, n, 3), v_colors.view(cams, n, 3), v_opacities,
-            v_depths.view(cams, n), None, None, None, None,
+            v_depths.view(cams, n), None, None, None, None, None,
         )
 
 
@@ -455,6 +482,7 @@ def rasterize_to_pixels(
     width: int,
     height: int,
     cpu_threads: int | None = None,
+    pixel_block: tuple[int, int] | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Alpha-composite the binned Gaussians of every camera.
 
@@ -462,12 +490,15 @@ def rasterize_to_pixels(
         means2d: [C, N, 2]. conics: [C, N, 3]. colors: [C, N, 3]. opacities: [N]. depths: [C, N].
         bins: from `bin_gaussians`. width, height: image size. cpu_threads: host threads for CPU tensors
             (default: the cores this process may use); ignored on CUDA.
+        pixel_block: (width, height) of the pixels one thread composites (default `DEFAULT_PIXEL_BLOCK` of the
+            device); each side is reduced to a divisor of the tile size. Results are the same for every block up to
+            float rounding of the gradient sums.
 
     Returns:
         colors [C, H, W, 3] (no background), depths [C, H, W] (alpha-weighted camera z), alphas [C, H, W];
         all differentiable.
     """
     out_colors, out_depths, out_alphas, _, _ = _RasterizeToPixels.apply(
-        means2d, conics, colors, opacities, depths, bins, width, height, cpu_threads
+        means2d, conics, colors, opacities, depths, bins, width, height, cpu_threads, pixel_block
     )
     return out_colors, out_depths, out_alphas
