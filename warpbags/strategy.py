@@ -86,7 +86,8 @@ class DensifyStrategy:
     def accumulate(self, iteration: int, meta: dict) -> None:
         """Add this step's view-space positional gradient norms.
 
-        Pixel gradients are scaled to NDC (x W/2, y H/2) so the threshold means what it means in 3DGS.
+        Pixel gradients are scaled to NDC (x W/2, y H/2) and by the number of cameras in the batch, so the
+        threshold means what it means in 3DGS (one view per step) whatever the batch.
 
         Raises:
             WarpbagsError: ``meta["means2d"].grad`` is None (its gradient was not retained before backward).
@@ -100,7 +101,9 @@ class DensifyStrategy:
         count = means2d.shape[1]
         if self.grad_sum is None or len(self.grad_sum) != count:
             self._reset_stats(count, means2d.device)
-        grads = means2d.grad.clone()
+        # The loss is a mean over the batch's cameras, so each camera's gradient is 1/C of what it would be alone:
+        # scaled back by C (as gsplat does), the threshold means the same for any number of views per step.
+        grads = means2d.grad.clone() * means2d.shape[0]
         grads[..., 0] *= meta["width"] / 2.0
         grads[..., 1] *= meta["height"] / 2.0
         visible = radii > 0
