@@ -321,5 +321,6 @@ def test_pixel_block_fits_the_tile():
     assert _pixel_block(cpu, 2, (4, 4)) == (2, 2)  # a block never spans two tiles
     assert _pixel_block(cpu, 4, (3, 1)) == (2, 1)  # each side the largest divisor of the tile size
     assert _pixel_block(torch.device("cuda"), 16, None) == (1, 1)  # one pixel per thread on CUDA
+    assert _pixel_block(cpu, 4, None) == (4, 1) and _pixel_block(cpu, 8, None) == (4, 2)  # the CPU defaults
     with pytest.raises(ValueError, match="pixel block"):
         _pixel_block(cpu, 16, (4, 4))  # 16 pixels per thread: not built

@@ -359,15 +359,21 @@ def _for_each_worker(work, ranges: list[tuple[int, int]], workers: int) -> None:
 
 # Pixels one rasterizer thread composites, (width, height) within a tile. On CUDA one pixel per thread (gsplat's
 # layout: threads are cheap, registers are not). On the CPU a thread walks its tile's list once for a block of
-# pixels, so each Gaussian's loads (and the gradient adds of the backward) serve every pixel of the block:
-# measured in bench/rasterize.py --blocks.
-DEFAULT_PIXEL_BLOCK = {"cuda": (1, 1), "cpu": (2, 2)}
+# pixels, so each Gaussian's loads (and the gradient adds of the backward) serve every pixel of the block.
+# Measured on 2 cores loaded by other work (wall ms of the rasterizer stage, forward + backward, min of 6, blocks
+# in turn in one process), bench/rasterize.py's 128^2 / 10k / 4-camera scene and maryrose 432^2 after 50 steps
+# from the random init (127 Gaussians per pixel, 95% contributing): 4-pixel tiles, blocks 1x1 / 2x2 / 4x1:
+# 162 / 141 / 126 and 1843 / 1548 / 1499; 8-pixel tiles, 2x2 / 4x2 / 2x4: 152 / 131 / 148 and 1539 / 1370 / 1402.
+# Compare with bench/rasterize.py --blocks and bench/train_step.py --pixel-blocks.
+# None: 4x1 for tiles of 4 pixels or less, 4x2 for larger ones.
+DEFAULT_PIXEL_BLOCK: dict[str, tuple[int, int] | None] = {"cuda": (1, 1), "cpu": None}
 
 
 def _pixel_block(device: torch.device, tile_size: int, block: tuple[int, int] | None) -> tuple[int, int]:
     """The block for this device and tile: each side the largest divisor of the tile size not above the asked one
     (a block never spans two tiles), and a pixel count the kernels are built for."""
-    block_w, block_h = block or DEFAULT_PIXEL_BLOCK["cuda" if device.type == "cuda" else "cpu"]
+    block = block or DEFAULT_PIXEL_BLOCK["cuda" if device.type == "cuda" else "cpu"]
+    block_w, block_h = block or ((4, 1) if tile_size <= 4 else (4, 2))
     block_w = max(d for d in range(1, min(block_w, tile_size) + 1) if tile_size % d == 0)
     block_h = max(d for d in range(1, min(block_h, tile_size) + 1) if tile_size % d == 0)
     if block_w * block_h not in FORWARD_KERNELS:
