@@ -3,6 +3,7 @@
     python bench/train_step.py                       # random and hull init, 1 and 4 views per step
     python bench/train_step.py --inits random --views 1 --steps 20
     python bench/train_step.py --opensplat PATH      # adds OpenSplat's CPU trainer on the same views and points
+    python bench/train_step.py --inits random --views 1 --pixel-blocks 1x1,2x2   # rasterizer pixel blocks compared
 
 The step is built from the pieces `warpbags.trainer.Trainer` runs (as the speed comparison with OpenSplat
 configures it: SH degree 0, no densification, the object on a white background, loss (1-0.2) L1 + 0.2 (1-SSIM) +
@@ -230,9 +231,15 @@ def training_step(problem: dict, views_per_step: int, clock: PhaseClock | None =
     return meta
 
 
-def run_configuration(init: str, views_per_step: int, points: int, steps: int, warmup: int) -> dict:
-    """Median ms per phase over `steps` instrumented steps, then the median of `steps` plain steps."""
+def run_configuration(init: str, views_per_step: int, points: int, steps: int, warmup: int,
+                      pixel_block: tuple[int, int] | None = None) -> dict:
+    """Median ms per phase over `steps` instrumented steps, then the median of `steps` plain steps; `pixel_block`
+    replaces the rasterizer's default CPU block (warpbags.wrapper.DEFAULT_PIXEL_BLOCK) for the whole run."""
+    from warpbags.wrapper import DEFAULT_PIXEL_BLOCK
+
     torch.set_num_threads(1)  # as the trainer: Warp runs its own host threads
+    if pixel_block is not None:
+        DEFAULT_PIXEL_BLOCK["cpu"] = pixel_block
     problem = build_problem(init, points)
     for _ in range(warmup):
         training_step(problem, views_per_step)
@@ -263,6 +270,7 @@ def run_configuration(init: str, views_per_step: int, points: int, steps: int, w
     scene = problem["scene"]
     return {
         "init": init, "views_per_step": views_per_step, "gaussians": len(problem["params"]["means"]),
+        "pixel_block": "x".join(map(str, DEFAULT_PIXEL_BLOCK["cpu"])) if DEFAULT_PIXEL_BLOCK["cpu"] else "default",
         "init_note": problem["init_note"], "width": scene.width, "height": scene.height,
         "phases_ms": {name: statistics.median(values) for name, values in per_phase.items()},
         "phases_cpu_ms": {name: statistics.median(values) for name, values in per_phase_cpu.items()},
@@ -361,7 +369,8 @@ def _child(arguments: list[str]) -> dict:
 
 
 def print_table(rows: list[dict], opensplat: dict | None) -> None:
-    names = [f"{r['init']} {r['views_per_step']}v" for r in rows]
+    blocks = {r["pixel_block"] for r in rows}
+    names = [f"{r['init']} {r['views_per_step']}v" + (f" {r['pixel_block']}" if len(blocks) > 1 else "") for r in rows]
     width = max(len(n) for n in PHASES + ("step (plain)",)) + 1
     print(f"{'':<{width}}" + "".join(f"{n:>17}" for n in names))
     for key, label, fmt in (("gaussians", "Gaussians", "{:17d}"), ("visits_per_pixel", "visits / pixel", "{:17.1f}"),
@@ -374,6 +383,18 @@ def print_table(rows: list[dict], opensplat: dict | None) -> None:
     print(f"{'sum of phases':<{width}}" + "".join(f"{r['step_ms_instrumented']:8.1f} |{'':7}" for r in rows))
     print(f"{'step (plain)':<{width}}" + "".join(f"{r['step_ms']:8.1f} |{r['step_cpu_ms']:7.1f}" for r in rows))
     print(f"{'peak RSS MiB':<{width}}" + "".join(f"{r['peak_rss_mib']:17.0f}" for r in rows))
+    if len(blocks) > 1:  # the first block's step time over each other block's, same init and views
+        first = {}
+        for r, name in zip(rows, names):
+            key = (r["init"], r["views_per_step"])
+            if key not in first:
+                first[key] = r
+            else:
+                base = first[key]
+                print(f"  {name}: step {base['step_ms'] / r['step_ms']:.2f}x, raster forward "
+                      f"{base['phases_ms']['raster forward'] / r['phases_ms']['raster forward']:.2f}x, raster backward "
+                      f"{base['phases_ms']['raster backward'] / r['phases_ms']['raster backward']:.2f}x faster than "
+                      f"pixel block {base['pixel_block']}")
     if opensplat is not None:
         print(f"OpenSplat (CPU), one view per step: {opensplat['step_ms']:.0f} ms/step, {opensplat['peak_rss_mib']:.0f} MiB")
         for r, name in zip(rows, names):
@@ -391,16 +412,23 @@ def main() -> None:
     parser.add_argument("--warmup", type=int, default=50, help="untimed steps first (compilation, the early steps)")
     parser.add_argument("--opensplat", type=Path, help="an OpenSplat binary built with its CPU backend")
     parser.add_argument("--json", type=Path, help="also write the results here")
+    parser.add_argument("--pixel-blocks", default=None,
+                        help="comma-separated CPU pixel blocks to compare (e.g. 1x1,2x2; 1x1 is one pixel per "
+                             "rasterizer thread, the layout before blocks); default: the rasterizer's default block")
     parser.add_argument("--one", nargs=2, metavar=("INIT", "VIEWS"), help=argparse.SUPPRESS)  # a child process
+    parser.add_argument("--block", default=None, help=argparse.SUPPRESS)  # the child's pixel block
     args = parser.parse_args()
     if args.one:
-        print(json.dumps(run_configuration(args.one[0], int(args.one[1]), args.points, args.steps, args.warmup)))
+        block = tuple(int(v) for v in args.block.split("x")) if args.block else None
+        print(json.dumps(run_configuration(args.one[0], int(args.one[1]), args.points, args.steps, args.warmup,
+                                           block)))
         return
     rows = []
     for init in args.inits.split(","):
         for views in args.views.split(","):
-            rows.append(_child(["--one", init, views, "--points", str(args.points), "--steps", str(args.steps),
-                                "--warmup", str(args.warmup)]))
+            for block in (args.pixel_blocks.split(",") if args.pixel_blocks else [None]):
+                rows.append(_child(["--one", init, views, "--points", str(args.points), "--steps", str(args.steps),
+                                    "--warmup", str(args.warmup), *(["--block", block] if block else [])]))
     opensplat = None
     if args.opensplat is not None:
         opensplat = run_opensplat(args.opensplat, args.points, args.steps, args.warmup)
