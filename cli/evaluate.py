@@ -31,7 +31,7 @@ def evaluate(
     ),
     refine_iters: int = typer.Option(100, "--refine-iters", help="Test-time pose refinement iterations (0 = off)."),
 ) -> None:
-    """Render held-out views, compare with ground truth (PSNR/SSIM/LPIPS) and measure camera-pose errors."""
+    """Render held-out views, compare with ground truth (PSNR/SSIM/FLIP/LPIPS) and measure camera-pose errors."""
     run_dir = run_dir or latest_run()
     alignment = "procrustes" if procrustes else "pairwise"
     result = evaluate_run(run_dir, alignment=alignment, refine_iters=refine_iters, log=stdout.print)
@@ -48,14 +48,15 @@ def evaluate(
     stdout.print(poses)
 
     images = Table(title=f"held-out views ({result['test_views']}, {alignment} alignment)", title_justify="left")
-    for column in ("test poses", "PSNR", "SSIM", "LPIPS"):
+    for column in ("test poses", "PSNR", "SSIM", "FLIP", "LPIPS"):
         images.add_column(column)
     rows = [("aligned", result["images"])]
     if "images_after_test_pose_refinement" in result:
         rows.append((f"+ {refine_iters} refinement its", result["images_after_test_pose_refinement"]))
     for label, metrics in rows:
         mean = metrics["mean"]
-        images.add_row(label, _fmt(mean["psnr"], 2), _fmt(mean["ssim"], 4), _fmt(mean["lpips"], 4))
+        images.add_row(label, _fmt(mean["psnr"], 2), _fmt(mean["ssim"], 4), _fmt(mean.get("flip"), 4),
+                       _fmt(mean["lpips"], 4))
     stdout.print(images)
     stdout.print(f"wrote {Path(result['run']) / 'eval.json'} and {Path(result['run']) / 'eval'}/")
 

@@ -15,7 +15,7 @@ from typer.testing import CliRunner
 
 from warpbags.cli.main import app
 from warpbags.data import SyntheticOptions, ensure_synthetic_scene
-from warpbags.evaluation import LpipsMetric, image_metrics, load_run, pose_accuracy
+from warpbags.evaluation import FlipMetric, LpipsMetric, image_metrics, load_run, pose_accuracy
 from warpbags.gaussians import read_ply, write_ply
 from warpbags.losses import load_lpips
 
@@ -49,6 +49,10 @@ def test_eval_writes_metrics_and_pictures(finished_run):
         mean = report[key]["mean"]
         assert 5.0 < mean["psnr"] < 60.0 and 0.0 < mean["ssim"] <= 1.0
         assert len(report[key]["per_view"]) == report["test_views"]
+        # FLIP needs no weights: always a number here, the mean of the per-view values
+        assert report["flip_unavailable"] is None and 0.0 < mean["flip"] < 1.0
+        assert mean["flip"] == pytest.approx(np.mean([view["flip"] for view in report[key]["per_view"]]))
+    assert "FLIP" in result.output
     # LPIPS is a number exactly when its network loads here (offline: never, and never a made-up number).
     _, unavailable = load_lpips()
     assert report["lpips_unavailable"] == unavailable
@@ -103,6 +107,34 @@ def test_image_metrics_report_the_lpips_network_distance(monkeypatch):
     for view in range(2):
         assert metrics["per_view"][view]["lpips"] == pytest.approx(expected[view].item(), rel=1e-5)
     assert metrics["mean"]["lpips"] == pytest.approx(expected.mean().item(), rel=1e-5)
+
+
+def test_flip_is_zero_for_the_same_image_and_grows_with_the_distortion():
+    g = torch.Generator().manual_seed(3)
+    target = torch.rand(1, 32, 40, 3, generator=g) * 0.6 + 0.2
+    noise = torch.randn(1, 32, 40, 3, generator=g)
+    assert FlipMetric()(target[0].numpy(), target[0].numpy()) == 0.0
+    flips = [image_metrics((target + sigma * noise).clamp(0, 1), target, LpipsMetric())["mean"]["flip"]
+             for sigma in (0.02, 0.1, 0.3)]
+    assert 0.0 < flips[0] < flips[1] < flips[2] < 1.0
+
+
+def test_flip_of_numpy_images_writes_and_prints_nothing(tmp_path, monkeypatch, capfd):
+    monkeypatch.chdir(tmp_path)
+    target = np.random.default_rng(4).random((16, 12, 3), dtype=np.float32)
+    value = FlipMetric()(np.clip(target * 0.8, 0, 1), target)
+    assert 0.0 < value < 1.0 and isinstance(value, float)
+    assert capfd.readouterr() == ("", "") and list(tmp_path.iterdir()) == []
+
+
+def test_flip_that_fails_to_import_is_unavailable_and_null(monkeypatch):
+    monkeypatch.setitem(sys.modules, "flip_evaluator", None)  # `import flip_evaluator` raises ModuleNotFoundError
+    flip_metric = FlipMetric()
+    assert flip_metric.unavailable.startswith("ModuleNotFoundError")
+    target = torch.rand(2, 8, 8, 3, generator=torch.Generator().manual_seed(5))
+    metrics = image_metrics(target * 0.9, target, LpipsMetric(), flip_metric)
+    assert metrics["mean"]["flip"] is None and all(view["flip"] is None for view in metrics["per_view"])
+    assert metrics["mean"]["psnr"] > 0
 
 
 def test_image_metrics_without_lpips_report_none(monkeypatch):
@@ -233,6 +265,9 @@ def test_report_has_the_metrics_and_pictures(finished_run):
     assert runner.invoke(app, ["eval", str(finished_run), "--refine-iters", "0"]).exit_code == 0
     report = (finished_run / "report.md").read_text()
     assert "| procrustes | final |" in report and "PSNR" in report
+    assert "| test poses | PSNR | SSIM | FLIP | LPIPS |" in report
+    flip = json.loads((finished_run / "eval.json").read_text())["images"]["mean"]["flip"]
+    assert f"| {flip:.4f} |" in report
     assert "![loss and pose error](curves.png)" in report and (finished_run / "curves.png").stat().st_size > 1000
     assert "eval/" in report
 

@@ -1,8 +1,10 @@
 """Evaluation of a training run: novel-view image metrics and camera-pose accuracy, measured as the field does.
 
 Image metrics (GaussianObject's protocol): held-out views (`sparse_test` split) rendered on a white background and
-compared with the ground truth masked onto white: PSNR, SSIM (scikit-image) and LPIPS-VGG (the `lpips` package)
-when it and its weights are available offline; otherwise LPIPS is reported as unavailable, never guessed.
+compared with the ground truth masked onto white: PSNR, SSIM (scikit-image), FLIP (NVIDIA's LDR-FLIP through the
+`flip-evaluator` package: a perceptual error in [0, 1], lower is better, no learned weights, so it works offline)
+and LPIPS-VGG (the `lpips` package) when it and its weights are available offline. A metric that cannot be had
+(LPIPS without its weights, FLIP if its package fails to import) is reported as null with the reason, never guessed.
 
 The held-out poses are true poses, while the Gaussians live in the frame of the optimized training poses. The
 test cameras are therefore mapped through the sim(3) that aligns the optimized training cameras to the true ones
@@ -180,17 +182,46 @@ class LpipsMetric:
             return float(self.model(to_tensor(image), to_tensor(target)))
 
 
-def image_metrics(images: torch.Tensor, targets: torch.Tensor, lpips_metric: LpipsMetric) -> dict:
-    """Per-view and mean PSNR, SSIM, LPIPS of [C,H,W,3] renders against targets (both on the same background)."""
+class FlipMetric:
+    """Mean LDR-FLIP error (Andersson et al. 2020) of an image against its reference through NVIDIA's
+    `flip-evaluator` package, at its default viewing condition (67 pixels per degree), inputs taken as sRGB in
+    [0, 1]; or a reason why it is unavailable (the package, a regular dependency, fails to import)."""
+
+    def __init__(self) -> None:
+        try:
+            import flip_evaluator  # noqa: PLC0415 - imported here so a broken install is one reason, not a crash
+        except ImportError as error:
+            self.flip = None
+            self.unavailable = f"{type(error).__name__}: {str(error).splitlines()[0] if str(error) else ''}"[:200]
+        else:
+            self.flip, self.unavailable = flip_evaluator, None
+
+    def __call__(self, image: np.ndarray, target: np.ndarray) -> float | None:
+        if self.flip is None:
+            return None
+        as_input = lambda a: np.ascontiguousarray(np.clip(a, 0, 1), dtype=np.float32)  # noqa: E731
+        _, mean, _ = self.flip.evaluate(as_input(target), as_input(image), "LDR", applyMagma=False)
+        return float(mean)
+
+
+METRICS = ("psnr", "ssim", "flip", "lpips")
+
+
+def image_metrics(images: torch.Tensor, targets: torch.Tensor, lpips_metric: LpipsMetric,
+                  flip_metric: FlipMetric | None = None) -> dict:
+    """Per-view and mean PSNR, SSIM, FLIP, LPIPS of [C,H,W,3] renders against targets (both on the same
+    background); a metric that is unavailable is None. `flip_metric` defaults to a new `FlipMetric`."""
+    flip_metric = FlipMetric() if flip_metric is None else flip_metric
     per_view = []
     for image, target in zip(images.clamp(0, 1).double().numpy(), targets.double().numpy()):
         per_view.append({
             "psnr": float(peak_signal_noise_ratio(target, image, data_range=1.0)),
             "ssim": float(structural_similarity(target, image, channel_axis=-1, data_range=1.0)),
+            "flip": flip_metric(image, target),
             "lpips": lpips_metric(image, target),
         })
     mean = {key: (None if per_view[0][key] is None else float(np.mean([v[key] for v in per_view])))
-            for key in ("psnr", "ssim", "lpips")}
+            for key in METRICS}
     return {"mean": mean, "per_view": per_view}
 
 
@@ -231,6 +262,9 @@ def evaluate_run(path: str | Path, *, alignment: str = "procrustes", refine_iter
     lpips_metric = LpipsMetric()
     if lpips_metric.unavailable:
         log(f"LPIPS unavailable ({lpips_metric.unavailable}); reported as null")
+    flip_metric = FlipMetric()
+    if flip_metric.unavailable:
+        log(f"FLIP unavailable ({flip_metric.unavailable}); reported as null")
 
     def render(viewmats):
         with torch.no_grad():
@@ -247,8 +281,9 @@ def evaluate_run(path: str | Path, *, alignment: str = "procrustes", refine_iter
         "image_size": [test.width, test.height],
         "alignment": alignment,
         "lpips_unavailable": lpips_metric.unavailable,
+        "flip_unavailable": flip_metric.unavailable,
         "poses": poses,
-        "images": image_metrics(images, targets, lpips_metric),
+        "images": image_metrics(images, targets, lpips_metric, flip_metric),
     }
     if refine_iters > 0:
         settings = CameraOptimizerSettings.from_config(run.config.camera)
@@ -256,7 +291,7 @@ def evaluate_run(path: str | Path, *, alignment: str = "procrustes", refine_iter
                                refine_iters, settings=settings)
         images = render(refined)
         result["images_after_test_pose_refinement"] = {"iters": refine_iters,
-                                                        **image_metrics(images, targets, lpips_metric)}
+                                                        **image_metrics(images, targets, lpips_metric, flip_metric)}
     out = run.path / "eval"
     out.mkdir(exist_ok=True)
     for name, target, image in zip(test.image_names, targets, images):

@@ -79,17 +79,19 @@ def write_run_report(run_dir: Path, result: dict) -> Path:
             lines.append(f"| {name} | {stage} | {e['rotation_deg_mean']:.3f} | {e['rotation_deg_median']:.3f} | "
                          f"{e['translation_mean']:.4f} | {e['translation_percent_of_orbit']:.2f} |")
     lines += ["", f"## Held-out views ({result['test_views']}, test cameras aligned by {result['alignment']})", "",
-              "| test poses | PSNR | SSIM | LPIPS |", "|---|---|---|---|"]
+              "| test poses | PSNR | SSIM | FLIP | LPIPS |", "|---|---|---|---|---|"]
     rows = [("aligned", result["images"])]
     if "images_after_test_pose_refinement" in result:
         refined = result["images_after_test_pose_refinement"]
         rows.append((f"+ {refined['iters']} refinement iterations", refined))
     for label, metrics in rows:
         mean = metrics["mean"]
-        lpips = "n/a" if mean["lpips"] is None else f"{mean['lpips']:.4f}"
-        lines.append(f"| {label} | {mean['psnr']:.2f} | {mean['ssim']:.4f} | {lpips} |")
-    if result.get("lpips_unavailable"):
-        lines += ["", f"LPIPS unavailable: {result['lpips_unavailable']}"]
+        flip, lpips = ("n/a" if mean.get(key) is None else f"{mean[key]:.4f}" for key in ("flip", "lpips"))
+        lines.append(f"| {label} | {mean['psnr']:.2f} | {mean['ssim']:.4f} | {flip} | {lpips} |")
+    lines += ["", "FLIP: NVIDIA's LDR-FLIP error at 67 pixels per degree, in [0, 1], lower is better."]
+    for name in ("flip", "lpips"):
+        if result.get(f"{name}_unavailable"):
+            lines += ["", f"{name.upper()} unavailable: {result[f'{name}_unavailable']}"]
     if records:
         plot_training_curves(records, run_dir / "curves.png")
         lines += ["", "## Training", "", "![loss and pose error](curves.png)"]
