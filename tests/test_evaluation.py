@@ -252,6 +252,7 @@ def test_sweep_runs_every_combination_once_and_skips_finished_runs(finished_run,
     assert sum(m.startswith("train ") for m in messages) == 4
     noisy = [r for r in rows if r["rot_noise_deg"] == 5]
     assert all(r["rot_err_initial"] > 0.5 for r in noisy)
+    assert all(0.0 < r["flip"] < 1.0 for r in rows)
     assert all(r["rot_err_final"] == pytest.approx(r["rot_err_initial"]) for r in noisy if r["method"] == "baseline")
     for name in ("sweep.csv", "sweep.json", "psnr_vs_noise.png", "pose_error_vs_noise.png", "curves.png"):
         assert (spec.out / name).stat().st_size > 100, name

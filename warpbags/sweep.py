@@ -80,6 +80,7 @@ def _row(run_dir: Path, method: str, views: int, noise: float, seed: int) -> dic
         "rot_err_initial": poses["initial"]["rotation_deg_mean"], "rot_err_final": poses["final"]["rotation_deg_mean"],
         "trans_err_initial": poses["initial"]["translation_mean"], "trans_err_final": poses["final"]["translation_mean"],
         "psnr": report["images"]["mean"]["psnr"], "ssim": report["images"]["mean"]["ssim"],
+        "flip": report["images"]["mean"].get("flip"),
         "psnr_refined": refined["mean"]["psnr"], "run": run_dir.name,
     }
 
