@@ -80,6 +80,18 @@ def locate_block(index: int, tile_size: int, tiles_x: int, tiles_y: int, block_w
     return cam, tile, x, y
 
 
+@wp.func
+def lane_pixel(x0: int, y0: int, lane: int, block_w: int, cam: int, width: int, height: int):
+    """Pixel (x, y) of lane `lane` of the block whose top-left pixel is (x0, y0), and its flat output index
+    (camera-major, row-major), -1 outside the image."""
+    x = x0 + lane % block_w
+    y = y0 + lane / block_w
+    pix = int(-1)
+    if x < width and y < height:
+        pix = (cam * height + y) * width + x
+    return x, y, pix
+
+
 def _forward_kernel(lanes: int):
     """The forward kernel for blocks of `lanes` pixels per thread (block_w * block_h == lanes)."""
 
@@ -127,12 +139,11 @@ def _forward_kernel(lanes: int):
         last = wp.vector(start, length=wp.static(lanes))
         remaining = int(0)
         for k in range(wp.static(lanes)):
-            x = x0 + k % block_w
-            y = y0 + k / block_w
+            x, y, lane_pix = lane_pixel(x0, y0, k, block_w, cam, width, height)
             px[k] = out_depths.dtype(x) + out_depths.dtype(0.5)
             py[k] = out_depths.dtype(y) + out_depths.dtype(0.5)
-            if x < width and y < height:
-                pix[k] = (cam * height + y) * width + x
+            if lane_pix >= 0:
+                pix[k] = lane_pix
                 live[k] = 1
                 remaining += 1
         if remaining == 0:
@@ -241,12 +252,10 @@ def _backward_kernel(lanes: int):
         sigma = wp.vector(zero, length=wp.static(lanes))
         i = int(0)
         for k in range(wp.static(lanes)):
-            x = x0 + k % block_w
-            y = y0 + k / block_w
+            x, y, pix = lane_pixel(x0, y0, k, block_w, cam, width, height)
             px[k] = v_out_depths.dtype(x) + v_out_depths.dtype(0.5)
             py[k] = v_out_depths.dtype(y) + v_out_depths.dtype(0.5)
-            if x < width and y < height:
-                pix = (cam * height + y) * width + x
+            if pix >= 0:
                 t_final[k] = final_transmittance[pix]
                 transmittance[k] = t_final[k]
                 v_color = v_out_colors[pix]

@@ -414,7 +414,6 @@ class _RasterizeToPixels(torch.autograd.Function):
         final_transmittance = torch.ones(cams, height, width, dtype=scalar, device=device)
         isect_end = torch.zeros(cams, height, width, dtype=torch.int32, device=device)
 
-        ctx.geometry = (n, width, height, bins.tile_size, bins.tiles_x, bins.tiles_y)
         outputs = [
             _to_warp(out_colors.view(pixels, 3), "vec3"), _to_warp(out_depths.view(pixels), "scalar"),
             _to_warp(out_alphas.view(pixels), "scalar"), _to_warp(final_transmittance.view(pixels), "scalar"),
@@ -423,7 +422,7 @@ class _RasterizeToPixels(torch.autograd.Function):
         workers = 1 if device.type == "cuda" else (cpu_threads or _default_cpu_threads())
         block_w, block_h = _pixel_block(device, bins.tile_size, pixel_block)
         ctx.lanes = block_w * block_h
-        ctx.geometry = (*ctx.geometry, block_w, block_h)
+        ctx.geometry = (n, width, height, bins.tile_size, bins.tiles_x, bins.tiles_y, block_w, block_h)
         common = _splat_arguments(splats, bins, ctx.geometry)
         blocks_per_tile = bins.tile_size**2 // ctx.lanes
         ranges = _pixel_ranges(cams * bins.tiles_x * bins.tiles_y, blocks_per_tile, 1 if workers == 1 else 8 * workers)
