@@ -9,6 +9,7 @@ from typing import Callable
 
 import typer
 from rich.console import Console
+from rich.markup import escape
 
 from warpbags.errors import WarpbagsError
 
@@ -53,7 +54,8 @@ def clean_errors(command: Callable) -> Callable:
         try:
             return command(*args, **kwargs)
         except WarpbagsError as error:
-            console.print(f"[bold red]error:[/] {error}", highlight=False, soft_wrap=True)
+            # escaped: a message's own brackets (`warpbags[ray]`, a list) are text, not Rich markup
+            console.print(f"[bold red]error:[/] {escape(str(error))}", highlight=False, soft_wrap=True)
             sys.exit(2)
         except KeyboardInterrupt:
             console.print("[yellow]interrupted[/]")

@@ -7,7 +7,7 @@ if [ ! -x .venv/bin/python ]; then
 fi
 stamp=.venv/.warpbags-installed
 if [ ! -f "$stamp" ] || [ pyproject.toml -nt "$stamp" ] || [ constraints.txt -nt "$stamp" ]; then
-    .venv/bin/python -m pip install --quiet --disable-pip-version-check -c constraints.txt -e ".[test]"
+    .venv/bin/python -m pip install --quiet --disable-pip-version-check -c constraints.txt -e ".[test,ray]"
     touch "$stamp"
 fi
 export PATH="$PWD/.venv/bin:$PATH"

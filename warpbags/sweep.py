@@ -1,32 +1,41 @@
 """`warpbags sweep`: BAGS against the fixed-pose baseline over rotation noise, view counts and seeds.
 
-Each combination is one run folder `<out>/<method>-<views>v-rot<noise>-seed<seed>/` (trained, then evaluated).
-A folder that already holds eval.json is skipped and one with checkpoints is resumed, so an interrupted sweep
-continues where it stopped. Results: `<out>/sweep.json`, `<out>/sweep.csv` and the plots of `warpbags.report`.
+Each combination is one run folder `<out>/<method>-<views>v-rot<noise>-seed<seed>/` (trained, then evaluated by
+`run_combination`). A folder that already holds eval.json is skipped and one with checkpoints is resumed, so an
+interrupted sweep continues where it stopped. An executor maps `run_combination` over the combinations:
+`LocalExecutor` runs them one after another in this process, `RayExecutor` as Ray tasks on this machine or on an
+existing cluster. Results: `<out>/sweep.json`, `<out>/sweep.csv` and the plots of `warpbags.report`.
 """
 
 from __future__ import annotations
 
 import csv
 import json
-from dataclasses import dataclass
+import os
+import socket
+from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Callable
+from typing import Callable, Protocol
 
 from warpbags.configs.train import load_preset
-from warpbags.data import open_scene
+from warpbags.data import Scene, open_scene
 from warpbags.errors import WarpbagsError
 from warpbags.evaluation import evaluate_run
 from warpbags.files import atomic_output
 from warpbags.report import plot_sweep
+from warpbags.threads import usable_cores
 from warpbags.trainer import start_or_resume, training_scene
 
 METHODS = {"baseline": False, "bags": True}  # method -> pose optimization
+DEVICES = ("cpu", "cuda")
+EXECUTORS = ("local", "ray")
+RAY_INSTALL = "pip install warpbags[ray]"
+Log = Callable[[str], None]
 
 
 @dataclass(frozen=True)
 class SweepSpec:
-    """What to sweep. `overrides` are TrainConfig fields applied to every run (e.g. iters)."""
+    """What to sweep. `overrides` are TrainConfig fields applied to every run (e.g. iters); `device` trains them."""
 
     scene: str
     out: Path
@@ -37,46 +46,262 @@ class SweepSpec:
     preset: str = "quick"
     refine_iters: int = 50
     overrides: tuple[tuple[str, object], ...] = ()
+    device: str = "cpu"
 
 
-def run_sweep(spec: SweepSpec, data_root: Path | None = None, log: Callable[[str], None] = print) -> list[dict]:
-    """Train and evaluate every combination not done yet; returns one row per run."""
+@dataclass(frozen=True)
+class SweepRun:
+    """One combination of a sweep; it is trained and evaluated into `<out>/<name>/`."""
+
+    method: str
+    views: int
+    rot_noise_deg: float
+    seed: int
+
+    @property
+    def name(self) -> str:
+        return f"{self.method}-{self.views}v-rot{self.rot_noise_deg:g}-seed{self.seed}"
+
+
+class Executor(Protocol):
+    """Runs `run_combination` for each combination and returns their rows in the order given."""
+
+    def map(self, spec: SweepSpec, runs: list[SweepRun], scene: Scene, log: Log) -> list[dict]: ...
+
+
+def run_sweep(spec: SweepSpec, data_root: Path | None = None, log: Log = print,
+              executor: Executor | None = None) -> list[dict]:
+    """Train and evaluate every combination not done yet (with `executor`, default `LocalExecutor`); write
+    sweep.json, sweep.csv and the plots; returns one row per run."""
     if any(noise < 0 for noise in spec.rot_noises):
         raise WarpbagsError(f"--rot-noises must be >= 0, got {list(spec.rot_noises)}")
     if any(views < 2 for views in spec.views):
         raise WarpbagsError(f"--views must be >= 2, got {list(spec.views)}")
+    if spec.device not in DEVICES:
+        raise WarpbagsError(f"--device must be cpu or cuda, got {spec.device!r}")
     scene = open_scene(spec.scene, root=data_root)
     spec.out.mkdir(parents=True, exist_ok=True)
-    rows = []
-    for views in spec.views:
-        for noise in spec.rot_noises:
-            for seed in spec.seeds:
-                for method, pose_opt in METHODS.items():
-                    run_dir = spec.out / f"{method}-{views}v-rot{noise:g}-seed{seed}"
-                    if (run_dir / "eval.json").is_file():
-                        log(f"skip {run_dir.name} (done)")
-                    else:
-                        config = load_preset(spec.preset, views=views, rot_noise_deg=float(noise),
-                                             trans_noise=spec.trans_noise, pose_opt=pose_opt, seed=seed,
-                                             noise_seed=seed, **dict(spec.overrides))
-                        resume = any((run_dir / "checkpoints").glob("checkpoint_*.pt"))
-                        log(f"{'resume' if resume else 'train'} {run_dir.name}")
-                        trainer = start_or_resume(training_scene(scene, config), config, run_dir, resume=resume,
-                                                  log=lambda message: None)
-                        trainer.train()
-                        evaluate_run(run_dir, refine_iters=spec.refine_iters, log=lambda message: None)
-                    rows.append(_row(run_dir, method, views, noise, seed))
+    rows = (executor or LocalExecutor()).map(spec, sweep_runs(spec), scene, log)
     _write_tables(rows, spec.out)
     plot_sweep(rows, spec.out)
     return rows
 
 
-def _row(run_dir: Path, method: str, views: int, noise: float, seed: int) -> dict:
+def sweep_runs(spec: SweepSpec) -> list[SweepRun]:
+    """Every combination of `spec`, in the order of the tables: views, noise, seed, then method."""
+    return [SweepRun(method, views, noise, seed) for views in spec.views for noise in spec.rot_noises
+            for seed in spec.seeds for method in METHODS]
+
+
+def run_combination(spec: SweepSpec, run: SweepRun, scene: Scene, render_threads: int | None = None) -> dict:
+    """Train and evaluate one combination into its folder, unless it holds eval.json already; a folder with
+    checkpoints is resumed. Returns the run's row of sweep.json.
+
+    Args:
+        scene: the opened `spec.scene`.
+        render_threads: host threads for CPU rendering of a fresh run (None: the preset's); a resumed run keeps
+            the setting it was started with.
+    """
+    run_dir = spec.out / run.name
+    if not _is_done(run_dir):
+        settings = {"render_threads": render_threads, **dict(spec.overrides)}
+        config = load_preset(spec.preset, views=run.views, rot_noise_deg=float(run.rot_noise_deg),
+                             trans_noise=spec.trans_noise, pose_opt=METHODS[run.method], seed=run.seed,
+                             noise_seed=run.seed, **settings)
+        trainer = start_or_resume(training_scene(scene, config), config, run_dir, device=spec.device,
+                                  resume=_has_checkpoint(run_dir), log=_quiet)
+        trainer.train()
+        evaluate_run(run_dir, refine_iters=spec.refine_iters, log=_quiet)
+    return _row(run_dir, run)
+
+
+def progress(spec: SweepSpec, run: SweepRun) -> str:
+    """What `run_combination` is about to do with the run's folder, as the sweep logs it."""
+    run_dir = spec.out / run.name
+    if _is_done(run_dir):
+        return f"skip {run.name} (done)"
+    return f"{'resume' if _has_checkpoint(run_dir) else 'train'} {run.name}"
+
+
+class LocalExecutor:
+    """The default: one run after another in this process, rendering on every core."""
+
+    def map(self, spec: SweepSpec, runs: list[SweepRun], scene: Scene, log: Log) -> list[dict]:
+        rows = []
+        for run in runs:
+            log(progress(spec, run))
+            rows.append(run_combination(spec, run, scene))
+        return rows
+
+
+@dataclass(frozen=True)
+class RayExecutor:
+    """Each run not done yet becomes a Ray task that declares `cpus_per_run` CPUs and `gpus_per_run` GPUs, so Ray
+    runs as many at once as the cluster holds (one per GPU with the defaults of `--device cuda`).
+
+    Tasks write into the run folders themselves: on a cluster `spec.out` must be on a filesystem that every node
+    mounts at the same path, and every node needs warpbags installed. The scene travels through Ray's object store.
+    A CPU task renders with `cpus_per_run` host threads; the renderer's thread count changes results at rounding
+    level, so a sweep equals the local executor's when `cpus_per_run` is the local machine's core count.
+
+    Attributes:
+        address: an existing cluster, as ray.init takes it (HOST:6379, ray://HOST:10001, or auto for one started
+            with `ray start` on this machine). None starts a local Ray instance for the sweep and stops it after.
+            An already initialized Ray is used as it is.
+        cpus_per_run: CPUs each task declares, and its CPU rendering threads.
+        gpus_per_run: GPUs each task declares (a fraction lets runs share a GPU).
+    """
+
+    address: str | None = None
+    cpus_per_run: int = 1
+    gpus_per_run: float = 0.0
+
+    def __post_init__(self) -> None:
+        if self.cpus_per_run < 1:
+            raise WarpbagsError(f"--cpus-per-run must be >= 1, got {self.cpus_per_run}")
+        if self.gpus_per_run < 0:
+            raise WarpbagsError(f"--gpus-per-run must be >= 0, got {self.gpus_per_run:g}")
+
+    def map(self, spec: SweepSpec, runs: list[SweepRun], scene: Scene, log: Log) -> list[dict]:
+        if spec.device == "cuda" and self.gpus_per_run == 0:
+            raise WarpbagsError("--device cuda with --gpus-per-run 0: a Ray task sees no GPU it did not declare")
+        ray = _import_ray()
+        started_here = not ray.is_initialized()
+        if started_here:
+            self._connect(ray)
+        try:
+            self._check_node_resources(ray)
+            # Workers may run in another folder than this process: give them absolute paths.
+            return self._run_tasks(ray, replace(spec, out=spec.out.resolve()), runs, scene, log)
+        finally:
+            if started_here:
+                ray.shutdown()
+
+    def _connect(self, ray) -> None:
+        if self.address is None:
+            # A local instance for this sweep only: no dashboard, no usage report (starts fast and offline).
+            os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")
+            options = {"address": "local", "include_dashboard": False}
+        else:
+            if self.address != "auto":
+                _check_reachable(self.address)
+            options = {"address": self.address}
+        try:
+            # Workers' own output (Warp's banner, module loads) stays in Ray's logs, as the local runs are quiet.
+            ray.init(log_to_driver=False, **options)
+        except (ConnectionError, ValueError, RuntimeError) as error:
+            if self.address is None:
+                raise WarpbagsError(f"cannot start a local Ray instance: {error}") from None
+            raise WarpbagsError(f"--address {self.address}: cannot connect to Ray: {error} (a cluster with token "
+                                "authentication also needs RAY_AUTH_MODE=token and its token here)") from None
+
+    def _check_node_resources(self, ray) -> None:
+        """Fail now, rather than leave tasks pending forever, if no node can hold one run."""
+        nodes = [node["Resources"] for node in ray.nodes() if node["Alive"]]
+        for resource, need, option in (("CPU", self.cpus_per_run, "--cpus-per-run"),
+                                       ("GPU", self.gpus_per_run, "--gpus-per-run")):
+            largest = max((node.get(resource, 0) for node in nodes), default=0)
+            if need > largest:
+                raise WarpbagsError(f"{option} {need:g}: no node of the Ray cluster has that many {resource}s "
+                                    f"(largest: {largest:g})")
+
+    def _run_tasks(self, ray, spec: SweepSpec, runs: list[SweepRun], scene: Scene, log: Log) -> list[dict]:
+        """The finished runs' rows read here, the others' from one task each."""
+        rows, todo = {}, []
+        for run in runs:
+            log(progress(spec, run))
+            if _is_done(spec.out / run.name):
+                rows[run] = _row(spec.out / run.name, run)
+            else:
+                todo.append(run)
+        if todo:
+            rows.update(self._gather(ray, spec, todo, scene, log))
+        return [rows[run] for run in runs]
+
+    def _gather(self, ray, spec: SweepSpec, runs: list[SweepRun], scene: Scene, log: Log) -> dict[SweepRun, dict]:
+        """Submit one task per run and collect the rows as the tasks finish, in whatever order."""
+        task = ray.remote(num_cpus=self.cpus_per_run, num_gpus=self.gpus_per_run)(run_combination)
+        scene_ref = ray.put(scene)
+        pending = {task.remote(spec, run, scene_ref, self.cpus_per_run): run for run in runs}
+        rows = {}
+        while pending:
+            [ready], _ = ray.wait(list(pending), num_returns=1)
+            run = pending.pop(ready)
+            rows[run] = _task_result(ray, ready, run)
+            log(f"finished {run.name}")
+        return rows
+
+
+def make_executor(name: str, *, address: str | None = None, cpus_per_run: int | None = None,
+                  gpus_per_run: float | None = None, device: str = "cpu") -> Executor:
+    """The executor named on the command line, with the Ray defaults for `device`: one CPU and one GPU per run with
+    cuda, else no GPU and this machine's cores per run (like the local executor's runs).
+
+    Raises:
+        WarpbagsError: an unknown name, or Ray options with the local executor.
+    """
+    if name not in EXECUTORS:
+        raise WarpbagsError(f"--executor must be one of {', '.join(EXECUTORS)}, got {name!r}")
+    if name == "local":
+        given = [option for option, value in (("--address", address), ("--cpus-per-run", cpus_per_run),
+                                              ("--gpus-per-run", gpus_per_run)) if value is not None]
+        if given:
+            raise WarpbagsError(f"{', '.join(given)} need --executor ray")
+        return LocalExecutor()
+    on_gpu = device == "cuda"
+    return RayExecutor(address=address,
+                       cpus_per_run=cpus_per_run if cpus_per_run is not None else 1 if on_gpu else usable_cores(),
+                       gpus_per_run=gpus_per_run if gpus_per_run is not None else 1.0 if on_gpu else 0.0)
+
+
+def _import_ray():
+    try:
+        import ray  # noqa: PLC0415 - an optional extra, needed only by this executor
+    except ImportError:
+        raise WarpbagsError(f"--executor ray needs Ray: {RAY_INSTALL}") from None
+    return ray
+
+
+def _check_reachable(address: str) -> None:
+    """A quick TCP check of HOST:PORT: ray.init retries an address nobody answers for minutes."""
+    host, _, port = address.removeprefix("ray://").rpartition(":")
+    if not host or not port.isdigit():
+        raise WarpbagsError(f"--address must be HOST:PORT, ray://HOST:PORT or auto, got {address!r}")
+    try:
+        socket.create_connection((host, int(port)), timeout=10).close()
+    except OSError as error:
+        raise WarpbagsError(f"--address {address}: no Ray cluster answers there ({error}); "
+                            "start one with `ray start --head` on that machine") from None
+
+
+def _task_result(ray, ref, run: SweepRun) -> dict:
+    """A task's row; a WarpbagsError inside the task stays one line, naming the run."""
+    try:
+        return ray.get(ref)
+    except ray.exceptions.RayTaskError as error:
+        if isinstance(error.cause, WarpbagsError):
+            raise WarpbagsError(f"{run.name}: {error.cause}") from None
+        raise
+
+
+def _is_done(run_dir: Path) -> bool:
+    return (run_dir / "eval.json").is_file()
+
+
+def _has_checkpoint(run_dir: Path) -> bool:
+    return any((run_dir / "checkpoints").glob("checkpoint_*.pt"))
+
+
+def _quiet(message: str) -> None:
+    """Runs inside a sweep log nothing of their own: the sweep logs one line per run."""
+
+
+def _row(run_dir: Path, run: SweepRun) -> dict:
     report = json.loads((run_dir / "eval.json").read_text())
     poses = report["poses"]["procrustes"]
     refined = report.get("images_after_test_pose_refinement", report["images"])
     return {
-        "method": method, "views": views, "rot_noise_deg": noise, "seed": seed,
+        "method": run.method, "views": run.views, "rot_noise_deg": run.rot_noise_deg, "seed": run.seed,
         "rot_err_initial": poses["initial"]["rotation_deg_mean"], "rot_err_final": poses["final"]["rotation_deg_mean"],
         "trans_err_initial": poses["initial"]["translation_mean"], "trans_err_final": poses["final"]["translation_mean"],
         "psnr": report["images"]["mean"]["psnr"], "ssim": report["images"]["mean"]["ssim"],
