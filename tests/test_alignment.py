@@ -8,8 +8,8 @@ import pytest
 import torch
 from random_poses import F64, generator, random_sim3, random_viewmats
 
-from warpbags.alignment import Sim3, align_viewmats, pose_errors, umeyama
-from warpbags.cameras import camera_centers
+from warpbags.alignment import Sim3, align_viewmats, centre_floor_errors, pose_errors, umeyama
+from warpbags.cameras import camera_centers, moved_keeping_target
 from warpbags.data.noise import perturb_viewmats
 from warpbags.lie import so3_exp
 
@@ -204,3 +204,30 @@ def test_pose_errors_camera_count_requirements():
         pose_errors(estimated, reference, alignment="icp")
     with pytest.raises(ValueError, match="equal shape"):
         pose_errors(estimated[:1], reference)
+
+
+# ----------------------------------------------------------------------------------------------- centre floor
+
+
+def _look_at_origin(viewmats: torch.Tensor) -> torch.Tensor:
+    looking = viewmats.clone()
+    looking[:, :3, 3] = torch.tensor([0.0, 0.0, 4.0], dtype=F64)
+    return looking
+
+
+def test_centre_floor_is_zero_for_orientation_noise_and_gauge_free_for_centre_noise():
+    gen = generator(21)
+    truth = _look_at_origin(random_viewmats(5, gen))
+    origin = torch.zeros(3, dtype=F64)
+    torch.testing.assert_close(centre_floor_errors(truth, truth, origin), torch.zeros(5, dtype=F64), atol=1e-6, rtol=0)
+    # Rotations about the camera centres leave the centres, and so the floor, untouched.
+    turned = perturb_viewmats(truth, rot_std_deg=10.0, trans_std=0.0, seed=2)
+    torch.testing.assert_close(centre_floor_errors(turned, truth, origin), torch.zeros(5, dtype=F64), atol=1e-6, rtol=0)
+    assert pose_errors(turned, truth)["rotation_error_deg_mean"] > 3.0
+    # Noisy centres: a floor of degrees (0.3 units at 4 units from the object), the same in any gauge.
+    centers = camera_centers(truth) + 0.3 * torch.randn(5, 3, generator=gen, dtype=F64)
+    looking = moved_keeping_target(truth, centers, origin)
+    floor = centre_floor_errors(looking, truth, origin)
+    assert floor.mean() > 1.0
+    torch.testing.assert_close(centre_floor_errors(align_viewmats(looking, random_sim3(gen, scale=0.6)), truth, origin),
+                               floor, atol=1e-8, rtol=0)

@@ -5,7 +5,7 @@ from __future__ import annotations
 import torch
 from random_poses import F64, generator, random_rotations, random_viewmats
 
-from warpbags.cameras import camera_centers, project_points, viewmats_from_centers
+from warpbags.cameras import camera_centers, moved_keeping_target, project_points, viewmats_from_centers
 
 
 def test_camera_centers_map_to_camera_origin():
@@ -38,3 +38,26 @@ def test_project_points_is_the_pinhole_model():
     torch.testing.assert_close(pixels[0, 0], torch.tensor([55.0, 28.0], dtype=F64))
     torch.testing.assert_close(depths[0], torch.tensor([2.0, -1.0], dtype=F64))
     assert torch.isfinite(pixels).all()  # the point behind the camera stays finite; its depth marks it
+
+
+def test_moved_keeping_target_keeps_the_target_on_its_ray_and_turns_least():
+    gen = generator(3)
+    viewmats = random_viewmats(6, gen).double()
+    target = torch.randn(3, generator=gen, dtype=torch.float64) * 0.1
+    in_front = (viewmats[:, :3, :3] @ target + viewmats[:, :3, 3])[:, 2] > 0.5
+    viewmats = viewmats[in_front]
+    assert len(viewmats) >= 2
+    Ks = torch.tensor([[100.0, 0, 50], [0, 100.0, 50], [0, 0, 1]], dtype=torch.float64).expand(len(viewmats), 3, 3)
+    centers = camera_centers(viewmats) + 0.3 * torch.randn(len(viewmats), 3, generator=gen, dtype=torch.float64)
+    moved = moved_keeping_target(viewmats, centers, target)
+    torch.testing.assert_close(camera_centers(moved), centers)
+    before, _ = project_points(viewmats, Ks, target[None])
+    after, _ = project_points(moved, Ks, target[None])
+    torch.testing.assert_close(after, before)  # the target stays where the camera saw it
+    # The turn is the smallest one: its axis is perpendicular to the ray, so the roll about that ray is unchanged.
+    turn = moved[:, :3, :3] @ viewmats[:, :3, :3].transpose(1, 2)
+    ray = viewmats[:, :3, :3] @ target + viewmats[:, :3, 3]
+    axis = torch.stack([turn[:, 2, 1] - turn[:, 1, 2], turn[:, 0, 2] - turn[:, 2, 0], turn[:, 1, 0] - turn[:, 0, 1]], -1)
+    assert ((axis * ray).sum(-1).abs() <= 1e-9 * ray.norm(dim=-1)).all()
+    # Not moving is the identity.
+    torch.testing.assert_close(moved_keeping_target(viewmats, camera_centers(viewmats), target), viewmats)

@@ -12,10 +12,10 @@ from typing import Literal
 
 import torch
 
-from warpbags.cameras import camera_centers, viewmats_from_centers
+from warpbags.cameras import camera_centers, moved_keeping_target, viewmats_from_centers
 from warpbags.lie import rotation_error_deg
 
-__all__ = ["Sim3", "align_viewmats", "pose_errors", "umeyama"]
+__all__ = ["Sim3", "align_viewmats", "centre_floor_errors", "pose_errors", "umeyama"]
 
 
 @dataclass(frozen=True)
@@ -253,3 +253,17 @@ def pose_errors(
         "translation_error_median": torch.quantile(translation_errors, 0.5).item(),
         "sim3": sim3,
     }
+
+
+def centre_floor_errors(viewmats_est: torch.Tensor, viewmats_ref: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    """[C] rotation errors (degrees) that the estimate's camera centres alone force, after Procrustes alignment.
+
+    The reference cameras are moved to the estimate's aligned centres and turned to keep `target` (the object
+    centre, reference frame) where they saw it (`cameras.moved_keeping_target`): their orientation is the best
+    any estimate with these centres could have, and their errors are what is left once pan, tilt and roll are
+    exact. Far from the object a centre error of d along the orbit turns a camera that looks at the object by
+    about d / distance, so rotation errors below this floor need better centres, not better orientations.
+    """
+    aligned = align_viewmats(viewmats_est, pose_errors(viewmats_est, viewmats_ref)["sim3"])
+    best = moved_keeping_target(viewmats_ref, camera_centers(aligned), target.to(viewmats_ref))
+    return pose_errors(best, viewmats_ref)["rotation_errors_deg"]

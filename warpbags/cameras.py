@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import torch
 
-__all__ = ["camera_centers", "project_points", "viewmats_from_centers"]
+__all__ = ["camera_centers", "moved_keeping_target", "project_points", "viewmats_from_centers"]
 
 
 def camera_centers(viewmats: torch.Tensor) -> torch.Tensor:
@@ -59,3 +59,34 @@ def viewmats_from_centers(rotations: torch.Tensor, centers: torch.Tensor) -> tor
     bottom = torch.zeros(*rotations.shape[:-2], 1, 4, dtype=rotations.dtype, device=rotations.device)
     bottom[..., 0, 3] = 1.0
     return torch.cat([top, bottom], dim=-2)
+
+
+def moved_keeping_target(viewmats: torch.Tensor, centers: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    """Cameras moved to new centres, each then turned about its new centre by the smallest rotation that puts
+    `target` back on the ray it was seen along.
+
+    This is the best any pose estimate can do with the camera centres it has: the orientation is exact up to the
+    turn that the centre error forces on a camera that keeps looking at the object. Pose errors of these cameras
+    are the part of a rotation error that comes from the centres alone.
+
+    Args:
+        viewmats: ``[C, 4, 4]`` world-to-camera matrices (e.g. the reference poses).
+        centers: ``[C, 3]`` new camera centres (e.g. estimated ones, in the same world frame).
+        target: ``[3]`` the world point the cameras keep (e.g. the object centre); in front of every camera.
+
+    Returns:
+        ``[C, 4, 4]`` world-to-camera matrices with centres ``centers``.
+    """
+    rotations = viewmats[..., :3, :3]
+    seen = rotations @ target + viewmats[..., :3, 3]
+    moved = rotations @ (target - centers)[..., None]
+    seen, moved = seen / seen.norm(dim=-1, keepdim=True), moved[..., 0] / moved[..., 0].norm(dim=-1, keepdim=True)
+    # Rodrigues' rotation taking `moved` onto `seen` (both unit, never opposite for a target in front).
+    axis = torch.linalg.cross(moved, seen)
+    cosine = (moved * seen).sum(-1)[..., None, None]
+    skew = torch.zeros(*axis.shape[:-1], 3, 3, dtype=axis.dtype, device=axis.device)
+    skew[..., 0, 1], skew[..., 0, 2], skew[..., 1, 2] = -axis[..., 2], axis[..., 1], -axis[..., 0]
+    skew = skew - skew.transpose(-1, -2)
+    eye = torch.eye(3, dtype=axis.dtype, device=axis.device)
+    turn = eye + skew + skew @ skew / (1 + cosine)
+    return viewmats_from_centers(turn @ rotations, centers)

@@ -29,7 +29,7 @@ import numpy as np
 import torch
 from skimage.metrics import peak_signal_noise_ratio, structural_similarity
 
-from warpbags.alignment import align_viewmats, pose_errors
+from warpbags.alignment import align_viewmats, centre_floor_errors, pose_errors
 from warpbags.camera_optimizer import CameraOptimizer, CameraOptimizerSettings
 from warpbags.camera_paths import turntable_viewmats
 from warpbags.configs.train import TrainConfig
@@ -123,9 +123,10 @@ def pose_accuracy(run: TrainingRun, log=print) -> dict:
     """
     report = {}
     for alignment in ALIGNMENTS:
+        poses_by_stage = {"initial": run.poses_init, "final": run.poses_final}
         try:
             errors_by_stage = {stage: pose_errors(poses, run.poses_true, alignment=alignment)
-                               for stage, poses in (("initial", run.poses_init), ("final", run.poses_final))}
+                               for stage, poses in poses_by_stage.items()}
         except ValueError as error:
             log(f"pose errors: {alignment} left out: {error}")
             continue
@@ -140,6 +141,10 @@ def pose_accuracy(run: TrainingRun, log=print) -> dict:
                 "translation_median": errors["translation_error_median"],
                 "translation_percent_of_orbit": 100 * errors["translation_error_mean"] / ORBIT_RADIUS,
             }
+            if alignment == "procrustes":  # the normalized scene is centred on the object
+                floor = centre_floor_errors(poses_by_stage[stage], run.poses_true, torch.zeros(3, dtype=torch.float64))
+                entry[stage]["rotation_deg_centre_floor"] = floor.tolist()
+                entry[stage]["rotation_deg_centre_floor_mean"] = floor.mean().item()
         report[alignment] = entry
     return report
 
