@@ -71,3 +71,4 @@ def main() -> None:
 from warpbags.cli import info as _info  # noqa: E402,F401  registers `info` and `synth`
 from warpbags.cli import train as _train  # noqa: E402,F401  registers `train`
 from warpbags.cli import evaluate as _evaluate  # noqa: E402,F401  registers `eval`
+from warpbags.cli import view as _view  # noqa: E402,F401  registers `view`

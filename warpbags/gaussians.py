@@ -75,47 +75,83 @@ def write_ply(path: str | Path, params: dict[str, torch.Tensor]) -> None:
         handle.write(data.tobytes())
 
 
+# PLY property types as numpy little-endian dtypes (both the spec's names and the sized aliases tools write).
+_PLY_TYPES = {"char": "i1", "uchar": "u1", "short": "<i2", "ushort": "<u2", "int": "<i4", "uint": "<u4",
+              "float": "<f4", "double": "<f8", "int8": "i1", "uint8": "u1", "int16": "<i2", "uint16": "<u2",
+              "int32": "<i4", "uint32": "<u4", "float32": "<f4", "float64": "<f8"}
+_REQUIRED_PROPERTIES = ("x", "y", "z", "f_dc_0", "f_dc_1", "f_dc_2", "opacity", "scale_0", "scale_1", "scale_2",
+                        "rot_0", "rot_1", "rot_2", "rot_3")
+
+
+def _read_vertex_table(path: Path) -> np.ndarray:
+    """The vertex element of a binary little-endian PLY as a structured array (one field per property)."""
+    with open(path, "rb") as handle:
+        header = handle.readline(8)  # bounded: a large binary file of another kind has no early newline
+        if header != b"ply\n":
+            raise WarpbagsError(f"{path}: not a PLY file")
+        while not header.endswith(b"end_header\n"):
+            line = handle.readline()
+            if not line:
+                raise WarpbagsError(f"{path}: no PLY end_header")
+            header += line
+        lines = header.decode("ascii").splitlines()
+        if "format binary_little_endian 1.0" not in lines:
+            raise WarpbagsError(f"{path}: not a binary little-endian PLY")
+        elements = [index for index, line in enumerate(lines) if line.startswith("element ")]
+        if not elements or lines[elements[0]].split()[1] != "vertex":
+            raise WarpbagsError(f"{path}: the first PLY element is not vertex")
+        count = int(lines[elements[0]].split()[2])
+        end = elements[1] if len(elements) > 1 else len(lines)
+        fields = []
+        for line in lines[elements[0] + 1:end]:
+            words = line.split()
+            if words[0] == "property":
+                if words[1] == "list" or words[1] not in _PLY_TYPES:
+                    raise WarpbagsError(f"{path}: unsupported vertex property {line!r}")
+                fields.append((words[2], _PLY_TYPES[words[1]]))
+        dtype = np.dtype(fields)
+        data = handle.read(count * dtype.itemsize)  # later elements (faces of a mesh PLY) are not needed
+    if len(data) != count * dtype.itemsize:
+        raise WarpbagsError(f"{path}: truncated PLY ({len(data)} of {count * dtype.itemsize} vertex bytes)")
+    return np.frombuffer(data, dtype=dtype, count=count)
+
+
 def read_ply(path: str | Path) -> dict[str, torch.Tensor]:
-    """Read a 3DGS PLY (as written by `write_ply` or 3DGS itself) back into raw parameters.
+    """Read a 3DGS PLY back into raw parameters: as written by `write_ply`, 3DGS, gsplat, nerfstudio and others.
+
+    Properties are read by name, in any order and of any numeric type; others (normals, colours) are ignored.
+    Needed: x y z, f_dc_0..2, opacity (logit), scale_0..2 (log), rot_0..3 (w, x, y, z); f_rest_* are optional
+    (3DGS's channel-major order).
 
     Raises:
-        WarpbagsError: not a binary little-endian PLY with the 3DGS float properties.
+        WarpbagsError: not a binary little-endian PLY with the 3DGS properties.
     """
     path = Path(path)
     try:
-        with open(path, "rb") as handle:
-            header = b""
-            while not header.endswith(b"end_header\n"):
-                line = handle.readline()
-                if not line:
-                    raise WarpbagsError(f"{path}: no PLY end_header")
-                header += line
-            lines = header.decode("ascii").splitlines()
-            if lines[0] != "ply" or "format binary_little_endian 1.0" not in lines:
-                raise WarpbagsError(f"{path}: not a binary little-endian PLY")
-            count = int(next(line.split()[2] for line in lines if line.startswith("element vertex")))
-            names = [line.split()[2] for line in lines if line.startswith("property float")]
-            data = np.frombuffer(handle.read(), dtype="<f4")
-    except (OSError, UnicodeDecodeError, StopIteration, ValueError, IndexError) as error:
+        table = _read_vertex_table(path)
+    except (OSError, UnicodeDecodeError, ValueError, IndexError, TypeError) as error:
         raise WarpbagsError(f"{path}: unreadable PLY ({error})") from None
+    names = table.dtype.names
+    missing = [name for name in _REQUIRED_PROPERTIES if name not in names]
     rest_count = sum(name.startswith("f_rest_") for name in names)
-    if names != _ply_names(rest_count) or data.size != count * len(names) or rest_count % 3:
-        raise WarpbagsError(f"{path}: not a 3DGS Gaussian PLY ({len(names)} float properties, {data.size} values)")
-    table = torch.from_numpy(data.reshape(count, len(names)).copy())
-    column = {name: index for index, name in enumerate(names)}
+    if missing or rest_count % 3:
+        raise WarpbagsError(f"{path}: not a 3DGS Gaussian PLY (missing {', '.join(missing) or 'none'}; "
+                            f"{rest_count} f_rest properties)")
 
-    def take(prefix: str, n: int) -> torch.Tensor:
-        return table[:, column[f"{prefix}0"]: column[f"{prefix}0"] + n]
+    def columns(*column_names: str) -> torch.Tensor:
+        return torch.from_numpy(np.stack([table[name].astype(np.float32) for name in column_names], axis=1))
 
+    count = len(table)
     params = {
-        "means": table[:, 0:3].contiguous(),
-        "scales": take("scale_", 3).contiguous(),
-        "quats": take("rot_", 4).contiguous(),
-        "opacities": table[:, column["opacity"]].contiguous(),
-        "sh0": take("f_dc_", 3)[:, None, :].contiguous(),
+        "means": columns("x", "y", "z"),
+        "scales": columns("scale_0", "scale_1", "scale_2"),
+        "quats": columns("rot_0", "rot_1", "rot_2", "rot_3"),
+        "opacities": columns("opacity")[:, 0].contiguous(),
+        "sh0": columns("f_dc_0", "f_dc_1", "f_dc_2")[:, None, :],
     }
     if rest_count:
-        params["shN"] = take("f_rest_", rest_count).reshape(count, 3, rest_count // 3).transpose(1, 2).contiguous()
+        rest = columns(*(f"f_rest_{i}" for i in range(rest_count)))
+        params["shN"] = rest.reshape(count, 3, rest_count // 3).transpose(1, 2).contiguous()
     return params
 
 

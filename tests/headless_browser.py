@@ -1,0 +1,124 @@
+"""Screenshots of a web page in headless Chromium (Debian's `chromium`), driven over the DevTools protocol.
+
+Chromium's own `--screenshot` fires on virtual time, before a page that waits on a websocket (viser's viewer waits
+for rendered frames) has drawn anything, so the page is opened with `--remote-debugging-port` instead and the
+screenshot is taken when the caller says the page is ready. WebGL runs in software (SwiftShader) with
+`--disable-gpu`.
+
+    python tests/headless_browser.py RUN_OR_PLY OUT.png    # the README's viewer screenshot
+"""
+
+from __future__ import annotations
+
+import base64
+import itertools
+import json
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+import urllib.request
+from pathlib import Path
+from typing import Callable
+
+from websockets.sync.client import connect
+
+CHROMIUM_FLAGS = ("--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
+                  "--disable-background-networking", "--disable-component-update", "--disable-sync",
+                  "--remote-debugging-port=0")
+
+
+def find_chromium() -> str | None:
+    """The Chromium binary, or None."""
+    return shutil.which("chromium") or shutil.which("chromium-browser")
+
+
+class DevTools:
+    """One page's DevTools connection: `call(method, **params)` returns the command's result."""
+
+    def __init__(self, websocket_url: str):
+        self._socket = connect(websocket_url, max_size=None)
+        self._ids = itertools.count(1)
+
+    def call(self, method: str, **params) -> dict:
+        command_id = next(self._ids)
+        self._socket.send(json.dumps({"id": command_id, "method": method, "params": params}))
+        while True:  # events arrive between the replies; skip them
+            message = json.loads(self._socket.recv(timeout=60))
+            if message.get("id") == command_id:
+                if "error" in message:
+                    raise RuntimeError(f"{method}: {message['error']}")
+                return message["result"]
+
+    def close(self) -> None:
+        self._socket.close()
+
+
+def _devtools_port(profile: Path, process: subprocess.Popen, timeout: float) -> int:
+    port_file = profile / "DevToolsActivePort"
+    deadline = time.monotonic() + timeout
+    while not port_file.is_file() or not port_file.read_text().strip():
+        if process.poll() is not None or time.monotonic() > deadline:
+            raise RuntimeError(f"chromium did not open its DevTools port (exit code {process.poll()})")
+        time.sleep(0.1)
+    return int(port_file.read_text().split()[0])
+
+
+def screenshot(url: str, out: Path, ready: Callable[[], bool], size: tuple[int, int] = (800, 600),
+               timeout: float = 60.0, settle: float = 1.0, script: str | None = None) -> Path:
+    """Open `url` at `size`, wait until `ready()` (polled), then `settle` seconds for the page to draw; run
+    `script` (JavaScript) if given and write a PNG screenshot to `out`.
+
+    Raises:
+        RuntimeError: no Chromium, or `ready()` still False after `timeout` seconds.
+    """
+    chromium = find_chromium()
+    if chromium is None:
+        raise RuntimeError("chromium is not installed (apt-get install chromium)")
+    with tempfile.TemporaryDirectory(prefix="chromium-") as profile:
+        process = subprocess.Popen([chromium, *CHROMIUM_FLAGS, f"--user-data-dir={profile}", "about:blank"],
+                                   stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        try:
+            port = _devtools_port(Path(profile), process, timeout)
+            pages = json.load(urllib.request.urlopen(f"http://127.0.0.1:{port}/json/list", timeout=10))
+            page = DevTools(next(p for p in pages if p["type"] == "page")["webSocketDebuggerUrl"])
+            try:
+                page.call("Emulation.setDeviceMetricsOverride", width=size[0], height=size[1],
+                          deviceScaleFactor=1, mobile=False)
+                page.call("Page.navigate", url=url)
+                deadline = time.monotonic() + timeout
+                while not ready():
+                    if time.monotonic() > deadline:
+                        raise RuntimeError(f"{url} was not ready after {timeout:.0f} s")
+                    time.sleep(0.1)
+                time.sleep(settle)
+                if script is not None:
+                    page.call("Runtime.evaluate", expression=script)
+                    time.sleep(0.2)
+                data = page.call("Page.captureScreenshot", format="png")["data"]
+            finally:
+                page.close()
+        finally:
+            process.terminate()
+            process.wait(timeout=10)
+    out.write_bytes(base64.b64decode(data))
+    return out
+
+
+def _viewer_screenshot(path: str, out: str) -> None:
+    """A screenshot of `warpbags view PATH`, with the browser's software-WebGL notice closed."""
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+    from warpbags.viewer import Viewer, load_viewer_content  # noqa: PLC0415
+
+    viewer = Viewer(load_viewer_content(path), port=0, device="cpu")
+    try:
+        close_notices = "document.querySelectorAll('.mantine-Notification-closeButton').forEach(b => b.click())"
+        screenshot(viewer.url, Path(out), lambda: any(r.last_frame.full_resolution for r in viewer.renderers.values()),
+                   script=close_notices)
+    finally:
+        viewer.stop()
+
+
+if __name__ == "__main__":
+    _viewer_screenshot(*sys.argv[1:3])

@@ -1,0 +1,202 @@
+"""`warpbags view`: pose history, PLY files of other tools, the viewer's cameras and frames, and the page in
+headless Chromium."""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+
+import numpy as np
+import pytest
+import torch
+from headless_browser import find_chromium, screenshot
+from random_poses import generator, random_sim3, random_viewmats
+from typer.testing import CliRunner
+
+from warpbags.alignment import align_viewmats
+from warpbags.cameras import camera_centers
+from warpbags.cli.main import app
+from warpbags.configs.train import load_preset
+from warpbags.data import SyntheticOptions, ensure_synthetic_scene, load_scene
+from warpbags.errors import WarpbagsError
+from warpbags.gaussians import read_ply, write_ply
+from warpbags.pose_history import read_pose_history, record_poses
+from warpbags.trainer import start_or_resume, training_scene
+from warpbags.viewer import Viewer, load_viewer_content
+from warpbags.viewer.render import (MIN_SCALE, camera_to_world, next_scale, pinhole_intrinsics,
+                                    world_to_camera)
+
+runner = CliRunner()
+ITERS, RECORD_EVERY = 8, 2
+
+
+@pytest.fixture(scope="module")
+def run_dir(tmp_path_factory):
+    """A finished tiny run (4 noisy views at 64 px, 8 iterations) that recorded its poses every 2 iterations,
+    the way the trainer is meant to."""
+    scene_dir = ensure_synthetic_scene(SyntheticOptions(views=16, width=64, height=64),
+                                       cache_dir=tmp_path_factory.mktemp("cache"))
+    out = tmp_path_factory.mktemp("runs") / "run"
+    config = load_preset("quick", iters=ITERS, rot_noise_deg=4.0, trans_noise=0.05, render_threads=1)
+    trainer = start_or_resume(training_scene(load_scene(scene_dir, name="tiny"), config), config, out,
+                              log=lambda message: None)
+
+    def record(_) -> None:
+        if trainer.iteration % RECORD_EVERY == 0:
+            record_poses(out, trainer.iteration, trainer.current_viewmats())
+
+    trainer.train(callback=record)
+    return out
+
+
+# ------------------------------------------------------------------------------------------------ pose history
+def test_pose_history_appends_and_follows_a_resume(tmp_path):
+    viewmats = random_viewmats(3, generator(0)).float()
+    assert read_pose_history(tmp_path) is None
+    for iteration in (10, 20, 30):
+        record_poses(tmp_path, iteration, viewmats + iteration)
+    record_poses(tmp_path, 20, viewmats)  # resumed from the checkpoint at 10: 20 and 30 are replayed
+    history = read_pose_history(tmp_path)
+    assert history.iterations.tolist() == [10, 20] and history.viewmats.shape == (2, 3, 4, 4)
+    np.testing.assert_array_equal(history.viewmats[1], viewmats.numpy())
+    assert sorted(path.name for path in tmp_path.iterdir()) == ["poses_history.npz"]  # no temporary left
+    with pytest.raises(WarpbagsError, match="holds 3 cameras"):
+        record_poses(tmp_path, 40, viewmats[:2])
+
+
+# ------------------------------------------------------------------------------------------------ PLY
+def test_read_ply_of_another_tool_layout(run_dir, tmp_path):
+    """gsplat writes no normals; other tools reorder properties, write doubles or add colours. f_rest is 3DGS's
+    channel-major order: all of red's coefficients, then green's, then blue's."""
+    params = read_ply(run_dir / "gaussians.ply")
+    count = len(params["means"])
+    params["shN"] = torch.randn(count, 3, 3, generator=torch.Generator().manual_seed(0))  # SH degree 1
+    columns = {"red": (np.arange(count) % 256).astype("u1"), "opacity": params["opacities"].numpy()}
+    columns.update({f"rot_{i}": params["quats"][:, i].numpy() for i in range(4)})
+    columns.update({axis: params["means"][:, i].numpy().astype("<f8") for i, axis in enumerate("xyz")})
+    columns.update({f"scale_{i}": params["scales"][:, i].numpy() for i in range(3)})
+    columns.update({f"f_dc_{i}": params["sh0"][:, 0, i].numpy() for i in range(3)})
+    columns.update({f"f_rest_{3 * channel + k}": params["shN"][:, k, channel].numpy()
+                    for channel in range(3) for k in range(3)})
+    table = np.empty(count, dtype=[(name, array.dtype.str) for name, array in columns.items()])
+    for name, array in columns.items():
+        table[name] = array
+    types = {"u1": "uchar", "f4": "float", "f8": "double"}
+    header = "ply\nformat binary_little_endian 1.0\ncomment another tool\nelement vertex {}\n{}end_header\n".format(
+        count, "".join(f"property {types[table.dtype[name].str[1:]]} {name}\n" for name in table.dtype.names))
+    (tmp_path / "other.ply").write_bytes(header.encode("ascii") + table.tobytes())
+    again = read_ply(tmp_path / "other.ply")
+    assert set(again) == set(params)
+    for name in params:
+        torch.testing.assert_close(again[name], params[name], rtol=0, atol=0)
+    write_ply(tmp_path / "ours.ply", again)  # and back through write_ply
+    torch.testing.assert_close(read_ply(tmp_path / "ours.ply")["shN"], params["shN"], rtol=0, atol=0)
+
+
+# ------------------------------------------------------------------------------------------------ cameras
+def test_camera_conversions_follow_viser_conventions():
+    viewmats = random_viewmats(5, generator(1)).numpy()
+    for viewmat in viewmats:
+        wxyz, position = camera_to_world(viewmat)
+        np.testing.assert_allclose(world_to_camera(wxyz, position), viewmat, atol=1e-10)
+        np.testing.assert_allclose(position, camera_centers(torch.from_numpy(viewmat)[None])[0].numpy(), atol=1e-10)
+    # A camera at the origin with viser's identity rotation looks down +z (OpenCV): a point ahead lands in the
+    # image centre, a point above (-y) in the top half.
+    K = pinhole_intrinsics(np.deg2rad(60), 200, 100)
+    assert K[1, 1] == pytest.approx(50 / np.tan(np.deg2rad(30)))
+    viewmat = world_to_camera(np.array([1.0, 0, 0, 0]), np.zeros(3))
+    ahead, above = (K @ (viewmat[:3, :3] @ point + viewmat[:3, 3]) for point in ([0, 0, 2.0], [0, -0.5, 2.0]))
+    assert ahead[:2] / ahead[2] == pytest.approx([100, 50]) and above[1] / above[2] < 50
+
+
+def test_resolution_adapts_to_the_render_time():
+    assert next_scale(0.5, seconds=0.8, target_seconds=0.2) == pytest.approx(0.25)  # 4x too slow: half the side
+    assert next_scale(0.5, seconds=0.05, target_seconds=0.2) == pytest.approx(1.0)  # 4x too fast: double
+    assert next_scale(0.5, seconds=30.0, target_seconds=0.2) == pytest.approx(0.25)  # one stall: at most halved
+    assert next_scale(MIN_SCALE, seconds=5.0, target_seconds=0.2) == MIN_SCALE
+    assert next_scale(0.9, seconds=0.01, target_seconds=0.2) == 1.0
+
+
+def test_content_of_a_run(run_dir):
+    content = load_viewer_content(run_dir, log=lambda message: None)
+    cameras = content.cameras
+    assert cameras.iterations.tolist() == list(range(0, ITERS + 1, RECORD_EVERY))  # start, history, final
+    np.testing.assert_array_equal(cameras.frames[0], np.load(run_dir / "poses_start.npy"))
+    np.testing.assert_array_equal(cameras.final, np.load(run_dir / "poses_final.npy"))
+    assert cameras.images.shape[0] == 4 and cameras.images.dtype == np.uint8
+    assert content.background == (1.0, 1.0, 1.0)
+
+
+def test_reference_cameras_are_aligned_as_eval_does(run_dir, tmp_path):
+    """Reference poses in another world frame (a sim(3) away) land exactly on the optimized cameras."""
+    run = tmp_path / "run"
+    shutil.copytree(run_dir, run, ignore=shutil.ignore_patterns("checkpoints"))
+    final = torch.from_numpy(np.load(run / "poses_final.npy")).double()
+    np.save(run / "poses_true.npy", align_viewmats(final, random_sim3(generator(2))).numpy())
+    reference = load_viewer_content(run, log=lambda message: None).cameras.reference
+    np.testing.assert_allclose(reference, final.numpy(), atol=1e-6)
+
+
+def test_viewer_without_history_or_scene(run_dir, tmp_path):
+    """A run without pose history slides from start to final; a moved scene folder leaves pictureless frustums."""
+    run = tmp_path / "run"
+    shutil.copytree(run_dir, run, ignore=shutil.ignore_patterns("checkpoints", "poses_history.npz"))
+    info = json.loads((run / "config.json").read_text())
+    (run / "config.json").write_text(json.dumps({**info, "scene_root": str(tmp_path / "gone")}))
+    notes = []
+    content = load_viewer_content(run, log=notes.append)
+    assert content.cameras.iterations.tolist() == [0, ITERS] and content.cameras.images is None
+    assert any("training images unavailable" in note for note in notes)
+    viewer = Viewer(content, port=0, device="cpu")
+    try:
+        assert viewer.history_slider.visible and viewer.history_slider.max == ITERS
+        viewer.history_slider.value = 0  # the slider's callback moves the optimized frustums to the start poses
+        start_center = camera_to_world(np.load(run / "poses_start.npy")[1])[1]
+        np.testing.assert_allclose(viewer.frustums["optimized"][1].position, start_center, atol=1e-5)
+    finally:
+        viewer.stop()
+
+
+@pytest.mark.parametrize("case", ["missing", "no_ply", "not_ply"])
+def test_view_bad_input_is_one_line(run_dir, tmp_path, case):
+    path = {"missing": tmp_path / "nowhere", "no_ply": tmp_path, "not_ply": run_dir / "config.json"}[case]
+    named = {"missing": path, "no_ply": path / "gaussians.ply", "not_ply": path}[case]
+    result = runner.invoke(app, ["view", str(path), "--port", "0"])
+    assert result.exit_code == 2, result.output
+    assert str(named) in result.output and result.output.strip().count("\n") <= 1, result.output
+
+
+# ------------------------------------------------------------------------------------------------ browser
+def test_page_shows_the_object_and_the_frustums(run_dir, tmp_path):
+    if find_chromium() is None:
+        if os.environ.get("CI") == "true":
+            pytest.fail("chromium is missing on CI: .ci/run installs Debian's chromium package")
+        pytest.skip("needs Debian's chromium (apt-get install chromium)")
+    content = load_viewer_content(run_dir, log=lambda message: None)
+    viewer = Viewer(content, port=0, device="cpu")
+    try:
+        for name in ("start", "optimized", "reference"):
+            for index in range(4):
+                node = viewer.server.scene.get_handle_by_name(f"/cameras/{name}/{index}")
+                assert node is not None and type(node).__name__ == "CameraFrustumHandle", (name, index)
+        frames = []  # the browser's full-resolution frame, kept: its renderer goes when the browser closes
+
+        def full_frame() -> bool:
+            frames.extend(r.last_frame for r in viewer.renderers.values() if r.last_frame.full_resolution)
+            return bool(frames)
+
+        shot = screenshot(viewer.url, tmp_path / "viewer.png", ready=full_frame, size=(800, 600), timeout=120)
+    finally:
+        viewer.stop()
+    import cv2  # noqa: PLC0415
+
+    pixels = cv2.cvtColor(cv2.imread(str(shot)), cv2.COLOR_BGR2RGB).astype(int)
+    # The frame matches the canvas: 800 x 600, or 600 x 450 once viser's client lowers its pixel ratio to 0.75
+    # for slow (software) WebGL.
+    assert pixels.shape == (600, 800, 3) and frames[0].width >= 600 and frames[0].width * 3 == frames[0].height * 4
+    # The first camera looks at the Gaussians' centre: the object fills the middle of the canvas, on the run's
+    # white background, which shows in the corners left of the GUI panel.
+    not_white = (np.abs(pixels - 255).max(axis=-1) > 40)
+    assert not_white[250:350, 350:450].mean() > 0.5, not_white[250:350, 350:450].mean()
+    assert not_white[500:590, 100:300].mean() < 0.1

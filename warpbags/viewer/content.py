@@ -1,0 +1,188 @@
+"""What `warpbags view` shows: the Gaussians and, for a run folder, its training cameras and their pose history.
+
+Every pose here lives in the model's frame (the frame of the optimized cameras, where the Gaussians were fitted).
+The reference poses are mapped into it by the sim(3) that `warpbags eval` uses: Umeyama on the camera centres,
+from the optimized cameras to the reference ones, inverted.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable
+
+import cv2
+import numpy as np
+import torch
+
+from warpbags.alignment import align_viewmats, pose_errors
+from warpbags.camera_paths import mean_up_axis
+from warpbags.configs.train import TrainConfig
+from warpbags.errors import WarpbagsError
+from warpbags.gaussians import read_ply, sh_degree_of
+from warpbags.pose_history import read_pose_history
+
+THUMBNAIL_SIDE = 160  # px: the longer side of the pictures shown on the frustums (they travel to every browser)
+BACKGROUNDS = {"white": (1.0, 1.0, 1.0), "black": (0.0, 0.0, 0.0)}
+
+
+@dataclass
+class TrainingCameras:
+    """A run's C training cameras, all [C,4,4] world-to-camera (OpenCV axes) in the model's frame.
+
+    Attributes:
+        Ks: [C,3,3] intrinsics at (width, height).
+        width, height: the training image size.
+        start: the noisy poses the optimization started from, or None.
+        reference: the reference (dataset) poses aligned to the model's frame, or None.
+        iterations: [T] the iterations of the pose frames, increasing (the last is the final poses).
+        frames: [T,C,4,4] the optimized poses at those iterations.
+        images: [C,h,w,3] uint8 thumbnails of the training images, or None when the scene is gone.
+    """
+
+    Ks: np.ndarray
+    width: int
+    height: int
+    start: np.ndarray | None
+    reference: np.ndarray | None
+    iterations: np.ndarray
+    frames: np.ndarray
+    images: np.ndarray | None = None
+
+    @property
+    def final(self) -> np.ndarray:
+        return self.frames[-1]
+
+
+@dataclass
+class ViewerContent:
+    """The model to render and what to draw around it.
+
+    Attributes:
+        name: shown in the GUI (run folder or file name).
+        params: raw 3DGS parameters (`warpbags.gaussians`), on the CPU.
+        background: RGB in [0, 1] behind the Gaussians (the run's training background; white for a bare PLY).
+        cameras: the training cameras, or None for a bare PLY.
+    """
+
+    name: str
+    params: dict[str, torch.Tensor]
+    background: tuple[float, float, float] = BACKGROUNDS["white"]
+    cameras: TrainingCameras | None = None
+    sh_degree: int = field(init=False)
+
+    def __post_init__(self) -> None:
+        self.sh_degree = sh_degree_of(self.params)
+
+    def center(self) -> np.ndarray:
+        """[3] opacity-weighted mean of the Gaussian centres: where the viewer's camera looks first."""
+        weights = torch.sigmoid(self.params["opacities"])[:, None]
+        return ((self.params["means"] * weights).sum(0) / weights.sum().clamp_min(1e-12)).double().numpy()
+
+    def up(self) -> np.ndarray | None:
+        """[3] the training cameras' mean up direction, or None without cameras."""
+        if self.cameras is None:
+            return None
+        return mean_up_axis(torch.from_numpy(self.cameras.final).double()).numpy()
+
+
+def load_viewer_content(path: str | Path, log: Callable[[str], None] = print) -> ViewerContent:
+    """Read a run folder (Gaussians, cameras, pose history) or a bare 3DGS PLY file from any tool.
+
+    Raises:
+        WarpbagsError: the path is missing, a folder without gaussians.ply, or not a 3DGS PLY; named in one line.
+    """
+    path = Path(path)
+    if not path.exists():
+        raise WarpbagsError(f"{path}: no such run folder or PLY file")
+    if path.is_file():
+        return ViewerContent(path.name, read_ply(path))
+    ply = path / "gaussians.ply"
+    if not ply.is_file():
+        raise WarpbagsError(f"{ply} is missing: not a finished run (pass a run folder or a .ply file)")
+    params = read_ply(ply)
+    info = _read_run_info(path)
+    if info is None:
+        return ViewerContent(path.name, params)
+    background = BACKGROUNDS.get(info["config"].get("background", "white"), BACKGROUNDS["white"])
+    return ViewerContent(path.name, params, background, _training_cameras(path, info, log))
+
+
+def _read_run_info(path: Path) -> dict | None:
+    """config.json of a run, or None for a folder that merely holds a PLY (an export)."""
+    if not (path / "config.json").is_file():
+        return None
+    try:
+        return json.loads((path / "config.json").read_text())
+    except json.JSONDecodeError as error:
+        raise WarpbagsError(f"{path / 'config.json'}: unreadable ({error})") from None
+
+
+def _load_poses(path: Path, name: str) -> np.ndarray | None:
+    file = path / f"{name}.npy"
+    if not file.is_file():
+        return None
+    try:
+        return np.load(file).astype(np.float64)
+    except (OSError, ValueError) as error:
+        raise WarpbagsError(f"{file}: unreadable ({error})") from None
+
+
+def _training_cameras(path: Path, info: dict, log: Callable[[str], None]) -> TrainingCameras | None:
+    """The run's cameras, or None (logged) when it lacks the files to draw them."""
+    Ks, final = _load_poses(path, "intrinsics"), _load_poses(path, "poses_final")
+    if Ks is None or final is None or "width" not in info:
+        log(f"{path}: no intrinsics.npy, poses_final.npy or image size: showing the Gaussians without cameras")
+        return None
+    start = _load_poses(path, "poses_start")
+    iterations, frames = _pose_frames(path, info, start, final)
+    return TrainingCameras(Ks, info["width"], info["height"], start, _aligned_reference(path, final, log),
+                           iterations, frames, _thumbnails(info, log))
+
+
+def _pose_frames(path: Path, info: dict, start: np.ndarray | None, final: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Iterations [T] and poses [T,C,4,4]: the start at 0, the recorded history, the final poses at the end."""
+    total = TrainConfig.from_dict(info["config"]).total_iters
+    iterations, frames = [], []
+    if start is not None:
+        iterations, frames = [0], [start]
+    history = read_pose_history(path)
+    if history is not None:
+        recorded = (history.iterations > 0) & (history.iterations < total)
+        iterations += history.iterations[recorded].tolist()
+        frames += list(history.viewmats[recorded].astype(np.float64))
+    return np.array(iterations + [total]), np.stack(frames + [final])
+
+
+def _aligned_reference(path: Path, final: np.ndarray, log: Callable[[str], None]) -> np.ndarray | None:
+    """poses_true.npy mapped into the model's frame, as `warpbags eval` maps the test cameras; None without it."""
+    true = _load_poses(path, "poses_true")
+    if true is None:
+        return None
+    final_t, true_t = torch.from_numpy(final), torch.from_numpy(true)
+    alignment = "procrustes" if len(final) >= 3 else "pairwise"
+    try:
+        sim3 = pose_errors(final_t, true_t, alignment=alignment)["sim3"]
+    except ValueError as error:
+        log(f"reference cameras left out: {error}")
+        return None
+    return align_viewmats(true_t, sim3.inverse()).numpy()
+
+
+def _thumbnails(info: dict, log: Callable[[str], None]) -> np.ndarray | None:
+    """[C,h,w,3] uint8 training images from the run's scene folder, in training order; None when unreadable."""
+    from warpbags.data import load_scene  # noqa: PLC0415 - only runs with a scene folder need the loaders
+
+    try:
+        scene = load_scene(info["scene_root"], resolution=info.get("resolution"), name=info.get("scene"),
+                           load_depths=False)
+        order = [scene.image_names.index(name) for name in info["image_names"]]
+    except (WarpbagsError, KeyError, ValueError, OSError) as error:
+        log(f"training images unavailable ({error}): frustums without pictures")
+        return None
+    images = scene.images[order].numpy()
+    factor = THUMBNAIL_SIDE / max(images.shape[1:3])
+    size = (max(1, round(images.shape[2] * factor)), max(1, round(images.shape[1] * factor)))
+    return np.stack([(cv2.resize(image, size, interpolation=cv2.INTER_AREA) * 255 + 0.5).clip(0, 255)
+                     for image in images]).astype(np.uint8)
