@@ -213,8 +213,10 @@ class TrainConfig:
             Gaussians are (fresh Gaussians first fit the images before their gradients steer the poses, and a
             round can end fitting the Gaussians to the poses it found). (0, 1) = the whole round.
         depth_until: the depth term is used for each round's first `depth_until` iterations (0 = never).
-        rot_noise_deg, trans_noise, noise_seed: injected pose noise (N(0, sigma^2) angle about a random axis;
-            N(0, sigma^2) per camera-centre coordinate, normalized scene units where the orbit radius is 4).
+        rot_noise_deg: injected rotation noise, std in degrees (an N(0, sigma^2) angle about a random axis).
+        trans_noise: injected camera-centre noise, std (N(0, sigma^2) per coordinate, in normalized scene units
+            where the orbit radius is 4).
+        noise_seed: seeds the injected pose noise.
         seed: seeds initialization and view sampling.
         resolution: which image pyramid level to load (images_{resolution}); None = the scene preset's.
         max_image_size: images are further downscaled (area filter) so the longer side is at most this (0 = off).
@@ -230,10 +232,11 @@ class TrainConfig:
         hull_resolution: voxels per axis of the carving grid.
         hull_dilation_px: masks are dilated by this many pixels (at the training resolution) before carving.
         hull_missed_views: a voxel may fall outside the (dilated) mask in this many views (GaussianObject: 1).
-        blur_sigma_px, blur_until: coarse-to-fine (BARF's idea in image space): renders, targets, alphas and masks
-            are blurred with a Gaussian of this sigma (pixels) at each round's start, shrinking linearly to none at
+        blur_sigma_px: coarse-to-fine (BARF's idea in image space): renders, targets, alphas and masks are blurred
+            with a Gaussian of this sigma (pixels) at each round's start, shrinking linearly to none at
             `blur_until` iterations into the round; a wide blur widens the basin of the photometric pose gradient
             (0 = off; measured 2.74 -> 2.60 deg on the 4-view synthetic scene at 10 deg, so off by default).
+        blur_until: iterations into each round at which the blur of `blur_sigma_px` has shrunk to none.
         lambda_dssim, lambda_mask, lambda_depth: loss weights (photometric weight is 1 - lambda_depth while
             the depth term is active).
         lambda_mask_distance: weight of mean(alpha * distance transform of the mask) (NeRS), a silhouette term
