@@ -15,8 +15,7 @@ from typing import Any
 
 import warp as wp
 
-# Rasterizer contract shared with kernels/rasterize.py: contributions below this alpha are skipped.
-ALPHA_THRESHOLD = 1.0 / 255.0
+from warpbags.kernels.rasterize import ALPHA_THRESHOLD  # the rasterizer skips contributions below this alpha
 
 
 @wp.func
