@@ -58,8 +58,33 @@ def _to_warp(tensor: torch.Tensor, kind: str, grad: torch.Tensor | None = None) 
     return wp.from_torch(tensor, dtype=dtype, requires_grad=True, grad=grad)
 
 
+class _Launcher(NamedTuple):
+    """Where a stage's kernels run: the Warp device of its tensors and, on CUDA, torch's current stream there.
+
+    Every launch names both, so host worker threads never rely on Warp's process-wide default device (which
+    `wp.ScopedDevice` would set for every thread at once), and CUDA work stays ordered with torch's.
+    """
+
+    device: object  # warp Device
+    stream: object  # wp.Stream on CUDA, None on the CPU
+
+    def launch(self, kernel, dim, inputs: Sequence = (), outputs: Sequence = ()) -> None:
+        wp.launch(kernel, dim=dim, inputs=inputs, outputs=outputs, device=self.device, stream=self.stream)
+
+
+def _launcher(device: torch.device) -> _Launcher:
+    """The launcher for tensors on `device`."""
+    wp.init()
+    stream = wp.stream_from_torch(device) if device.type == "cuda" else None
+    return _Launcher(wp.device_from_torch(device), stream)
+
+
 def _launch_scope(device: torch.device) -> ExitStack:
-    """Run Warp on the tensors' device (and, on CUDA, on torch's current stream)."""
+    """Make `device` Warp's default device (and torch's current stream its stream) for the block.
+
+    Only for callers whose launches do not name their device (warpbags/losses.py); the stages here use
+    `_Launcher`. The scope is process-wide, not per thread.
+    """
     scope = ExitStack()
     scope.enter_context(wp.ScopedDevice(wp.device_from_torch(device)))
     if device.type == "cuda":
@@ -104,8 +129,8 @@ class _TapedKernel(torch.autograd.Function):
             wp_outputs.append(_to_warp(value, kind, grad))
 
         tape = wp.Tape() if needs_grad else None
-        with _launch_scope(device), (tape or nullcontext()):
-            wp.launch(kernel, dim=dim, inputs=wp_inputs, outputs=wp_outputs)
+        with tape or nullcontext():
+            _launcher(device).launch(kernel, dim, wp_inputs, wp_outputs)
         ctx.tape, ctx.device = tape, device
         ctx.wp_outputs, ctx.input_grads = wp_outputs, input_grads
         ctx.mark_non_differentiable(*[o for o in outputs if not o.is_floating_point()])
@@ -118,7 +143,7 @@ class _TapedKernel(torch.autograd.Function):
         for grad in ctx.input_grads:
             if grad is not None:
                 grad.zero_()
-        with _launch_scope(ctx.device):  # on CUDA the copies and the adjoint launch stay on torch's stream
+        with _launch_scope(ctx.device):  # the Tape replays its launches on the default device's stream
             cotangents = {}
             for wp_out, v_out in zip(ctx.wp_outputs, v_outputs):
                 if wp_out.requires_grad and v_out is not None:
@@ -265,9 +290,9 @@ def bin_gaussians(means2d: torch.Tensor, conics: torch.Tensor, opacities: torch.
 def _bin_by_sort(splats: list, geometry: list, depths: torch.Tensor, num_tiles: int):
     """gsplat's binning: one (tile, depth) key per intersection, sorted (the GPU path)."""
     device = depths.device
+    launcher = _launcher(device)
     counts = torch.empty(depths.numel(), dtype=torch.int32, device=device)
-    with _launch_scope(device):
-        wp.launch(count_tiles_kernel, dim=depths.numel(), inputs=[*splats, *geometry], outputs=[_to_warp(counts, "int32")])
+    launcher.launch(count_tiles_kernel, depths.numel(), [*splats, *geometry], [_to_warp(counts, "int32")])
     ends = torch.cumsum(counts, 0, dtype=torch.int64)
     num_isects = int(ends[-1]) if ends.numel() else 0
     write_offsets = (ends - counts).to(torch.int32)
@@ -276,12 +301,11 @@ def _bin_by_sort(splats: list, geometry: list, depths: torch.Tensor, num_tiles: 
     keys = torch.empty(num_isects, dtype=torch.int64, device=device)
     ids = torch.empty(num_isects, dtype=torch.int32, device=device)
     if num_isects:
-        with _launch_scope(device):
-            wp.launch(
-                emit_intersections_kernel, dim=depths.numel(),
-                inputs=[*splats, _to_warp(write_offsets, "int32"), _to_warp(depth_bits, "int32"), *geometry],
-                outputs=[_to_warp(keys, "int64"), _to_warp(ids, "int32")],
-            )
+        launcher.launch(
+            emit_intersections_kernel, depths.numel(),
+            [*splats, _to_warp(write_offsets, "int32"), _to_warp(depth_bits, "int32"), *geometry],
+            [_to_warp(keys, "int64"), _to_warp(ids, "int32")],
+        )
     keys, order = torch.sort(keys)
     tile_offsets = torch.searchsorted(keys >> 32, torch.arange(num_tiles + 1, device=device)).to(torch.int32)
     return tile_offsets, ids[order].contiguous()
@@ -292,15 +316,15 @@ def _bin_by_counting(splats: list, geometry: list, radii: torch.Tensor, depths: 
     """Counting sort by tile of the depth-ordered Gaussians (the CPU path): one serial pass per camera to count,
     one to fill; cameras run in parallel host threads (Warp launches release the GIL)."""
     cams = radii.shape[0]
+    launcher = _launcher(radii.device)
     tile_counts = torch.zeros(num_tiles, dtype=torch.int32)
     cameras = [(cam, cam + 1) for cam in range(cams)]
     counts_wp = _to_warp(tile_counts, "int32")
 
     def count(worker, first, stop):
-        wp.launch(tile_histogram_kernel, dim=stop - first, inputs=[*splats, *geometry, first], outputs=[counts_wp])
+        launcher.launch(tile_histogram_kernel, stop - first, [*splats, *geometry, first], [counts_wp])
 
-    with _launch_scope(radii.device):
-        _for_each_worker(count, cameras, min(threads, cams))
+    _for_each_worker(count, cameras, min(threads, cams))
     tile_offsets = torch.zeros(num_tiles + 1, dtype=torch.int32)
     torch.cumsum(tile_counts, 0, dtype=torch.int32, out=tile_offsets[1:])
     isect_ids = torch.empty(int(tile_offsets[-1]), dtype=torch.int32)
@@ -311,12 +335,11 @@ def _bin_by_counting(splats: list, geometry: list, radii: torch.Tensor, depths: 
     order_wp, cursors_wp, ids_wp = _to_warp(depth_order, "int32"), _to_warp(tile_cursors, "int32"), _to_warp(isect_ids, "int32")
 
     def fill(worker, first, stop):
-        wp.launch(fill_tiles_front_to_back_kernel, dim=stop - first, inputs=[*splats, order_wp, *geometry, first],
-                  outputs=[cursors_wp, ids_wp])
+        launcher.launch(fill_tiles_front_to_back_kernel, stop - first, [*splats, order_wp, *geometry, first],
+                        [cursors_wp, ids_wp])
 
     if len(isect_ids):
-        with _launch_scope(radii.device):
-            _for_each_worker(fill, cameras, min(threads, cams))
+        _for_each_worker(fill, cameras, min(threads, cams))
     return tile_offsets, isect_ids
 
 
@@ -427,12 +450,12 @@ class _RasterizeToPixels(torch.autograd.Function):
         blocks_per_tile = bins.tile_size**2 // ctx.lanes
         ranges = _pixel_ranges(cams * bins.tiles_x * bins.tiles_y, blocks_per_tile, 1 if workers == 1 else 8 * workers)
         kernel = FORWARD_KERNELS[ctx.lanes]
+        launcher = _launcher(device)
 
         def work(worker, start, stop):
-            wp.launch(kernel, dim=stop - start, inputs=[*common, start], outputs=outputs)
+            launcher.launch(kernel, stop - start, [*common, start], outputs)
 
-        with _launch_scope(device):
-            _for_each_worker(work, ranges, workers)
+        _for_each_worker(work, ranges, workers)
 
         ctx.bins, ctx.workers, ctx.ranges = bins, workers, ranges
         ctx.save_for_backward(*splats, final_transmittance, isect_end)
@@ -462,12 +485,12 @@ class _RasterizeToPixels(torch.autograd.Function):
         wp_buffers = [[_to_warp(t, kind) for t, kind in zip(b, _SPLAT_KINDS)] for b in buffers]
 
         kernel = BACKWARD_KERNELS[ctx.lanes]
+        launcher = _launcher(device)
 
         def work(worker, start, stop):
-            wp.launch(kernel, dim=stop - start, inputs=[*common, start, *saved], outputs=wp_buffers[worker])
+            launcher.launch(kernel, stop - start, [*common, start, *saved], wp_buffers[worker])
 
-        with _launch_scope(device):
-            _for_each_worker(work, ctx.ranges, workers)
+        _for_each_worker(work, ctx.ranges, workers)
 
         v_means2d, v_conics, v_colors, v_opacities, v_depths = (sum(parts[1:], parts[0]) for parts in zip(*buffers))
         cams, n = final_transmittance.shape[0], ctx.geometry[0]
