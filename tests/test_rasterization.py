@@ -137,9 +137,11 @@ def test_counting_sort_binning_equals_key_sort(dtype, tile_size):
                                                        scene["opacities"], scene["viewmats"], scene["Ks"], width, height)
     bins = bin_gaussians(means2d, conics, scene["opacities"], radii, depths, width, height, tile_size)
     tiles_x, tiles_y = math.ceil(width / tile_size), math.ceil(height / tile_size)
-    splats = [_to_warp(means2d.reshape(-1, 2).contiguous(), "vec2"), _to_warp(conics.reshape(-1, 3).contiguous(), "vec3"),
-              _to_warp(scene["opacities"], "scalar"), _to_warp(radii.reshape(-1).contiguous(), "int32")]
-    tile_offsets, isect_ids = _bin_by_sort(splats, [n, tile_size, tiles_x, tiles_y, height], depths, cams * tiles_x * tiles_y)
+    splats = dict(means2d=_to_warp(means2d.reshape(-1, 2).contiguous(), "vec2"),
+                  conics=_to_warp(conics.reshape(-1, 3).contiguous(), "vec3"),
+                  opacities=_to_warp(scene["opacities"], "scalar"), radii=_to_warp(radii.reshape(-1).contiguous(), "int32"))
+    geometry = dict(num_gaussians=n, tile_size=tile_size, tiles_x=tiles_x, tiles_y=tiles_y, height=height)
+    tile_offsets, isect_ids = _bin_by_sort(splats, geometry, depths, cams * tiles_x * tiles_y)
     assert len(isect_ids) > 4 * cams * tiles_x * tiles_y  # several Gaussians per tile
     assert torch.equal(bins.tile_offsets, tile_offsets) and torch.equal(bins.isect_ids, isect_ids)
 

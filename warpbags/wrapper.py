@@ -1,10 +1,13 @@
 """Thin torch wrappers around the Warp kernels, one per stage (gsplat's layout).
 
-Projection, spherical harmonics and the pose transform have no dynamic loops, so their gradients come from Warp's
-Tape. The rasterizer has a hand-written backward kernel (see kernels/rasterize.py). Binning is not differentiable.
+Projection, spherical harmonics and the pose transform have no dynamic loops, so their gradients come from the
+adjoint kernels Warp generates for them, launched by torch's backward (no Warp Tape: nothing process-wide, and
+nothing at all when torch records no gradients). The rasterizer has a hand-written backward kernel (see
+kernels/rasterize.py). Binning is not differentiable.
 
 Tensors stay where they are: CPU tensors run on Warp's "cpu" device, CUDA tensors on the matching CUDA device and
-the current torch stream, without host copies. float32 and float64 are both supported (float64 for gradchecks).
+the current torch stream, without host copies; every launch names its device and stream. Kernel arguments are
+passed by parameter name. float32 and float64 are both supported (float64 for gradchecks).
 """
 
 from __future__ import annotations
@@ -12,7 +15,7 @@ from __future__ import annotations
 import math
 import os
 from concurrent.futures import ThreadPoolExecutor
-from contextlib import ExitStack, nullcontext
+from contextlib import ExitStack
 from typing import NamedTuple, Sequence
 
 import torch
@@ -58,18 +61,37 @@ def _to_warp(tensor: torch.Tensor, kind: str, grad: torch.Tensor | None = None) 
     return wp.from_torch(tensor, dtype=dtype, requires_grad=True, grad=grad)
 
 
+def _parameter_names(kernel) -> tuple[str, ...]:
+    return tuple(arg.label for arg in kernel.adj.args)
+
+
 class _Launcher(NamedTuple):
     """Where a stage's kernels run: the Warp device of its tensors and, on CUDA, torch's current stream there.
 
     Every launch names both, so host worker threads never rely on Warp's process-wide default device (which
-    `wp.ScopedDevice` would set for every thread at once), and CUDA work stays ordered with torch's.
+    `wp.ScopedDevice` would set for every thread at once), and CUDA work stays ordered with torch's. Launches are
+    never recorded on a Warp Tape: gradients go through torch's autograd.
     """
 
     device: object  # warp Device
     stream: object  # wp.Stream on CUDA, None on the CPU
 
-    def launch(self, kernel, dim, inputs: Sequence = (), outputs: Sequence = ()) -> None:
-        wp.launch(kernel, dim=dim, inputs=inputs, outputs=outputs, device=self.device, stream=self.stream)
+    def launch(self, kernel, dim, /, adjoints: dict | None = None, **arguments) -> None:
+        """Launch `kernel` with every argument given by its parameter name (a missing or unknown name raises).
+
+        With `adjoints` (parameter name -> adjoint array; absent names get none), launch the kernel's
+        Warp-generated adjoint instead, accumulating into the adjoint arrays of the inputs.
+        """
+        names = _parameter_names(kernel)
+        if arguments.keys() != set(names):
+            raise TypeError(f"kernel {kernel.key}: missing arguments {[n for n in names if n not in arguments]}, "
+                            f"unknown {[n for n in arguments if n not in names]}")
+        values = [arguments[name] for name in names]
+        if adjoints is None:
+            wp.launch(kernel, dim=dim, inputs=values, device=self.device, stream=self.stream, record_tape=False)
+        else:
+            wp.launch(kernel, dim=dim, inputs=values, adj_inputs=[adjoints.get(name) for name in names],
+                      adjoint=True, device=self.device, stream=self.stream, record_tape=False)
 
 
 def _launcher(device: torch.device) -> _Launcher:
@@ -92,67 +114,126 @@ def _launch_scope(device: torch.device) -> ExitStack:
     return scope
 
 
-class _TapedKernel(torch.autograd.Function):
-    """Launch one Warp kernel under a Tape; backward replays the tape with the incoming cotangents.
+class _Stage(NamedTuple):
+    """A kernel without dynamic loops, whose adjoint Warp generates, and the kind of each of its parameters.
 
-    `input_kinds[i]` is the Warp kind of argument i: "vec3", "mat44", ... for tensors, "float" for a Python number
-    passed in the tensors' precision, None for any other plain argument.
-    `output_specs` are (kind, shape) of the kernel's outputs, allocated here as zeros; integer outputs are marked
-    non-differentiable. When no input tensor requires a gradient (rendering for evaluation), the kernel runs
-    without a Tape and no adjoint buffers are allocated.
+    `inputs` maps the kernel's input parameters, by name and in order, to their kinds: "vec3", "mat44", ... for
+    tensors, "float" for a Python number passed in the tensors' precision, None for any other plain value.
+    `outputs` maps its output parameters to their kinds; they are allocated as zeros, all with one array shape, and
+    integer outputs are not differentiable.
+    """
+
+    kernel: object
+    inputs: dict[str, str | None]
+    outputs: dict[str, str]
+
+
+def _stage(kernel, outputs: dict[str, str], **inputs: str | None) -> _Stage:
+    if (*inputs, *outputs) != _parameter_names(kernel):
+        raise TypeError(f"kernel {kernel.key} takes {_parameter_names(kernel)}, declared {(*inputs, *outputs)}")
+    return _Stage(kernel, inputs, outputs)
+
+
+_POSE_DELTAS = _stage(apply_pose_deltas_kernel, {"out_viewmats": "mat44"}, viewmats="mat44", pose_deltas="scalar")
+_OBJECT_DELTAS = _stage(apply_object_deltas_kernel, {"out_viewmats": "mat44"}, viewmats="mat44",
+                        object_params="scalar", object_centers="vec3")
+_PROJECTION = _stage(
+    project_gaussians_kernel, {"means2d": "vec2", "conics": "vec3", "depths": "scalar", "radii": "int32"},
+    means="vec3", quats="vec4", scales="vec3", opacities="scalar", viewmats="mat44", Ks="mat33", width=None,
+    height=None, near_plane="float", far_plane="float", eps2d="float",
+)
+_SH_COLORS = _stage(sh_to_colors_kernel, {"colors": "vec3"}, means="vec3", coeffs="vec3", viewmats="mat44",
+                    degree=None)
+
+
+def _output_tensor(kind: str, shape: tuple, scalar: torch.dtype, device: torch.device, fill=torch.zeros):
+    dtype = scalar if kind in _KIND_SHAPES else getattr(torch, kind)
+    return fill((*shape, *_KIND_SHAPES.get(kind, ())), dtype=dtype, device=device)
+
+
+def _warp_inputs(stage: _Stage, args: Sequence, scalar: torch.dtype, grads: Sequence | None = None) -> dict:
+    """The stage's inputs as Warp arguments, by parameter name: tensors as zero-copy views, with `grads[i]` (where
+    given and not None) as input i's adjoint buffer."""
+    arguments = {}
+    for i, ((name, kind), arg) in enumerate(zip(stage.inputs.items(), args)):
+        if kind is None:
+            arguments[name] = arg
+        elif kind == "float":
+            arguments[name] = _WP_SCALARS[scalar](arg)
+        else:
+            arguments[name] = _to_warp(arg.detach().contiguous(), kind, None if grads is None else grads[i])
+    return arguments
+
+
+def _stage_forward(stage: _Stage, dim, shape: tuple, args: Sequence) -> tuple[torch.Tensor, ...]:
+    tensors = [a for a in args if isinstance(a, torch.Tensor)]
+    device = tensors[0].device
+    scalar = next(t.dtype for t in tensors if t.is_floating_point())
+    outputs = {name: _output_tensor(kind, shape, scalar, device) for name, kind in stage.outputs.items()}
+    arguments = _warp_inputs(stage, args, scalar)
+    arguments.update((name, _to_warp(outputs[name], kind)) for name, kind in stage.outputs.items())
+    _launcher(device).launch(stage.kernel, dim, **arguments)
+    return tuple(outputs.values())
+
+
+def _run_stage(stage: _Stage, dim, shape: tuple, **inputs) -> tuple[torch.Tensor, ...]:
+    """Launch `stage` over `dim` threads with its inputs by parameter name; outputs are arrays of `shape`.
+
+    Differentiable when torch records gradients and an input tensor requires one. Otherwise (torch.no_grad(),
+    inference_mode(), or nothing to differentiate) the kernel just runs: no autograd node, no adjoint buffers.
+    """
+    if inputs.keys() != stage.inputs.keys():
+        raise TypeError(f"kernel {stage.kernel.key} takes inputs {list(stage.inputs)}, got {list(inputs)}")
+    args = [inputs[name] for name in stage.inputs]
+    if torch.is_grad_enabled() and any(isinstance(a, torch.Tensor) and a.requires_grad for a in args):
+        return _DifferentiableStage.apply(stage, dim, shape, *args)
+    return _stage_forward(stage, dim, shape, args)
+
+
+class _DifferentiableStage(torch.autograd.Function):
+    """A `_Stage` under autograd: backward launches the kernel's Warp-generated adjoint with the cotangents.
+
+    The input tensors are kept with `save_for_backward`, so an in-place change to one of them between forward and
+    backward fails autograd's version check instead of silently giving the gradient at the changed values.
     """
 
     @staticmethod
-    def forward(ctx, kernel, dim, input_kinds, output_specs, *args):
-        tensors = [a for a in args if isinstance(a, torch.Tensor)]
-        needs_grad = any(t.requires_grad for t in tensors)
-        device = tensors[0].device
-        scalar = next(t.dtype for t in tensors if t.is_floating_point())
-        wp_inputs, input_grads = [], []
-        for arg, kind in zip(args, input_kinds):
-            if kind is None or kind == "float":
-                wp_inputs.append(arg if kind is None else _WP_SCALARS[scalar](arg))
-                input_grads.append(None)
-                continue
-            value = arg.detach().contiguous()
-            grad = torch.zeros_like(value) if value.is_floating_point() and arg.requires_grad else None
-            wp_inputs.append(_to_warp(value, kind, grad))
-            input_grads.append(grad)
-
-        outputs, wp_outputs = [], []
-        for kind, shape in output_specs:
-            is_float = kind not in ("int32", "int64")
-            dtype = scalar if is_float else getattr(torch, kind)
-            value = torch.zeros((*shape, *_KIND_SHAPES.get(kind, ())), dtype=dtype, device=device)
-            grad = torch.zeros_like(value) if is_float and needs_grad else None
-            outputs.append(value)
-            wp_outputs.append(_to_warp(value, kind, grad))
-
-        tape = wp.Tape() if needs_grad else None
-        with tape or nullcontext():
-            _launcher(device).launch(kernel, dim, wp_inputs, wp_outputs)
-        ctx.tape, ctx.device = tape, device
-        ctx.wp_outputs, ctx.input_grads = wp_outputs, input_grads
+    def forward(ctx, stage, dim, shape, *args):
+        outputs = _stage_forward(stage, dim, shape, args)
+        ctx.stage, ctx.dim, ctx.shape = stage, dim, shape
+        ctx.plain_args = [None if isinstance(a, torch.Tensor) else a for a in args]
+        ctx.save_for_backward(*[a for a in args if isinstance(a, torch.Tensor)])
         ctx.mark_non_differentiable(*[o for o in outputs if not o.is_floating_point()])
-        return tuple(outputs)
+        return outputs
 
     @staticmethod
     def backward(ctx, *v_outputs):
-        # The adjoint kernel accumulates into the input gradient buffers: clear them so a second backward through
-        # the same graph (retain_graph, gradcheck) starts from zero, and hand torch copies it may keep.
-        for grad in ctx.input_grads:
-            if grad is not None:
-                grad.zero_()
-        with _launch_scope(ctx.device):  # the Tape replays its launches on the default device's stream
-            cotangents = {}
-            for wp_out, v_out in zip(ctx.wp_outputs, v_outputs):
-                if wp_out.requires_grad and v_out is not None:
-                    wp.copy(wp_out.grad, wp.from_torch(v_out.contiguous(), dtype=wp_out.dtype))
-                    cotangents[wp_out] = wp_out.grad
-            if cotangents:
-                ctx.tape.backward(grads=cotangents)
-        input_grads = [None if grad is None else grad.clone() for grad in ctx.input_grads]
-        return (None, None, None, None, *input_grads)
+        stage = ctx.stage
+        saved = iter(ctx.saved_tensors)
+        args = [next(saved) if plain is None else plain for plain in ctx.plain_args]
+        tensors = [a for a in args if isinstance(a, torch.Tensor)]
+        device = tensors[0].device
+        scalar = next(t.dtype for t in tensors if t.is_floating_point())
+        input_grads = [
+            torch.zeros(arg.shape, dtype=arg.dtype, device=device) if needs and arg.is_floating_point() else None
+            for arg, needs in zip(args, ctx.needs_input_grad[3:])
+        ]
+        arguments = _warp_inputs(stage, args, scalar, input_grads)
+        adjoints = {name: arguments[name].grad for name, grad in zip(stage.inputs, input_grads) if grad is not None}
+        has_cotangent = False
+        for (name, kind), v_out in zip(stage.outputs.items(), v_outputs):
+            # The adjoint reads the outputs' cotangents, never their values (Warp does not replay array stores),
+            # so the value arrays are placeholders. A cotangent is the output array's own adjoint buffer (a copy of
+            # torch's), as under a Warp Tape: the adjoint of a store consumes and clears it.
+            cotangent = None
+            if kind in _KIND_SHAPES and v_out is not None:
+                cotangent = v_out.contiguous().clone()
+                has_cotangent = True
+            arguments[name] = _to_warp(_output_tensor(kind, ctx.shape, scalar, device, torch.empty), kind, cotangent)
+            adjoints[name] = arguments[name].grad
+        if has_cotangent:
+            _launcher(device).launch(stage.kernel, ctx.dim, adjoints=adjoints, **arguments)
+        return (None, None, None, *input_grads)
 
 
 def apply_pose_deltas(viewmats: torch.Tensor, pose_deltas: torch.Tensor) -> torch.Tensor:
@@ -167,11 +248,8 @@ def apply_pose_deltas(viewmats: torch.Tensor, pose_deltas: torch.Tensor) -> torc
         [C, 4, 4] corrected world-to-camera matrices; differentiable in both inputs.
     """
     cams = viewmats.shape[0]
-    (out,) = _TapedKernel.apply(
-        apply_pose_deltas_kernel, cams, ("mat44", "scalar"), [("mat44", (cams,))], viewmats, pose_deltas
-    )
+    (out,) = _run_stage(_POSE_DELTAS, cams, (cams,), viewmats=viewmats, pose_deltas=pose_deltas)
     return out
-
 
 
 def apply_object_deltas(viewmats: torch.Tensor, params: torch.Tensor, object_centers: torch.Tensor) -> torch.Tensor:
@@ -187,10 +265,8 @@ def apply_object_deltas(viewmats: torch.Tensor, params: torch.Tensor, object_cen
         [C, 4, 4] corrected world-to-camera matrices; differentiable in every input.
     """
     cams = viewmats.shape[0]
-    (out,) = _TapedKernel.apply(
-        apply_object_deltas_kernel, cams, ("mat44", "scalar", "vec3"), [("mat44", (cams,))],
-        viewmats, params, object_centers,
-    )
+    (out,) = _run_stage(_OBJECT_DELTAS, cams, (cams,), viewmats=viewmats, object_params=params,
+                        object_centers=object_centers)
     return out
 
 
@@ -220,12 +296,9 @@ def project_gaussians(
         camera z, radii [C, N] int32 (0 = culled). Culled entries of the float outputs are zero.
     """
     cams, n = viewmats.shape[0], means.shape[0]
-    return _TapedKernel.apply(
-        project_gaussians_kernel,
-        (cams, n),
-        ("vec3", "vec4", "vec3", "scalar", "mat44", "mat33", None, None, "float", "float", "float"),
-        [("vec2", (cams, n)), ("vec3", (cams, n)), ("scalar", (cams, n)), ("int32", (cams, n))],
-        means, quats, scales, opacities, viewmats, Ks, width, height, near_plane, far_plane, eps2d,
+    return _run_stage(
+        _PROJECTION, (cams, n), (cams, n), means=means, quats=quats, scales=scales, opacities=opacities,
+        viewmats=viewmats, Ks=Ks, width=width, height=height, near_plane=near_plane, far_plane=far_plane, eps2d=eps2d,
     )
 
 
@@ -240,9 +313,8 @@ def spherical_harmonics(means: torch.Tensor, coeffs: torch.Tensor, viewmats: tor
         [C, N, 3] colours; differentiable in means, coeffs and viewmats.
     """
     cams, n = viewmats.shape[0], means.shape[0]
-    (colors,) = _TapedKernel.apply(
-        sh_to_colors_kernel, (cams, n), ("vec3", "vec3", "mat44", None), [("vec3", (cams, n))], means, coeffs, viewmats, degree
-    )
+    (colors,) = _run_stage(_SH_COLORS, (cams, n), (cams, n), means=means, coeffs=coeffs, viewmats=viewmats,
+                           degree=degree)
     return colors
 
 
@@ -275,10 +347,11 @@ def bin_gaussians(means2d: torch.Tensor, conics: torch.Tensor, opacities: torch.
     device = radii.device
     tiles_x, tiles_y = math.ceil(width / tile_size), math.ceil(height / tile_size)
     num_tiles = cams * tiles_x * tiles_y
-    splats = [_to_warp(means2d.detach().reshape(-1, 2).contiguous(), "vec2"),
-              _to_warp(conics.detach().reshape(-1, 3).contiguous(), "vec3"),
-              _to_warp(opacities.detach().contiguous(), "scalar"), _to_warp(radii.reshape(-1).contiguous(), "int32")]
-    geometry = [n, tile_size, tiles_x, tiles_y, height]
+    splats = dict(means2d=_to_warp(means2d.detach().reshape(-1, 2).contiguous(), "vec2"),
+                  conics=_to_warp(conics.detach().reshape(-1, 3).contiguous(), "vec3"),
+                  opacities=_to_warp(opacities.detach().contiguous(), "scalar"),
+                  radii=_to_warp(radii.reshape(-1).contiguous(), "int32"))
+    geometry = dict(num_gaussians=n, tile_size=tile_size, tiles_x=tiles_x, tiles_y=tiles_y, height=height)
     if device.type == "cuda":
         tile_offsets, isect_ids = _bin_by_sort(splats, geometry, depths, num_tiles)
     else:
@@ -287,12 +360,12 @@ def bin_gaussians(means2d: torch.Tensor, conics: torch.Tensor, opacities: torch.
     return TileBins(tile_size, tiles_x, tiles_y, tile_offsets, isect_ids)
 
 
-def _bin_by_sort(splats: list, geometry: list, depths: torch.Tensor, num_tiles: int):
+def _bin_by_sort(splats: dict, geometry: dict, depths: torch.Tensor, num_tiles: int):
     """gsplat's binning: one (tile, depth) key per intersection, sorted (the GPU path)."""
     device = depths.device
     launcher = _launcher(device)
     counts = torch.empty(depths.numel(), dtype=torch.int32, device=device)
-    launcher.launch(count_tiles_kernel, depths.numel(), [*splats, *geometry], [_to_warp(counts, "int32")])
+    launcher.launch(count_tiles_kernel, depths.numel(), **splats, **geometry, tile_counts=_to_warp(counts, "int32"))
     ends = torch.cumsum(counts, 0, dtype=torch.int64)
     num_isects = int(ends[-1]) if ends.numel() else 0
     write_offsets = (ends - counts).to(torch.int32)
@@ -302,16 +375,16 @@ def _bin_by_sort(splats: list, geometry: list, depths: torch.Tensor, num_tiles: 
     ids = torch.empty(num_isects, dtype=torch.int32, device=device)
     if num_isects:
         launcher.launch(
-            emit_intersections_kernel, depths.numel(),
-            [*splats, _to_warp(write_offsets, "int32"), _to_warp(depth_bits, "int32"), *geometry],
-            [_to_warp(keys, "int64"), _to_warp(ids, "int32")],
+            emit_intersections_kernel, depths.numel(), **splats, write_offsets=_to_warp(write_offsets, "int32"),
+            depth_bits=_to_warp(depth_bits, "int32"), **geometry, isect_keys=_to_warp(keys, "int64"),
+            isect_ids=_to_warp(ids, "int32"),
         )
     keys, order = torch.sort(keys)
     tile_offsets = torch.searchsorted(keys >> 32, torch.arange(num_tiles + 1, device=device)).to(torch.int32)
     return tile_offsets, ids[order].contiguous()
 
 
-def _bin_by_counting(splats: list, geometry: list, radii: torch.Tensor, depths: torch.Tensor, num_tiles: int,
+def _bin_by_counting(splats: dict, geometry: dict, radii: torch.Tensor, depths: torch.Tensor, num_tiles: int,
                      threads: int):
     """Counting sort by tile of the depth-ordered Gaussians (the CPU path): one serial pass per camera to count,
     one to fill; cameras run in parallel host threads (Warp launches release the GIL)."""
@@ -322,7 +395,8 @@ def _bin_by_counting(splats: list, geometry: list, radii: torch.Tensor, depths: 
     counts_wp = _to_warp(tile_counts, "int32")
 
     def count(worker, first, stop):
-        launcher.launch(tile_histogram_kernel, stop - first, [*splats, *geometry, first], [counts_wp])
+        launcher.launch(tile_histogram_kernel, stop - first, **splats, **geometry, first_camera=first,
+                        tile_counts=counts_wp)
 
     _for_each_worker(count, cameras, min(threads, cams))
     tile_offsets = torch.zeros(num_tiles + 1, dtype=torch.int32)
@@ -335,8 +409,8 @@ def _bin_by_counting(splats: list, geometry: list, radii: torch.Tensor, depths: 
     order_wp, cursors_wp, ids_wp = _to_warp(depth_order, "int32"), _to_warp(tile_cursors, "int32"), _to_warp(isect_ids, "int32")
 
     def fill(worker, first, stop):
-        launcher.launch(fill_tiles_front_to_back_kernel, stop - first, [*splats, order_wp, *geometry, first],
-                        [cursors_wp, ids_wp])
+        launcher.launch(fill_tiles_front_to_back_kernel, stop - first, **splats, depth_order=order_wp, **geometry,
+                        first_camera=first, tile_cursors=cursors_wp, isect_ids=ids_wp)
 
     if len(isect_ids):
         _for_each_worker(fill, cameras, min(threads, cams))
@@ -404,32 +478,38 @@ def _pixel_block(device: torch.device, tile_size: int, block: tuple[int, int] | 
     return block_w, block_h
 
 
-# Per-Gaussian rasterizer inputs in kernel argument order (means2d, conics, colors, opacities, depths), flattened
-# over cameras; the backward kernel's gradient outputs come in the same order.
-_SPLAT_KINDS = ("vec2", "vec3", "vec3", "scalar", "scalar")
+# Per-Gaussian rasterizer inputs (flattened over cameras) and their kinds; the backward kernel's gradient outputs
+# carry the same names with a "v_" prefix.
+_SPLAT_KINDS = {"means2d": "vec2", "conics": "vec3", "colors": "vec3", "opacities": "scalar", "depths": "scalar"}
 
 
-def _splat_arguments(splats: Sequence[torch.Tensor], bins: TileBins, geometry: tuple) -> list:
+def _flat_splats(means2d, conics, colors, opacities, depths) -> dict[str, torch.Tensor]:
+    """The rasterizer's per-Gaussian inputs, detached, flattened over cameras and contiguous."""
+    return dict(means2d=means2d.detach().reshape(-1, 2).contiguous(), conics=conics.detach().reshape(-1, 3).contiguous(),
+                colors=colors.detach().reshape(-1, 3).contiguous(), opacities=opacities.detach().contiguous(),
+                depths=depths.detach().reshape(-1).contiguous())
+
+
+def _splat_arguments(splats: dict[str, torch.Tensor], tile_offsets: torch.Tensor, isect_ids: torch.Tensor,
+                     geometry: dict) -> dict:
     """The arguments both rasterizer kernels start with: the splats, the tile bins and the image geometry."""
-    return [*(_to_warp(t, kind) for t, kind in zip(splats, _SPLAT_KINDS)), _to_warp(bins.tile_offsets, "int32"),
-            _to_warp(bins.isect_ids, "int32"), *geometry]
+    return {**{name: _to_warp(t, _SPLAT_KINDS[name]) for name, t in splats.items()},
+            "tile_offsets": _to_warp(tile_offsets, "int32"), "isect_ids": _to_warp(isect_ids, "int32"), **geometry}
 
 
 class _RasterizeToPixels(torch.autograd.Function):
-    """Forward and hand-written backward rasterization kernels; see kernels/rasterize.py."""
+    """Forward and hand-written backward rasterization kernels; see kernels/rasterize.py.
+
+    The inputs and the bins are kept with `save_for_backward`, so an in-place change to one of them between forward
+    and backward fails autograd's version check.
+    """
 
     @staticmethod
     def forward(ctx, means2d, conics, colors, opacities, depths, bins: TileBins, width, height, cpu_threads,
                 pixel_block):
         cams, n = depths.shape
         device, scalar = means2d.device, means2d.dtype
-        splats = (
-            means2d.detach().reshape(-1, 2).contiguous(),
-            conics.detach().reshape(-1, 3).contiguous(),
-            colors.detach().reshape(-1, 3).contiguous(),
-            opacities.detach().contiguous(),
-            depths.detach().reshape(-1).contiguous(),
-        )
+        splats = _flat_splats(means2d, conics, colors, opacities, depths)
         pixels = cams * height * width
         out_colors = torch.zeros(cams, height, width, 3, dtype=scalar, device=device)
         out_depths = torch.zeros(cams, height, width, dtype=scalar, device=device)
@@ -437,35 +517,39 @@ class _RasterizeToPixels(torch.autograd.Function):
         final_transmittance = torch.ones(cams, height, width, dtype=scalar, device=device)
         isect_end = torch.zeros(cams, height, width, dtype=torch.int32, device=device)
 
-        outputs = [
-            _to_warp(out_colors.view(pixels, 3), "vec3"), _to_warp(out_depths.view(pixels), "scalar"),
-            _to_warp(out_alphas.view(pixels), "scalar"), _to_warp(final_transmittance.view(pixels), "scalar"),
-            _to_warp(isect_end.view(pixels), "int32"),
-        ]
+        outputs = dict(
+            out_colors=_to_warp(out_colors.view(pixels, 3), "vec3"), out_depths=_to_warp(out_depths.view(pixels), "scalar"),
+            out_alphas=_to_warp(out_alphas.view(pixels), "scalar"),
+            final_transmittance=_to_warp(final_transmittance.view(pixels), "scalar"),
+            isect_end=_to_warp(isect_end.view(pixels), "int32"),
+        )
         workers = 1 if device.type == "cuda" else (cpu_threads or _default_cpu_threads())
         block_w, block_h = _pixel_block(device, bins.tile_size, pixel_block)
         ctx.lanes = block_w * block_h
-        ctx.geometry = (n, width, height, bins.tile_size, bins.tiles_x, bins.tiles_y, block_w, block_h)
-        common = _splat_arguments(splats, bins, ctx.geometry)
+        ctx.geometry = dict(num_gaussians=n, width=width, height=height, tile_size=bins.tile_size,
+                            tiles_x=bins.tiles_x, tiles_y=bins.tiles_y, block_w=block_w, block_h=block_h)
+        common = _splat_arguments(splats, bins.tile_offsets, bins.isect_ids, ctx.geometry)
         blocks_per_tile = bins.tile_size**2 // ctx.lanes
         ranges = _pixel_ranges(cams * bins.tiles_x * bins.tiles_y, blocks_per_tile, 1 if workers == 1 else 8 * workers)
         kernel = FORWARD_KERNELS[ctx.lanes]
         launcher = _launcher(device)
 
         def work(worker, start, stop):
-            launcher.launch(kernel, stop - start, [*common, start], outputs)
+            launcher.launch(kernel, stop - start, **common, first_block=start, **outputs)
 
         _for_each_worker(work, ranges, workers)
 
-        ctx.bins, ctx.workers, ctx.ranges = bins, workers, ranges
-        ctx.save_for_backward(*splats, final_transmittance, isect_end)
+        ctx.workers, ctx.ranges = workers, ranges
+        ctx.save_for_backward(means2d, conics, colors, opacities, depths, bins.tile_offsets, bins.isect_ids,
+                              final_transmittance, isect_end)
         ctx.mark_non_differentiable(final_transmittance, isect_end)
         return out_colors, out_depths, out_alphas, final_transmittance, isect_end
 
     @staticmethod
     def backward(ctx, v_out_colors, v_out_depths, v_out_alphas, _v_transmittance, _v_isect_end):
-        *splats, final_transmittance, isect_end = ctx.saved_tensors
-        bins, workers = ctx.bins, ctx.workers
+        *inputs, tile_offsets, isect_ids, final_transmittance, isect_end = ctx.saved_tensors
+        splats = _flat_splats(*inputs)
+        workers = ctx.workers
         pixels = final_transmittance.numel()
         device, scalar = final_transmittance.device, final_transmittance.dtype
 
@@ -474,26 +558,30 @@ class _RasterizeToPixels(torch.autograd.Function):
                 return torch.zeros(*shape, dtype=scalar, device=device)
             return v.contiguous().view(*shape)
 
-        common = _splat_arguments(splats, bins, ctx.geometry)
-        saved = [
-            _to_warp(final_transmittance.view(pixels), "scalar"), _to_warp(isect_end.view(pixels), "int32"),
-            _to_warp(cotangent(v_out_colors, pixels, 3), "vec3"), _to_warp(cotangent(v_out_depths, pixels), "scalar"),
-            _to_warp(cotangent(v_out_alphas, pixels), "scalar"),
-        ]
+        common = _splat_arguments(splats, tile_offsets, isect_ids, ctx.geometry)
+        saved = dict(
+            final_transmittance=_to_warp(final_transmittance.view(pixels), "scalar"),
+            isect_end=_to_warp(isect_end.view(pixels), "int32"),
+            v_out_colors=_to_warp(cotangent(v_out_colors, pixels, 3), "vec3"),
+            v_out_depths=_to_warp(cotangent(v_out_depths, pixels), "scalar"),
+            v_out_alphas=_to_warp(cotangent(v_out_alphas, pixels), "scalar"),
+        )
         # One private set of gradient buffers per worker: CPU atomics are plain adds.
-        buffers = [[torch.zeros_like(t) for t in splats] for _ in range(workers)]
-        wp_buffers = [[_to_warp(t, kind) for t, kind in zip(b, _SPLAT_KINDS)] for b in buffers]
+        buffers = [{name: torch.zeros_like(t) for name, t in splats.items()} for _ in range(workers)]
+        wp_buffers = [{"v_" + name: _to_warp(t, _SPLAT_KINDS[name]) for name, t in b.items()} for b in buffers]
 
         kernel = BACKWARD_KERNELS[ctx.lanes]
         launcher = _launcher(device)
 
         def work(worker, start, stop):
-            launcher.launch(kernel, stop - start, [*common, start, *saved], wp_buffers[worker])
+            launcher.launch(kernel, stop - start, **common, first_block=start, **saved, **wp_buffers[worker])
 
         _for_each_worker(work, ctx.ranges, workers)
 
-        v_means2d, v_conics, v_colors, v_opacities, v_depths = (sum(parts[1:], parts[0]) for parts in zip(*buffers))
-        cams, n = final_transmittance.shape[0], ctx.geometry[0]
+        v_means2d, v_conics, v_colors, v_opacities, v_depths = (
+            sum(parts[1:], parts[0]) for parts in zip(*(b.values() for b in buffers))
+        )
+        cams, n = final_transmittance.shape[0], ctx.geometry["num_gaussians"]
         return (
             v_means2d.view(cams, n, 2), v_conics.view(cams, n, 3), v_colors.view(cams, n, 3), v_opacities,
             v_depths.view(cams, n), None, None, None, None, None,
