@@ -178,6 +178,19 @@ def test_synthetic_depth_maps_agree_across_views(synthetic):
     assert in_front.sum() < 0.02 * valid.sum()  # only pixel-grid effects at silhouette edges
 
 
+def test_synthetic_cache_folders_differ_by_optics():
+    default = SyntheticOptions(views=16, width=96, height=96)
+    assert default.folder_name() == "synthetic-v3-16views-96x96-seed0"  # older caches keep their names
+    tele = SyntheticOptions(views=16, width=96, height=96, fov_deg=18.6, radius=5.6)
+    assert tele.folder_name() == "synthetic-v3-16views-96x96-seed0-fov18.6-radius5.6"
+    # The synthetic-tele preset sees the object with maryrose's field of view (18.6 deg) from further away.
+    focal = intrinsics(tele)[0, 0]
+    assert math.degrees(2 * math.atan(48 / focal)) == pytest.approx(18.6)
+    viewmat = dome_viewmats(tele)[0]
+    center = -viewmat[:3, :3].T @ viewmat[:3, 3]
+    assert np.linalg.norm(center - OBJECT_CENTER) == pytest.approx(5.6)
+
+
 def test_synthetic_poses_are_exact(synthetic_dir):
     scene = load_scene(synthetic_dir, normalize=False)
     truth = torch.from_numpy(dome_viewmats(SYNTHETIC)).float()

@@ -60,7 +60,14 @@ class SyntheticOptions:
     num_points: int = 4000
 
     def folder_name(self) -> str:
-        return f"synthetic-v{GENERATOR_VERSION}-{self.views}views-{self.width}x{self.height}-seed{self.seed}"
+        """The cache folder's name: every setting that changes the scene (defaults of optics and orbit left out, so
+        the folders of older versions keep their names)."""
+        name = f"synthetic-v{GENERATOR_VERSION}-{self.views}views-{self.width}x{self.height}-seed{self.seed}"
+        defaults = SyntheticOptions()
+        for field in ("fov_deg", "radius", "min_elevation_deg", "max_elevation_deg", "supersample", "num_points"):
+            if getattr(self, field) != getattr(defaults, field):
+                name += f"-{field.replace('_deg', '')}{getattr(self, field):g}"
+        return name
 
 
 OBJECT_CENTER = np.array([0.3, -0.2, 0.45])
