@@ -12,6 +12,7 @@ training camera is perturbed (rotation angle ~ N(0, rot^2) deg about a random ax
 Procrustes alignment. Variants:
     bags          the method (the preset as shipped)
     fixed-noisy   the same pipeline with the noisy poses frozen (GaussianObject's baseline)
+    truth-start   bags started at the reference poses (no noise): where the method's own optimum sits on the scene
     --ablations   bags with one part switched off in turn: no-centroid-start, no-silhouette (mask distance and
                   chamfer terms), no-precondition, camera-param (se(3) about the camera centre, no preconditioner),
                   poses-whole-round and poses-first-half (the pose window of each round, instead of from a quarter
@@ -48,6 +49,8 @@ VARIANTS = {
     "camera-param": dict(camera={"parameterization": "camera", "precondition": False}),
     "poses-whole-round": dict(pose_round_window=(0.0, 1.0)),
     "poses-first-half": dict(pose_round_window=(0.0, 0.5)),
+    # no noise, poses optimized all the same: how far the method moves cameras that start at the reference poses
+    "truth-start": dict(rot_noise_deg=0.0, trans_noise=0.0),
 }
 ABLATIONS = ["no-centroid-start", "no-silhouette", "no-precondition", "camera-param", "poses-whole-round",
              "poses-first-half"]
