@@ -8,8 +8,8 @@ from typing import Optional
 import typer
 from rich.console import Console
 from rich.table import Table
-from warpbags.cli.main import app, clean_errors
 
+from warpbags.cli.common import clean_errors
 from warpbags.data import ORBIT_RADIUS, SyntheticOptions, generate_synthetic_scene, open_scene
 from warpbags.data.scene import Scene
 
@@ -45,8 +45,6 @@ def scene_summary(scene: Scene) -> Table:
     return table
 
 
-@app.command()
-@clean_errors
 def info(
     scene: str = typer.Argument(..., help="Preset name (kitchen, maryrose, synthetic) or a scene folder."),
     data_root: Optional[Path] = typer.Option(
@@ -60,8 +58,6 @@ def info(
     stdout.print(scene_summary(open_scene(scene, root=data_root, resolution=resolution)))
 
 
-@app.command()
-@clean_errors
 def synth(
     out_dir: Path = typer.Argument(..., help="Folder to write the synthetic scene to (must not exist or be empty)."),
     views: int = typer.Option(48, help="Number of cameras on the dome."),
@@ -71,3 +67,9 @@ def synth(
     """Render the synthetic excavator scene (exact poses, masks, depth maps) in the MipNeRF360 layout."""
     folder = generate_synthetic_scene(out_dir, SyntheticOptions(views=views, width=size, height=size, seed=seed))
     stdout.print(f"wrote {views} views ({size}x{size}) to {folder}")
+
+
+def register(app: typer.Typer) -> None:
+    """Add `info` and `synth` to `app`."""
+    app.command("info")(clean_errors(info))
+    app.command("synth")(clean_errors(synth))

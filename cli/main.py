@@ -1,29 +1,21 @@
-"""`warpbags` command-line entry point: parses options and calls the package, nothing more."""
+"""`warpbags` command-line entry point: parses options and calls the package, nothing more.
+
+Each module of COMMAND_GROUPS holds one group of commands and adds them to the app with its `register(app)`.
+"""
 
 from __future__ import annotations
 
-import functools
 import os
 import sys
-from typing import Callable
 
 import typer
-from rich.console import Console
-from rich.markup import escape
 
-from warpbags.errors import WarpbagsError
+from warpbags.cli import evaluate, export, info, sweep, train, view
 
-app = typer.Typer(
-    name="warpbags",
-    help="Bundle-Adjusting Gaussian Splatting with NVIDIA Warp kernels.",
-    no_args_is_help=True,
-    add_completion=False,
-    pretty_exceptions_enable=False,
-)
-console = Console(stderr=True)
+# In `warpbags --help` order: info, synth, train, eval, export, render, sweep, view.
+COMMAND_GROUPS = (info, train, evaluate, export, sweep, view)
 
 
-@app.callback()
 def configure(verbose: bool = typer.Option(False, "--verbose", help="Show Warp's own output: its banner, module "
                                            "loads and CUDA driver notes.")) -> None:
     """Bundle-Adjusting Gaussian Splatting with NVIDIA Warp kernels."""
@@ -46,29 +38,28 @@ def configure(verbose: bool = typer.Option(False, "--verbose", help="Show Warp's
         os.close(saved)
 
 
-def clean_errors(command: Callable) -> Callable:
-    """Turn a WarpbagsError into one red line on stderr and exit code 2, never a traceback."""
+def build_app() -> typer.Typer:
+    """The `warpbags` app: the --verbose callback and every command of COMMAND_GROUPS."""
+    app = typer.Typer(
+        name="warpbags",
+        help="Bundle-Adjusting Gaussian Splatting with NVIDIA Warp kernels.",
+        no_args_is_help=True,
+        add_completion=False,
+        pretty_exceptions_enable=False,
+        rich_markup_mode="rich",  # help texts are Rich markup: brackets meant as text are escaped
+    )
+    app.callback()(configure)
+    for group in COMMAND_GROUPS:
+        group.register(app)
+    return app
 
-    @functools.wraps(command)
-    def wrapper(*args, **kwargs):
-        try:
-            return command(*args, **kwargs)
-        except WarpbagsError as error:
-            # escaped: a message's own brackets (`warpbags[ray]`, a list) are text, not Rich markup
-            console.print(f"[bold red]error:[/] {escape(str(error))}", highlight=False, soft_wrap=True)
-            sys.exit(2)
-        except KeyboardInterrupt:
-            console.print("[yellow]interrupted[/]")
-            sys.exit(130)
 
-    return wrapper
+app = build_app()
 
 
 def main() -> None:
     app()
 
 
-from warpbags.cli import info as _info  # noqa: E402,F401  registers `info` and `synth`
-from warpbags.cli import train as _train  # noqa: E402,F401  registers `train`
-from warpbags.cli import evaluate as _evaluate  # noqa: E402,F401  registers `eval`
-from warpbags.cli import view as _view  # noqa: E402,F401  registers `view`
+if __name__ == "__main__":
+    main()

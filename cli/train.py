@@ -9,17 +9,15 @@ from typing import Optional
 import typer
 from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
-from warpbags.cli.main import app, clean_errors
-from warpbags.configs.train import load_preset, parse_settings
 
+from warpbags.cli.common import clean_errors
+from warpbags.configs.train import load_preset, parse_settings
 from warpbags.errors import WarpbagsError
 from warpbags.trainer import default_run_dir, start_or_resume, training_scene
 
 stdout = Console(highlight=False)
 
 
-@app.command()
-@clean_errors
 def train(
     scene: str = typer.Argument(..., help="Preset name (kitchen, maryrose, synthetic) or a scene folder."),
     views: int = typer.Option(4, "--views", help="Training views, >= 2: the scene's sparse_N split, else a farthest-point choice."),
@@ -111,6 +109,11 @@ def train(
         f"{initial['rot_err_deg']:.3f} -> {final['rot_err_deg']:.3f} deg, {initial['trans_err']:.4f} -> "
         f"{final['trans_err']:.4f}; wrote {out}"
     )
+
+
+def register(app: typer.Typer) -> None:
+    """Add `train` to `app`."""
+    app.command("train")(clean_errors(train))
 
 
 def _status(record: dict) -> str:

@@ -9,13 +9,11 @@ from typing import Optional
 import typer
 from rich.console import Console
 
-from warpbags.cli.main import app, clean_errors
+from warpbags.cli.common import clean_errors
 
 stdout = Console(highlight=False)
 
 
-@app.command()
-@clean_errors
 def view(
     path: Path = typer.Argument(..., help="Run folder, or a 3DGS gaussians.ply from any tool."),
     port: int = typer.Option(8080, "--port", help="TCP port (the next free one if it is busy)."),
@@ -36,3 +34,8 @@ def view(
         stdout.print("viewer stopped")
     finally:
         viewer.stop()
+
+
+def register(app: typer.Typer) -> None:
+    """Add `view` to `app`."""
+    app.command("view")(clean_errors(view))

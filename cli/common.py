@@ -1,0 +1,32 @@
+"""What every command module shares: bad input as one line on stderr and exit code 2."""
+
+from __future__ import annotations
+
+import functools
+import sys
+from typing import Callable
+
+from rich.console import Console
+from rich.markup import escape
+
+from warpbags.errors import WarpbagsError
+
+stderr = Console(stderr=True)
+
+
+def clean_errors(command: Callable) -> Callable:
+    """Turn a WarpbagsError into one red line on stderr and exit code 2, never a traceback."""
+
+    @functools.wraps(command)
+    def wrapper(*args, **kwargs):
+        try:
+            return command(*args, **kwargs)
+        except WarpbagsError as error:
+            # escaped: a message's own brackets (`warpbags[ray]`, a list) are text, not Rich markup
+            stderr.print(f"[bold red]error:[/] {escape(str(error))}", highlight=False, soft_wrap=True)
+            sys.exit(2)
+        except KeyboardInterrupt:
+            stderr.print("[yellow]interrupted[/]")
+            sys.exit(130)
+
+    return wrapper

@@ -1,0 +1,39 @@
+"""`warpbags export RUN` and `warpbags render RUN`: a run's Gaussians and poses for other tools, novel views."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Optional
+
+import typer
+from rich.console import Console
+
+from warpbags.cli.common import clean_errors
+from warpbags.evaluation import export_run, latest_run, render_turntable
+
+stdout = Console(highlight=False)
+
+
+def export(
+    run_dir: Optional[Path] = typer.Argument(None, help="Run folder (default: the newest under runs/)."),
+    out: Optional[Path] = typer.Option(None, "--out", help="Output folder (default: RUN_DIR/export)."),
+) -> None:
+    """Write the Gaussians (standard 3DGS PLY) and final poses in the input scene's frame."""
+    folder = export_run(run_dir or latest_run(), out)
+    stdout.print(f"wrote {folder / 'gaussians.ply'} and {folder / 'poses_final.npy'} (input scene frame)")
+
+
+def render(
+    run_dir: Optional[Path] = typer.Argument(None, help="Run folder (default: the newest under runs/)."),
+    frames: int = typer.Option(36, "--frames", help="Views on the orbit."),
+    video: bool = typer.Option(True, "--video/--no-video", help="Also write RUN_DIR/turntable.mp4."),
+) -> None:
+    """Render a turntable of novel views around the object (PNG frames, and an MP4 through OpenCV)."""
+    folder = render_turntable(run_dir or latest_run(), frames=frames, video=video)
+    stdout.print(f"wrote {frames} frames to {folder}" + (f" and {folder.parent / 'turntable.mp4'}" if video else ""))
+
+
+def register(app: typer.Typer) -> None:
+    """Add `export` and `render` to `app`."""
+    app.command("export")(clean_errors(export))
+    app.command("render")(clean_errors(render))
