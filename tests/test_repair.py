@@ -210,11 +210,11 @@ def test_cli_trains_with_repair_and_rejects_contradictions(scene_dir, tmp_path):
     assert saved["repair"]["iters"] == 6 and saved["repair"]["loo_iters"] == TINY_REPAIR["loo_iters"]
     assert (out / "repair" / "samples" / "pairs.png").is_file() and (out / "coarse" / "gaussians.ply").is_file()
 
-    for extra, message in [(["--no-repair", "--repair-iters", "5"], "contradict"),
+    for extra, message in [(["--no-repair", "--repair-iters", "5"], "and --no-repair both set repair.iters"),
                            (["--set", "repair.fit_steps=many"], "repair.fit_steps must be like"),
-                           (["--set", "views=6"], "--set views: it has its own option"),
+                           (["--views", "4", "--set", "views=6"], "--views 4 and --set views=6 both set views"),
                            (["--set", "repair.nope=1"], "unknown training option"),
-                           (["--set", "repair.iters=5", "--no-repair"], "--set repair.iters: it has its own option"),
+                           (["--set", "repair.iters=5", "--no-repair"], "--no-repair and --set repair.iters=5 both set"),
                            (["--set", "repair.loo_samples=0"], "repair.loo_samples must be in [1, (loo_iters - loo_snapshot) // 4 = 2]"),
                            (["--set", "repair.noise_dropout=[0.9,0.2]"], "repair.noise_dropout must be (low, high)"),
                            (["--set", "background=black", "--repair-iters", "2"], "white background"),

@@ -1,0 +1,161 @@
+"""The command line's layout: `warpbags train`'s config options come from one table (TRAIN_OPTIONS), each field is
+given once (its option or `--set`), and every command group registers through `warpbags.cli.main`."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import subprocess
+import sys
+import typing
+
+import pytest
+import typer.main
+from typer.testing import CliRunner
+
+from warpbags.cli import train as train_command
+from warpbags.cli.main import COMMAND_GROUPS, app
+from warpbags.cli.train_options import TRAIN_OPTIONS, field_descriptions, field_type, field_value
+from warpbags.configs.train import PRESETS, TrainConfig, quick
+
+runner = CliRunner()
+# Options of `warpbags train` that are not TrainConfig fields.
+RUN_OPTIONS = {"--preset", "--set", "--device", "--data-root", "--out", "--resume", "--log-every"}
+# Values no preset has, valid where the type alone does not say what is.
+SAMPLES = {"resolution": 2, "repair.repairer": "package.module:factory"}
+
+
+class Stop(Exception):
+    """Raised in place of loading the scene: the config the command built is all these tests need."""
+
+
+@pytest.fixture
+def parsed(monkeypatch):
+    """`parsed(*arguments)`: the TrainConfig that `warpbags train scene *arguments` would train with."""
+    configs = []
+
+    def training_scene(scene, config, data_root=None, log=print):
+        configs.append(config)
+        raise Stop
+
+    monkeypatch.setattr(train_command, "training_scene", training_scene)
+
+    def parse(*arguments: str) -> TrainConfig:
+        result = runner.invoke(app, ["train", "scene", *arguments])
+        assert isinstance(result.exception, Stop), result.output
+        return configs[-1]
+
+    return parse
+
+
+def sample(path: str):
+    """A value for the field at `path` that the quick preset does not have."""
+    if path in SAMPLES:
+        return SAMPLES[path]
+    owner = TrainConfig
+    for group in path.split(".")[:-1]:
+        owner = typing.get_type_hints(owner)[group]
+    hint = typing.get_type_hints(owner)[path.split(".")[-1]]
+    default = field_value(quick(), path)
+    if typing.get_origin(hint) is typing.Literal:
+        return next(choice for choice in typing.get_args(hint) if choice != default)
+    return {int: default + 1, float: default + 1.5}[field_type(path)]
+
+
+def command_line(value) -> str:
+    return str(value).lower() if isinstance(value, bool) else str(value)
+
+
+def one_line(result) -> str:
+    lines = [line for line in result.output.splitlines() if line.strip()]
+    assert result.exit_code == 2 and len(lines) == 1 and "Traceback" not in result.output, result.output
+    return lines[0]
+
+
+def test_the_train_options_are_the_table_and_the_run_options():
+    command = typer.main.get_command(app).commands["train"]
+    flags = {name for parameter in command.params for name in parameter.opts if name.startswith("--")}
+    assert flags == {option.flag for option in TRAIN_OPTIONS} | RUN_OPTIONS
+
+
+def description(option) -> str:
+    """The table's help for `option`, else its field's entry in the config dataclass's docstring."""
+    *groups, name = option.path.split(".")
+    owner = type(field_value(TrainConfig(), ".".join(groups))) if groups else TrainConfig
+    return option.help or field_descriptions(owner).get(name, "")
+
+
+@pytest.mark.parametrize("option", TRAIN_OPTIONS, ids=lambda option: option.flag)
+def test_each_table_option_is_in_the_help_with_its_field(option):
+    result = runner.invoke(app, ["train", "--help"], env={"COLUMNS": "1000"})
+    assert result.exit_code == 0, result.output
+    line = next(line for line in result.output.splitlines() if f" {option.flag} " in line)
+    assert f"sets {option.path}" in line and description(option)[1:40] in line, line
+
+
+@pytest.mark.parametrize("option", TRAIN_OPTIONS, ids=lambda option: option.flag)
+def test_each_table_option_sets_its_field_as_set_does(parsed, option):
+    value = sample(option.path) if option.sets is None else option.sets
+    # a preset the option changes (--no-repair changes paper's, not quick's)
+    preset = next(name for name, make in PRESETS.items() if field_value(make(), option.path) != value)
+    arguments = [option.flag] + ([] if option.sets is not None else [command_line(value)])
+    config = parsed("--preset", preset, *arguments)
+    assert field_value(config, option.path) == value
+    assert parsed("--preset", preset, "--set", f"{option.path}={json.dumps(value)}") == config
+
+
+@pytest.mark.parametrize("option", TRAIN_OPTIONS, ids=lambda option: option.flag)
+def test_an_option_and_a_set_of_its_field_are_one_error_line(option):
+    value = sample(option.path) if option.sets is None else option.sets
+    arguments = [option.flag] + ([] if option.sets is not None else [command_line(value)])
+    result = runner.invoke(app, ["train", "scene", *arguments, "--set", f"{option.path}={json.dumps(value)}"])
+    message = one_line(result)
+    assert f"both set {option.path}; give one" in message and option.flag in message and "--set" in message
+
+
+@pytest.mark.parametrize("arguments, message", [
+    (["--no-repair", "--repair-iters", "5"], "--repair-iters 5 and --no-repair both set repair.iters; give one"),
+    (["--set", "repair=3", "--no-repair"], "--no-repair and --set repair=3 both set repair; give one"),
+    (["--set", "views"], "expected name=value"),
+    (["--set", "nonsense=1"], "unknown training option(s): nonsense"),
+    (["--set", "views=1"], "--views must be >= 2, got 1"),
+])
+def test_fields_given_twice_and_bad_settings_are_one_line(arguments, message):
+    assert message in one_line(runner.invoke(app, ["train", "scene", *arguments]))
+
+
+def test_set_reaches_fields_with_an_option_and_the_noise_seed_follows_the_seed(parsed):
+    assert parsed("--set", "views=6").views == 6  # a field with its own option, given once
+    assert parsed().noise_seed == 0
+    assert parsed("--seed", "3").noise_seed == 3
+    assert parsed("--set", "seed=3").noise_seed == 3
+    assert parsed("--seed", "3", "--noise-seed", "5").noise_seed == 5
+    assert parsed("--set", "noise_seed=5").seed == 0
+    assert parsed("--preset", "paper") == PRESETS["paper"]()
+
+
+def test_a_later_set_replaces_an_earlier_one(parsed):
+    assert parsed("--set", "seed=1", "--set", "seed=2").seed == 2
+    assert parsed("--set", "lr.pose=0.1", "--set", 'lr={"pose": 0.2}').lr.pose == 0.2
+    # a group's JSON object sets its fields one by one
+    assert parsed("--set", 'lr={"pose": 0.2, "sh_dc": 0.1}', "--set", "lr.pose=0.3").lr == dataclasses.replace(
+        quick().lr, pose=0.3, sh_dc=0.1)
+
+
+def test_every_table_option_is_described():
+    assert all(description(option) for option in TRAIN_OPTIONS)
+
+
+def test_every_command_group_registers_through_main():
+    names = [command.name for command in app.registered_commands]
+    assert names == ["info", "synth", "train", "eval", "export", "render", "sweep", "view"]
+    assert all(callable(group.register) for group in COMMAND_GROUPS)
+    for name in names:
+        result = runner.invoke(app, [name, "--help"])
+        assert result.exit_code == 0 and "Usage" in result.output, (name, result.output)
+
+
+def test_python_dash_m_runs_the_command_line():
+    result = subprocess.run([sys.executable, "-m", "warpbags.cli.main", "--help"], capture_output=True, text=True,
+                            timeout=300)
+    assert result.returncode == 0 and "train" in result.stdout, result.stderr
