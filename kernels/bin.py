@@ -14,14 +14,15 @@ Two orderings, same lists:
   then walk the Gaussians front to back (argsort of the N depths) appending each to its tiles: linear in the
   number of intersections instead of a sort of them. Each camera's walk is serial by design (one thread).
 
-Camera c's tiles are numbered c * tiles_per_camera + ty * tiles_x + tx. Never differentiated.
+Camera c's tiles are numbered c * tiles_per_camera + ty * tiles_x + tx (`TileGeometry`, shared with the
+rasterizer). Never differentiated.
 """
 
 from typing import Any
 
 import warp as wp
 
-from warpbags.kernels.rasterize import ALPHA_THRESHOLD
+from warpbags.kernels.rasterize import ALPHA_THRESHOLD, TileGeometry
 
 # Added to 2 ln(255 opacity), the reach of sigma doubled: float32 rounding in the rasterizer never meets it.
 REACH_MARGIN = 2.0e-3
@@ -90,22 +91,18 @@ def count_tiles_kernel(
     conics: wp.array(dtype=Any),
     opacities: wp.array(dtype=Any),
     radii: wp.array(dtype=wp.int32),
-    num_gaussians: int,
-    tile_size: int,
-    tiles_x: int,
-    tiles_y: int,
-    height: int,
+    tiles: TileGeometry,
     tile_counts: wp.array(dtype=wp.int32),
 ):
     gid = wp.tid()
     tile_counts[gid] = 0
     if radii[gid] <= 0:
         return
-    a, b, c, t = reach_quadric(conics[gid], opacities[gid % num_gaussians])
-    x0, x1, y0, y1 = tile_bounds(means2d[gid], radii[gid], tile_size, tiles_x, tiles_y)
+    a, b, c, t = reach_quadric(conics[gid], opacities[gid % tiles.num_gaussians])
+    x0, x1, y0, y1 = tile_bounds(means2d[gid], radii[gid], tiles.tile_size, tiles.tiles_x, tiles.tiles_y)
     count = int(0)
     for ty in range(y0, y1):
-        tx0, tx1 = row_tile_span(means2d[gid], a, b, c, t, ty, x0, x1, tile_size, height)
+        tx0, tx1 = row_tile_span(means2d[gid], a, b, c, t, ty, x0, x1, tiles.tile_size, tiles.height)
         count += tx1 - tx0
     tile_counts[gid] = count
 
@@ -118,26 +115,22 @@ def emit_intersections_kernel(
     radii: wp.array(dtype=wp.int32),
     write_offsets: wp.array(dtype=wp.int32),
     depth_bits: wp.array(dtype=wp.int32),
-    num_gaussians: int,
-    tile_size: int,
-    tiles_x: int,
-    tiles_y: int,
-    height: int,
+    tiles: TileGeometry,
     isect_keys: wp.array(dtype=wp.int64),
     isect_ids: wp.array(dtype=wp.int32),
 ):
     gid = wp.tid()
     if radii[gid] <= 0:
         return
-    cam = gid / num_gaussians
-    a, b, c, t = reach_quadric(conics[gid], opacities[gid % num_gaussians])
-    x0, x1, y0, y1 = tile_bounds(means2d[gid], radii[gid], tile_size, tiles_x, tiles_y)
+    cam = gid / tiles.num_gaussians
+    a, b, c, t = reach_quadric(conics[gid], opacities[gid % tiles.num_gaussians])
+    x0, x1, y0, y1 = tile_bounds(means2d[gid], radii[gid], tiles.tile_size, tiles.tiles_x, tiles.tiles_y)
     depth_key = wp.int64(depth_bits[gid])
     cursor = write_offsets[gid]
     for ty in range(y0, y1):
-        tx0, tx1 = row_tile_span(means2d[gid], a, b, c, t, ty, x0, x1, tile_size, height)
+        tx0, tx1 = row_tile_span(means2d[gid], a, b, c, t, ty, x0, x1, tiles.tile_size, tiles.height)
         for tx in range(tx0, tx1):
-            tile = cam * tiles_x * tiles_y + ty * tiles_x + tx
+            tile = cam * tiles.tiles_x * tiles.tiles_y + ty * tiles.tiles_x + tx
             isect_keys[cursor] = (wp.int64(tile) << wp.int64(32)) | depth_key
             isect_ids[cursor] = gid
             cursor += 1
@@ -149,25 +142,21 @@ def tile_histogram_kernel(
     conics: wp.array(dtype=Any),
     opacities: wp.array(dtype=Any),
     radii: wp.array(dtype=wp.int32),
-    num_gaussians: int,
-    tile_size: int,
-    tiles_x: int,
-    tiles_y: int,
-    height: int,
+    tiles: TileGeometry,
     first_camera: int,
     tile_counts: wp.array(dtype=wp.int32),
 ):
     """One thread per camera: tile_counts[tile] = how many Gaussians the tile lists (zeroed by the caller)."""
     cam = first_camera + wp.tid()
-    for g in range(num_gaussians):
-        gid = cam * num_gaussians + g
+    for g in range(tiles.num_gaussians):
+        gid = cam * tiles.num_gaussians + g
         if radii[gid] > 0:
             a, b, c, t = reach_quadric(conics[gid], opacities[g])
-            x0, x1, y0, y1 = tile_bounds(means2d[gid], radii[gid], tile_size, tiles_x, tiles_y)
+            x0, x1, y0, y1 = tile_bounds(means2d[gid], radii[gid], tiles.tile_size, tiles.tiles_x, tiles.tiles_y)
             for ty in range(y0, y1):
-                tx0, tx1 = row_tile_span(means2d[gid], a, b, c, t, ty, x0, x1, tile_size, height)
+                tx0, tx1 = row_tile_span(means2d[gid], a, b, c, t, ty, x0, x1, tiles.tile_size, tiles.height)
                 for tx in range(tx0, tx1):
-                    tile = cam * tiles_x * tiles_y + ty * tiles_x + tx
+                    tile = cam * tiles.tiles_x * tiles.tiles_y + ty * tiles.tiles_x + tx
                     tile_counts[tile] = tile_counts[tile] + 1
 
 
@@ -178,11 +167,7 @@ def fill_tiles_front_to_back_kernel(
     opacities: wp.array(dtype=Any),
     radii: wp.array(dtype=wp.int32),
     depth_order: wp.array2d(dtype=wp.int32),
-    num_gaussians: int,
-    tile_size: int,
-    tiles_x: int,
-    tiles_y: int,
-    height: int,
+    tiles: TileGeometry,
     first_camera: int,
     tile_cursors: wp.array(dtype=wp.int32),
     isect_ids: wp.array(dtype=wp.int32),
@@ -190,15 +175,15 @@ def fill_tiles_front_to_back_kernel(
     """One thread per camera: append the Gaussians to their tiles' lists in depth order (`depth_order[cam]`),
     `tile_cursors` starting at the tiles' offsets."""
     cam = first_camera + wp.tid()
-    for k in range(num_gaussians):
+    for k in range(tiles.num_gaussians):
         g = depth_order[cam, k]
-        gid = cam * num_gaussians + g
+        gid = cam * tiles.num_gaussians + g
         if radii[gid] > 0:
             a, b, c, t = reach_quadric(conics[gid], opacities[g])
-            x0, x1, y0, y1 = tile_bounds(means2d[gid], radii[gid], tile_size, tiles_x, tiles_y)
+            x0, x1, y0, y1 = tile_bounds(means2d[gid], radii[gid], tiles.tile_size, tiles.tiles_x, tiles.tiles_y)
             for ty in range(y0, y1):
-                tx0, tx1 = row_tile_span(means2d[gid], a, b, c, t, ty, x0, x1, tile_size, height)
+                tx0, tx1 = row_tile_span(means2d[gid], a, b, c, t, ty, x0, x1, tiles.tile_size, tiles.height)
                 for tx in range(tx0, tx1):
-                    tile = cam * tiles_x * tiles_y + ty * tiles_x + tx
+                    tile = cam * tiles.tiles_x * tiles.tiles_y + ty * tiles.tiles_x + tx
                     isect_ids[tile_cursors[tile]] = gid
                     tile_cursors[tile] = tile_cursors[tile] + 1

@@ -17,7 +17,8 @@ bit for bit and the gradients differ only by float rounding of the per-block sum
 (lanes = 1, gsplat's layout); the CPU a small block (see warpbags/wrapper.py).
 
 Blocks are visited tile-major (all blocks of a tile, then the next tile) so a launch over a range of tiles touches
-one Gaussian list at a time; `first_block` offsets the launch so host threads can take disjoint tile ranges.
+one Gaussian list at a time; `first_block` offsets the launch so host threads can take disjoint tile ranges. The
+image and its tiles come in one `TileGeometry` (shared with kernels/bin.py).
 Gradient buffers are written with atomic adds: on CUDA one buffer, on CPU one private buffer per host thread
 (CPU atomics are plain adds).
 """
@@ -30,6 +31,19 @@ ALPHA_THRESHOLD = 1.0 / 255.0
 SIGMA_CUTOFF = 5.545177444479562  # ln(255)
 MAX_ALPHA = 0.99
 TRANSMITTANCE_MIN = 1.0e-4
+
+
+@wp.struct
+class TileGeometry:
+    """The image and its tiles, as binning (kernels/bin.py) and rasterization see them. Camera c's tile (tx, ty) is
+    number c * tiles_x * tiles_y + ty * tiles_x + tx and holds the pixels from (tx, ty) * tile_size on."""
+
+    num_gaussians: int  # N per camera: the flat index of Gaussian g in camera c is c * N + g
+    width: int
+    height: int
+    tile_size: int  # tile edge in pixels
+    tiles_x: int  # ceil(width / tile_size)
+    tiles_y: int  # ceil(height / tile_size)
 
 
 @wp.func
@@ -62,21 +76,21 @@ def splat_alpha(opacity: Any, sigma: Any):
 
 
 @wp.func
-def locate_block(index: int, tile_size: int, tiles_x: int, tiles_y: int, block_w: int, block_h: int):
+def locate_block(index: int, tiles: TileGeometry, block_w: int, block_h: int):
     """Tile-major block index -> (camera, global tile, x, y of the block's top-left pixel). A tile's blocks of
     block_w x block_h pixels (both dividing tile_size) are numbered row-major within it."""
-    blocks_x = tile_size / block_w
-    blocks_per_tile = blocks_x * (tile_size / block_h)
-    tiles_per_cam = tiles_x * tiles_y
+    blocks_x = tiles.tile_size / block_w
+    blocks_per_tile = blocks_x * (tiles.tile_size / block_h)
+    tiles_per_cam = tiles.tiles_x * tiles.tiles_y
     tile = index / blocks_per_tile
     local = index - tile * blocks_per_tile
     cam = tile / tiles_per_cam
     tile_in_cam = tile - cam * tiles_per_cam
-    ty = tile_in_cam / tiles_x
-    tx = tile_in_cam - ty * tiles_x
+    ty = tile_in_cam / tiles.tiles_x
+    tx = tile_in_cam - ty * tiles.tiles_x
     by = local / blocks_x
-    x = tx * tile_size + (local - by * blocks_x) * block_w
-    y = ty * tile_size + by * block_h
+    x = tx * tiles.tile_size + (local - by * blocks_x) * block_w
+    y = ty * tiles.tile_size + by * block_h
     return cam, tile, x, y
 
 
@@ -104,12 +118,7 @@ def _forward_kernel(lanes: int):
         depths: wp.array(dtype=Any),
         tile_offsets: wp.array(dtype=wp.int32),
         isect_ids: wp.array(dtype=wp.int32),
-        num_gaussians: int,
-        width: int,
-        height: int,
-        tile_size: int,
-        tiles_x: int,
-        tiles_y: int,
+        tiles: TileGeometry,
         block_w: int,
         block_h: int,
         first_block: int,
@@ -119,7 +128,7 @@ def _forward_kernel(lanes: int):
         final_transmittance: wp.array(dtype=Any),
         isect_end: wp.array(dtype=wp.int32),
     ):
-        cam, tile, x0, y0 = locate_block(first_block + wp.tid(), tile_size, tiles_x, tiles_y, block_w, block_h)
+        cam, tile, x0, y0 = locate_block(first_block + wp.tid(), tiles, block_w, block_h)
         zero = out_depths.dtype(0.0)
         one = out_depths.dtype(1.0)
         # per-lane state: pixel centre, output index, transmittance, colour, depth, end of the contributing range,
@@ -139,7 +148,7 @@ def _forward_kernel(lanes: int):
         last = wp.vector(start, length=wp.static(lanes))
         remaining = int(0)
         for k in range(wp.static(lanes)):
-            x, y, lane_pix = lane_pixel(x0, y0, k, block_w, cam, width, height)
+            x, y, lane_pix = lane_pixel(x0, y0, k, block_w, cam, tiles.width, tiles.height)
             px[k] = out_depths.dtype(x) + out_depths.dtype(0.5)
             py[k] = out_depths.dtype(y) + out_depths.dtype(0.5)
             if lane_pix >= 0:
@@ -149,7 +158,7 @@ def _forward_kernel(lanes: int):
         if remaining == 0:
             return
         # isect ids are flat (camera, Gaussian) indices and opacities per Gaussian: one subtraction per visit
-        first_gaussian = cam * num_gaussians
+        first_gaussian = cam * tiles.num_gaussians
 
         for i in range(start, end):
             g = isect_ids[i]
@@ -210,12 +219,7 @@ def _backward_kernel(lanes: int):
         depths: wp.array(dtype=Any),
         tile_offsets: wp.array(dtype=wp.int32),
         isect_ids: wp.array(dtype=wp.int32),
-        num_gaussians: int,
-        width: int,
-        height: int,
-        tile_size: int,
-        tiles_x: int,
-        tiles_y: int,
+        tiles: TileGeometry,
         block_w: int,
         block_h: int,
         first_block: int,
@@ -230,7 +234,7 @@ def _backward_kernel(lanes: int):
         v_opacities: wp.array(dtype=Any),
         v_depths: wp.array(dtype=Any),
     ):
-        cam, tile, x0, y0 = locate_block(first_block + wp.tid(), tile_size, tiles_x, tiles_y, block_w, block_h)
+        cam, tile, x0, y0 = locate_block(first_block + wp.tid(), tiles, block_w, block_h)
         zero = v_out_depths.dtype(0.0)
         one = v_out_depths.dtype(1.0)
         half = v_out_depths.dtype(0.5)
@@ -252,7 +256,7 @@ def _backward_kernel(lanes: int):
         sigma = wp.vector(zero, length=wp.static(lanes))
         i = int(0)
         for k in range(wp.static(lanes)):
-            x, y, pix = lane_pixel(x0, y0, k, block_w, cam, width, height)
+            x, y, pix = lane_pixel(x0, y0, k, block_w, cam, tiles.width, tiles.height)
             px[k] = v_out_depths.dtype(x) + v_out_depths.dtype(0.5)
             py[k] = v_out_depths.dtype(y) + v_out_depths.dtype(0.5)
             if pix >= 0:
@@ -266,7 +270,7 @@ def _backward_kernel(lanes: int):
                 v_alpha_out[k] = v_out_alphas[pix]
                 last[k] = isect_end[pix]
                 i = wp.max(i, last[k])
-        first_gaussian = cam * num_gaussians
+        first_gaussian = cam * tiles.num_gaussians
         start = tile_offsets[tile]
 
         while i > start:
@@ -349,7 +353,8 @@ def _declare_overloads() -> None:
     for scalar in (wp.float32, wp.float64):
         vec2, vec3 = wp.types.vector(2, scalar), wp.types.vector(3, scalar)
         splats = [wp.array(dtype=vec2), wp.array(dtype=vec3), wp.array(dtype=vec3), wp.array(dtype=scalar),
-                  wp.array(dtype=scalar), wp.array(dtype=wp.int32), wp.array(dtype=wp.int32), *([int] * 9)]
+                  wp.array(dtype=scalar), wp.array(dtype=wp.int32), wp.array(dtype=wp.int32), TileGeometry, int, int,
+                  int]
         for lanes in LANES:
             wp.overload(FORWARD_KERNELS[lanes], [
                 *splats, wp.array(dtype=vec3), wp.array(dtype=scalar), wp.array(dtype=scalar), wp.array(dtype=scalar),

@@ -129,7 +129,7 @@ def test_cpu_threads_give_identical_results():
 @pytest.mark.parametrize("tile_size", [4, 8, 16])
 def test_counting_sort_binning_equals_key_sort(dtype, tile_size):
     """The CPU binning (counting sort of depth-ordered Gaussians) lists exactly what the CUDA path's key sort does."""
-    from warpbags.wrapper import _bin_by_sort, _to_warp, bin_gaussians, project_gaussians
+    from warpbags.wrapper import _bin_by_sort, _tile_geometry, _to_warp, bin_gaussians, project_gaussians
 
     cams, n, width, height = 3, 200, 37, 29
     scene = random_scene(n=n, cams=cams, width=width, height=height, dtype=dtype, seed=1)
@@ -140,8 +140,8 @@ def test_counting_sort_binning_equals_key_sort(dtype, tile_size):
     splats = dict(means2d=_to_warp(means2d.reshape(-1, 2).contiguous(), "vec2"),
                   conics=_to_warp(conics.reshape(-1, 3).contiguous(), "vec3"),
                   opacities=_to_warp(scene["opacities"], "scalar"), radii=_to_warp(radii.reshape(-1).contiguous(), "int32"))
-    geometry = dict(num_gaussians=n, tile_size=tile_size, tiles_x=tiles_x, tiles_y=tiles_y, height=height)
-    tile_offsets, isect_ids = _bin_by_sort(splats, geometry, depths, cams * tiles_x * tiles_y)
+    tiles = _tile_geometry(n, width, height, tile_size)
+    tile_offsets, isect_ids = _bin_by_sort(splats, tiles, depths, cams * tiles_x * tiles_y)
     assert len(isect_ids) > 4 * cams * tiles_x * tiles_y  # several Gaussians per tile
     assert torch.equal(bins.tile_offsets, tile_offsets) and torch.equal(bins.isect_ids, isect_ids)
 

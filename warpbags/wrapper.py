@@ -29,7 +29,7 @@ from warpbags.kernels.bin import (
 )
 from warpbags.kernels.pose import apply_object_deltas_kernel, apply_pose_deltas_kernel
 from warpbags.kernels.project import project_gaussians_kernel
-from warpbags.kernels.rasterize import BACKWARD_KERNELS, FORWARD_KERNELS
+from warpbags.kernels.rasterize import BACKWARD_KERNELS, FORWARD_KERNELS, TileGeometry
 from warpbags.kernels.sh import sh_to_colors_kernel
 
 _WP_SCALARS = {torch.float32: wp.float32, torch.float64: wp.float64}
@@ -345,27 +345,34 @@ def bin_gaussians(means2d: torch.Tensor, conics: torch.Tensor, opacities: torch.
     """
     cams, n = radii.shape
     device = radii.device
-    tiles_x, tiles_y = math.ceil(width / tile_size), math.ceil(height / tile_size)
-    num_tiles = cams * tiles_x * tiles_y
+    tiles = _tile_geometry(n, width, height, tile_size)
+    num_tiles = cams * tiles.tiles_x * tiles.tiles_y
     splats = dict(means2d=_to_warp(means2d.detach().reshape(-1, 2).contiguous(), "vec2"),
                   conics=_to_warp(conics.detach().reshape(-1, 3).contiguous(), "vec3"),
                   opacities=_to_warp(opacities.detach().contiguous(), "scalar"),
                   radii=_to_warp(radii.reshape(-1).contiguous(), "int32"))
-    geometry = dict(num_gaussians=n, tile_size=tile_size, tiles_x=tiles_x, tiles_y=tiles_y, height=height)
     if device.type == "cuda":
-        tile_offsets, isect_ids = _bin_by_sort(splats, geometry, depths, num_tiles)
+        tile_offsets, isect_ids = _bin_by_sort(splats, tiles, depths, num_tiles)
     else:
-        tile_offsets, isect_ids = _bin_by_counting(splats, geometry, radii, depths, num_tiles,
+        tile_offsets, isect_ids = _bin_by_counting(splats, tiles, radii, depths, num_tiles,
                                                    cpu_threads or _default_cpu_threads())
-    return TileBins(tile_size, tiles_x, tiles_y, tile_offsets, isect_ids)
+    return TileBins(tile_size, tiles.tiles_x, tiles.tiles_y, tile_offsets, isect_ids)
 
 
-def _bin_by_sort(splats: dict, geometry: dict, depths: torch.Tensor, num_tiles: int):
+def _tile_geometry(num_gaussians: int, width: int, height: int, tile_size: int) -> TileGeometry:
+    """The kernels' `TileGeometry` of an image of width x height pixels in tiles of tile_size."""
+    tiles = TileGeometry()
+    tiles.num_gaussians, tiles.width, tiles.height, tiles.tile_size = num_gaussians, width, height, tile_size
+    tiles.tiles_x, tiles.tiles_y = math.ceil(width / tile_size), math.ceil(height / tile_size)
+    return tiles
+
+
+def _bin_by_sort(splats: dict, tiles: TileGeometry, depths: torch.Tensor, num_tiles: int):
     """gsplat's binning: one (tile, depth) key per intersection, sorted (the GPU path)."""
     device = depths.device
     launcher = _launcher(device)
     counts = torch.empty(depths.numel(), dtype=torch.int32, device=device)
-    launcher.launch(count_tiles_kernel, depths.numel(), **splats, **geometry, tile_counts=_to_warp(counts, "int32"))
+    launcher.launch(count_tiles_kernel, depths.numel(), **splats, tiles=tiles, tile_counts=_to_warp(counts, "int32"))
     ends = torch.cumsum(counts, 0, dtype=torch.int64)
     num_isects = int(ends[-1]) if ends.numel() else 0
     write_offsets = (ends - counts).to(torch.int32)
@@ -376,7 +383,7 @@ def _bin_by_sort(splats: dict, geometry: dict, depths: torch.Tensor, num_tiles: 
     if num_isects:
         launcher.launch(
             emit_intersections_kernel, depths.numel(), **splats, write_offsets=_to_warp(write_offsets, "int32"),
-            depth_bits=_to_warp(depth_bits, "int32"), **geometry, isect_keys=_to_warp(keys, "int64"),
+            depth_bits=_to_warp(depth_bits, "int32"), tiles=tiles, isect_keys=_to_warp(keys, "int64"),
             isect_ids=_to_warp(ids, "int32"),
         )
     keys, order = torch.sort(keys)
@@ -384,7 +391,7 @@ def _bin_by_sort(splats: dict, geometry: dict, depths: torch.Tensor, num_tiles: 
     return tile_offsets, ids[order].contiguous()
 
 
-def _bin_by_counting(splats: dict, geometry: dict, radii: torch.Tensor, depths: torch.Tensor, num_tiles: int,
+def _bin_by_counting(splats: dict, tiles: TileGeometry, radii: torch.Tensor, depths: torch.Tensor, num_tiles: int,
                      threads: int):
     """Counting sort by tile of the depth-ordered Gaussians (the CPU path): one serial pass per camera to count,
     one to fill; cameras run in parallel host threads (Warp launches release the GIL)."""
@@ -395,7 +402,7 @@ def _bin_by_counting(splats: dict, geometry: dict, radii: torch.Tensor, depths: 
     counts_wp = _to_warp(tile_counts, "int32")
 
     def count(worker, first, stop):
-        launcher.launch(tile_histogram_kernel, stop - first, **splats, **geometry, first_camera=first,
+        launcher.launch(tile_histogram_kernel, stop - first, **splats, tiles=tiles, first_camera=first,
                         tile_counts=counts_wp)
 
     _for_each_worker(count, cameras, min(threads, cams))
@@ -409,7 +416,7 @@ def _bin_by_counting(splats: dict, geometry: dict, radii: torch.Tensor, depths: 
     order_wp, cursors_wp, ids_wp = _to_warp(depth_order, "int32"), _to_warp(tile_cursors, "int32"), _to_warp(isect_ids, "int32")
 
     def fill(worker, first, stop):
-        launcher.launch(fill_tiles_front_to_back_kernel, stop - first, **splats, depth_order=order_wp, **geometry,
+        launcher.launch(fill_tiles_front_to_back_kernel, stop - first, **splats, depth_order=order_wp, tiles=tiles,
                         first_camera=first, tile_cursors=cursors_wp, isect_ids=ids_wp)
 
     if len(isect_ids):
@@ -492,7 +499,8 @@ def _flat_splats(means2d, conics, colors, opacities, depths) -> dict[str, torch.
 
 def _splat_arguments(splats: dict[str, torch.Tensor], tile_offsets: torch.Tensor, isect_ids: torch.Tensor,
                      geometry: dict) -> dict:
-    """The arguments both rasterizer kernels start with: the splats, the tile bins and the image geometry."""
+    """The arguments both rasterizer kernels start with: the splats, the tile bins, the `TileGeometry` and the
+    pixel block."""
     return {**{name: _to_warp(t, _SPLAT_KINDS[name]) for name, t in splats.items()},
             "tile_offsets": _to_warp(tile_offsets, "int32"), "isect_ids": _to_warp(isect_ids, "int32"), **geometry}
 
@@ -526,8 +534,7 @@ class _RasterizeToPixels(torch.autograd.Function):
         workers = 1 if device.type == "cuda" else (cpu_threads or _default_cpu_threads())
         block_w, block_h = _pixel_block(device, bins.tile_size, pixel_block)
         ctx.lanes = block_w * block_h
-        ctx.geometry = dict(num_gaussians=n, width=width, height=height, tile_size=bins.tile_size,
-                            tiles_x=bins.tiles_x, tiles_y=bins.tiles_y, block_w=block_w, block_h=block_h)
+        ctx.geometry = dict(tiles=_tile_geometry(n, width, height, bins.tile_size), block_w=block_w, block_h=block_h)
         common = _splat_arguments(splats, bins.tile_offsets, bins.isect_ids, ctx.geometry)
         blocks_per_tile = bins.tile_size**2 // ctx.lanes
         ranges = _pixel_ranges(cams * bins.tiles_x * bins.tiles_y, blocks_per_tile, 1 if workers == 1 else 8 * workers)
@@ -581,7 +588,7 @@ class _RasterizeToPixels(torch.autograd.Function):
         v_means2d, v_conics, v_colors, v_opacities, v_depths = (
             sum(parts[1:], parts[0]) for parts in zip(*(b.values() for b in buffers))
         )
-        cams, n = final_transmittance.shape[0], ctx.geometry["num_gaussians"]
+        cams, n = final_transmittance.shape[0], ctx.geometry["tiles"].num_gaussians
         return (
             v_means2d.view(cams, n, 2), v_conics.view(cams, n, 3), v_colors.view(cams, n, 3), v_opacities,
             v_depths.view(cams, n), None, None, None, None, None,
