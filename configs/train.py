@@ -1,6 +1,7 @@
 """Training presets for `warpbags train`: one typed dataclass, two named presets, CLI overrides on top.
 
-`paper` follows the BAGS report's coarse schedule with GaussianObject's / 3DGS's Gaussian learning rates;
+`paper` follows the BAGS report's coarse schedule with GaussianObject's / 3DGS's Gaussian learning rates (the
+dataclass defaults, stated once there) and its repair stage;
 `quick` is a CPU-sized schedule (low resolution, few Gaussians, all views every step) for demos and tests.
 """
 
@@ -199,6 +200,8 @@ class RepairConfig:
 class TrainConfig:
     """Everything that decides a training run (saved as config.json in the run folder).
 
+    The defaults are the `paper` preset's coarse stage; only its repair stage differs from them.
+
     Attributes:
         preset: the preset this config came from.
         views: number of training views (the scene's sparse_{views}.txt split).
@@ -360,16 +363,10 @@ class TrainConfig:
 
 
 def paper() -> TrainConfig:
-    """The BAGS report's schedule: 5000 coarse iterations (poses from 1000, depth until 1000, one view per step), then
-    3000 repair iterations."""
+    """The BAGS report's schedule: the `TrainConfig` defaults, which state its coarse stage (5000 iterations, poses
+    from 1000, depth until 1000, one view per step, 3DGS densification and learning rates), then 3000 repair
+    iterations (`RepairConfig`'s defaults are a short CPU-sized stage, off)."""
     return TrainConfig(
-        preset="paper",
-        iters=5000,
-        pose_opt_start=1000,
-        depth_until=1000,
-        checkpoint_every=500,
-        views_per_step=1,
-        densify=DensifyConfig(start=500, stop=3000, every=100, opacity_reset_every=1000),
         # The report's repair stage; leave-one-out models use the coarse recipe (GaussianObject keeps its
         # leave-one-out Gaussian set fixed from iteration 6000 of 10000: here from the densification stop).
         repair=RepairConfig(iters=3000, loo_iters=5000, loo_snapshot=3000, loo_samples=8, unet_channels=32,

@@ -1,0 +1,69 @@
+"""Training presets: `paper()` and `quick()` give exactly the configs they gave before `paper()` stopped restating the
+dataclass defaults (values written down at b03b2db); the defaults are the paper schedule's coarse stage."""
+
+from __future__ import annotations
+
+import dataclasses
+
+from warpbags.configs.train import RepairConfig, TrainConfig, paper, quick
+
+PAPER = {
+    "preset": "paper", "views": 4, "iters": 5000, "rounds": 1, "pose_opt": True, "pose_opt_start": 1000,
+    "pose_round_window": (0.0, 1.0), "depth_until": 1000, "rot_noise_deg": 0.0, "trans_noise": 0.0, "noise_seed": 0,
+    "seed": 0, "resolution": None, "max_image_size": 0, "pyramid_levels": 1, "views_per_step": 1, "background": "white",
+    "sh_degree": 2, "sh_degree_every": 1000, "init": "hull", "init_points": 20000, "hull_resolution": 64,
+    "hull_dilation_px": 0, "hull_missed_views": 1, "blur_sigma_px": 0.0, "blur_until": 0, "lambda_dssim": 0.2,
+    "lambda_mask": 0.01, "lambda_depth": 0.05, "lambda_mask_distance": 0.0, "lambda_chamfer": 1.0,
+    "silhouette_until": 0, "depth_loss": "mad", "checkpoint_every": 500, "pose_alignment": "procrustes",
+    "render_threads": 0,
+    "lr": {"means_init": 0.00016, "means_final": 1.6e-06, "sh_dc": 0.0025, "sh_rest": 0.000125, "opacities": 0.05,
+           "scales": 0.005, "quats": 0.001, "adam_eps": 1e-15, "pose": 0.003, "pose_final": 0.0003,
+           "pose_translation_scale": 1.0},
+    "camera": {"parameterization": "object", "precondition": True, "precondition_reg": 0.1, "centroid_start": True,
+               "fix_first_camera": False},
+    "densify": {"start": 500, "stop": 3000, "every": 100, "grad_threshold": 0.0002, "percent_dense": 0.01,
+                "prune_opacity": 0.005, "prune_scale": 0.1, "opacity_reset_every": 1000, "max_gaussians": 0,
+                "floater_every": 500, "floater_std_ratio": 3.0},
+    "repair": {"iters": 3000, "loo_iters": 5000, "loo_snapshot": 3000, "loo_samples": 8, "noise_renders": 8,
+               "noise_clamp_std": (0.6, 0.8), "noise_dropout": (0.6, 0.8), "repairer": "unet", "unet_channels": 32,
+               "fit_steps": 2000, "fit_lr": 0.002, "fit_batch": 8, "fit_crop": 128, "pseudo_views": 20,
+               "refresh_every": 200, "pseudo_ratio_start": 1.0, "pseudo_ratio_end": 0.5, "pseudo_until": 0.7,
+               "weight_l1": 0.5, "weight_l2": 0.5, "weight_lpips": 2.0, "samples_kept": 3},
+}
+
+QUICK = {
+    "preset": "quick", "views": 4, "iters": 600, "rounds": 3, "pose_opt": True, "pose_opt_start": 0,
+    "pose_round_window": (0.25, 1.0), "depth_until": 60, "rot_noise_deg": 0.0, "trans_noise": 0.0, "noise_seed": 0,
+    "seed": 0, "resolution": None, "max_image_size": 128, "pyramid_levels": 1, "views_per_step": 0,
+    "background": "white", "sh_degree": 0, "sh_degree_every": 1000, "init": "hull", "init_points": 3000,
+    "hull_resolution": 48, "hull_dilation_px": 2, "hull_missed_views": 1, "blur_sigma_px": 0.0, "blur_until": 0,
+    "lambda_dssim": 0.2, "lambda_mask": 0.01, "lambda_depth": 0.05, "lambda_mask_distance": 0.0,
+    "lambda_chamfer": 1.0, "silhouette_until": 0, "depth_loss": "mad", "checkpoint_every": 100,
+    "pose_alignment": "procrustes", "render_threads": 0,
+    "lr": {"means_init": 0.0016, "means_final": 1.6e-05, "sh_dc": 0.0025, "sh_rest": 0.000125, "opacities": 0.05,
+           "scales": 0.005, "quats": 0.001, "adam_eps": 1e-15, "pose": 0.01, "pose_final": 0.001,
+           "pose_translation_scale": 0.1},
+    "camera": {"parameterization": "object", "precondition": True, "precondition_reg": 0.1, "centroid_start": True,
+               "fix_first_camera": False},
+    "densify": {"start": 100, "stop": 201, "every": 50, "grad_threshold": 0.0008, "percent_dense": 0.01,
+                "prune_opacity": 0.005, "prune_scale": 0.1, "opacity_reset_every": 0, "max_gaussians": 6000,
+                "floater_every": 0, "floater_std_ratio": 3.0},
+    "repair": {"iters": 0, "loo_iters": 300, "loo_snapshot": 200, "loo_samples": 4, "noise_renders": 8,
+               "noise_clamp_std": (0.6, 0.8), "noise_dropout": (0.6, 0.8), "repairer": "unet", "unet_channels": 16,
+               "fit_steps": 400, "fit_lr": 0.002, "fit_batch": 8, "fit_crop": 64, "pseudo_views": 8,
+               "refresh_every": 50, "pseudo_ratio_start": 1.0, "pseudo_ratio_end": 0.5, "pseudo_until": 0.7,
+               "weight_l1": 0.5, "weight_l2": 0.5, "weight_lpips": 2.0, "samples_kept": 3},
+}
+
+
+def test_presets_are_unchanged_by_the_refactor():
+    """Exact equality, types included (1000 and 1000.0 compare equal, so the reprs are compared too)."""
+    for make, expected in ((paper, PAPER), (quick, QUICK)):
+        values = make().to_dict()
+        assert values == expected, make.__name__
+        assert repr(values) == repr(expected), make.__name__
+
+
+def test_paper_is_the_defaults_with_its_repair_stage():
+    assert dataclasses.replace(paper(), repair=RepairConfig()) == TrainConfig()
+    assert paper().repair.iters > 0 and TrainConfig().repair.iters == 0
