@@ -120,6 +120,13 @@ def test_maryrose_poses_agree_with_masks(maryrose):
     assert torch.allclose(torch.linalg.det(rotations), torch.ones(69), atol=1e-5)
 
 
+def test_maryrose_normalization_is_unchanged_to_the_last_digit(maryrose):
+    """The object centre (mask-centroid rays met by `silhouette.rays_meeting_point`) and the scale, as first
+    computed (b03b2db): every run's world frame depends on them."""
+    assert maryrose.normalization.center == (-0.7887152026885462, 0.9009442736130013, 0.01981964168689295)
+    assert maryrose.normalization.scale == 1.0488791952491046
+
+
 def test_farthest_point_choice_reproduces_maryrose_splits(maryrose):
     centers = maryrose.camera_centers().double().numpy()
     for size in (4, 6, 9):

@@ -31,6 +31,17 @@ def test_rays_meeting_point_is_exact_for_rays_through_one_point():
     torch.testing.assert_close(rays_meeting_point(origins, directions), point, rtol=0, atol=1e-10)
 
 
+def test_rays_meeting_point_with_min_spread_refuses_nearly_parallel_rays():
+    """A forward-facing capture: parallel optical axes meet nowhere (`data.loaders.object_center` falls back)."""
+    origins = torch.tensor([[-1.0, 0.0, 0.0], [0.0, 0.0, 0.0], [1.0, 0.0, 0.0]], dtype=torch.float64)
+    parallel = torch.tensor([[0.0, 0.0, 1.0]], dtype=torch.float64).expand(3, 3)
+    assert rays_meeting_point(origins, parallel, min_spread=1e-3) is None
+    converging = torch.tensor([[1.0, 0.0, 4.0], [0.0, 0.0, 1.0], [-1.0, 0.0, 4.0]], dtype=torch.float64)
+    converging = converging / converging.norm(dim=-1, keepdim=True)  # through (0, 0, 4)
+    point = rays_meeting_point(origins, converging, min_spread=1e-3)
+    torch.testing.assert_close(point, torch.tensor([0.0, 0.0, 4.0], dtype=torch.float64), rtol=0, atol=1e-12)
+
+
 def test_centroid_start_recovers_an_off_axis_camera(scene):
     views = scene.subset(scene.train_views(6))
     truth = views.viewmats.double()

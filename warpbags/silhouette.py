@@ -45,10 +45,32 @@ def centroid_rays(masks: torch.Tensor, viewmats: torch.Tensor, Ks: torch.Tensor)
     return camera, world
 
 
-def rays_meeting_point(origins: torch.Tensor, directions: torch.Tensor) -> torch.Tensor:
-    """[3] the least-squares point closest to the lines origins [C, 3] + s directions [C, 3] (unit), C >= 2."""
-    projectors = torch.eye(3, dtype=origins.dtype) - directions[:, :, None] * directions[:, None, :]
-    return torch.linalg.solve(projectors.sum(0), (projectors @ origins[..., None]).sum(0))[:, 0]
+def rays_meeting_point(origins: torch.Tensor, directions: torch.Tensor, min_spread: float = 0.0) -> torch.Tensor | None:
+    """The least-squares point closest to the lines origins + s directions: x with sum_c P_c x = sum_c P_c o_c,
+    P_c = I - d_c d_c^T. The one implementation for the mask-centroid start, the trainer's object centre and the
+    scenes' normalization (`warpbags.data.loaders.object_center`).
+
+    Computed in float64 with NumPy (LAPACK's solve): the normalization of the scenes was first computed so, and it
+    is kept to the last digit.
+
+    Args:
+        origins: [C, 3] points on the lines. directions: [C, 3] unit directions, C >= 2.
+        min_spread: return None when the smallest eigenvalue of sum_c P_c is below `min_spread` times the largest
+            (nearly parallel lines, a forward-facing capture: the point is ill-determined along them); 0 never does.
+
+    Returns:
+        [3] the point, in the dtype and on the device of `origins`; or None (see `min_spread`).
+    """
+    lines = directions.detach().cpu().double().numpy()
+    points = origins.detach().cpu().double().numpy()
+    projectors = np.eye(3)[None] - lines[:, :, None] * lines[:, None, :]
+    system = projectors.sum(0)
+    if min_spread > 0:
+        eigenvalues = np.linalg.eigvalsh(system)
+        if eigenvalues[0] < min_spread * eigenvalues[-1]:
+            return None
+    point = np.linalg.solve(system, np.einsum("cij,cj->i", projectors, points))
+    return torch.from_numpy(point).to(origins)
 
 
 def _rotation_between(source: torch.Tensor, target: torch.Tensor) -> torch.Tensor:

@@ -26,6 +26,7 @@ from warpbags.cameras import camera_centers
 from warpbags.data.colmap import read_model
 from warpbags.data.scene import ORBIT_RADIUS, Scene, SceneNormalization, farthest_views
 from warpbags.errors import WarpbagsError
+from warpbags.silhouette import rays_meeting_point
 
 logger = logging.getLogger("warpbags.data")
 
@@ -482,19 +483,17 @@ def object_center(
     rays_camera = np.linalg.solve(Ks, np.concatenate([pixels, np.ones((len(Ks), 1))], axis=1)[:, :, None])[..., 0]
     directions = np.einsum("cji,cj->ci", viewmats[:, :3, :3], rays_camera)
     directions /= np.linalg.norm(directions, axis=1, keepdims=True)
-    origins = camera_centers(torch.from_numpy(viewmats)).numpy()
-    projectors = np.eye(3)[None] - directions[:, :, None] * directions[:, None, :]
-    system, rhs = projectors.sum(0), np.einsum("cij,cj->i", projectors, origins)
-    eigenvalues = np.linalg.eigvalsh(system)
-    if eigenvalues[0] < 1e-3 * eigenvalues[-1]:
-        if points is not None and len(points):
-            logger.warning("object centre: the views' rays through the object are nearly parallel (forward-facing "
-                           "capture?); using the median of the %d SfM points instead", len(points))
-            return np.median(points, axis=0)
+    origins = camera_centers(torch.from_numpy(viewmats))
+    center = rays_meeting_point(origins, torch.from_numpy(directions), min_spread=1e-3)
+    if center is not None:
+        return center.numpy()
+    if points is not None and len(points):
         logger.warning("object centre: the views' rays through the object are nearly parallel (forward-facing "
-                       "capture?) and there are no SfM points; using the mean camera centre instead")
-        return origins.mean(0)
-    return np.linalg.solve(system, rhs)
+                       "capture?); using the median of the %d SfM points instead", len(points))
+        return np.median(points, axis=0)
+    logger.warning("object centre: the views' rays through the object are nearly parallel (forward-facing "
+                   "capture?) and there are no SfM points; using the mean camera centre instead")
+    return origins.numpy().mean(0)
 
 
 def read_split_file(path: Path, num_views: int) -> list[int]:
