@@ -24,14 +24,13 @@ import torch
 
 from warpbags.cameras import camera_centers
 from warpbags.data.colmap import read_model
-from warpbags.data.scene import ORBIT_RADIUS, Scene, SceneNormalization, farthest_views
+from warpbags.data.scene import DEFAULT_SPLIT_SIZES, ORBIT_RADIUS, Scene, SceneNormalization, farthest_views
 from warpbags.errors import WarpbagsError
 from warpbags.silhouette import rays_meeting_point
 
 logger = logging.getLogger("warpbags.data")
 
 IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".PNG", ".JPG", ".JPEG")
-DEFAULT_SPLIT_SIZES = (4, 6, 9)
 TEST_EVERY = 8
 """Without `sparse_test.txt`, every 8th view not used for training is a test view (the MipNeRF360 hold-out)."""
 

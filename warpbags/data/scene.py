@@ -19,6 +19,10 @@ import torch
 from warpbags.cameras import camera_centers
 from warpbags.errors import WarpbagsError
 
+DEFAULT_SPLIT_SIZES = (4, 6, 9)
+"""Training-view counts every scene has a split for (`sparse_{size}.txt`, else farthest-point views): the
+sparse-view protocol of GaussianObject."""
+
 ORBIT_RADIUS = 4.0
 """Mean distance from the camera centres to the object centre after normalization.
 

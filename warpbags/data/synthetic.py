@@ -23,9 +23,11 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+import torch
 
+from warpbags.cameras import camera_centers
 from warpbags.data.colmap import write_model
-from warpbags.data.scene import farthest_views
+from warpbags.data.scene import DEFAULT_SPLIT_SIZES, farthest_views
 from warpbags.errors import WarpbagsError
 
 GENERATOR_VERSION = 3  # bump whenever the geometry or rendering changes: cache folders are keyed on it
@@ -299,8 +301,8 @@ def render_view(
     primitives: list[Primitive], viewmat: np.ndarray, K: np.ndarray, width: int, height: int, supersample: int
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Render one view. Returns image [H,W,3] float32, mask [H,W] float32, z-depth [H,W] float32 (0 = background)."""
-    rotation, translation = viewmat[:3, :3], viewmat[:3, 3]
-    eye = -rotation.T @ translation
+    rotation = viewmat[:3, :3]
+    eye = camera_centers(torch.from_numpy(viewmat)).numpy()
 
     def rays(offsets: np.ndarray):
         xs, ys = np.meshgrid(np.arange(width) + 0.0, np.arange(height) + 0.0)
@@ -364,9 +366,9 @@ def generate_synthetic_scene(out_dir: str | Path, options: SyntheticOptions = Sy
             staging / "sparse" / "0", names, viewmats, np.tile(K, (options.views, 1, 1)), options.width, options.height,
             np.concatenate(points), np.concatenate(colors),
         )
-        centers = -np.einsum("cji,cj->ci", viewmats[:, :3, :3], viewmats[:, :3, 3])
+        centers = camera_centers(torch.from_numpy(viewmats)).numpy()
         train = set()
-        for size in (4, 6, 9):
+        for size in DEFAULT_SPLIT_SIZES:
             if size < options.views:
                 chosen = sorted(farthest_views(centers, size))
                 train.update(chosen)
