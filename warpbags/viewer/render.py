@@ -20,6 +20,7 @@ import torch
 import viser
 import viser.transforms as vtf
 
+from warpbags.cameras import camera_centers, viewmats_from_centers
 from warpbags.errors import WarpbagsError
 from warpbags.gaussians import render_gaussians
 from warpbags.threads import torch_threads
@@ -34,17 +35,14 @@ FAR_DEPTH = 1e3  # depth sent where no Gaussian covers the pixel (viser clips it
 
 def camera_to_world(viewmat: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """viser's (wxyz, position) of a [4,4] world-to-camera matrix; both use OpenCV axes (+z looks forward)."""
-    rotation = viewmat[:3, :3].T
-    return vtf.SO3.from_matrix(rotation).wxyz, -rotation @ viewmat[:3, 3]
+    return vtf.SO3.from_matrix(viewmat[:3, :3].T).wxyz, camera_centers(torch.from_numpy(viewmat)).numpy()
 
 
 def world_to_camera(wxyz: np.ndarray, position: np.ndarray) -> np.ndarray:
     """[4,4] world-to-camera matrix of viser's camera-to-world (wxyz, position): the inverse of `camera_to_world`."""
-    rotation = vtf.SO3(np.asarray(wxyz, dtype=np.float64)).as_matrix()
-    viewmat = np.eye(4)
-    viewmat[:3, :3] = rotation.T
-    viewmat[:3, 3] = -rotation.T @ np.asarray(position, dtype=np.float64)
-    return viewmat
+    to_world = vtf.SO3(np.asarray(wxyz, dtype=np.float64)).as_matrix()
+    center = torch.from_numpy(np.asarray(position, dtype=np.float64))
+    return viewmats_from_centers(torch.from_numpy(to_world.T.copy()), center).numpy()
 
 
 def pinhole_intrinsics(vertical_fov: float, width: int, height: int) -> np.ndarray:
