@@ -201,6 +201,33 @@ def test_resuming_a_finished_run_trains_nothing(scene_dir, tmp_path):
     assert len((tmp_path / "log.jsonl").read_text().splitlines()) == 4  # no iteration ran again
 
 
+def test_resume_cuts_the_log_back_to_the_checkpoint_and_drops_a_torn_line(scene_dir, tmp_path):
+    trainer = make_trainer(scene_dir, tmp_path, iters=4, checkpoint_every=2)
+    trainer.train(stop_at=3)  # checkpoints at 2 and 3
+    with open(tmp_path / "log.jsonl", "a") as log:
+        log.write('{"iter": 4, "stage": "coa')  # a crash in the middle of a line
+    resumed = make_trainer(scene_dir, tmp_path, iters=4)
+    assert resumed.resume() and resumed.iteration == 3
+    assert [json.loads(line)["iter"] for line in (tmp_path / "log.jsonl").read_text().splitlines()] == [1, 2, 3]
+
+
+def test_an_old_or_damaged_checkpoint_is_one_line(scene_dir, tmp_path):
+    trainer = make_trainer(scene_dir, tmp_path, iters=2)
+    trainer.write_run_files()
+    trainer.train()
+    path = trainer.latest_checkpoint()
+    state = torch.load(path, weights_only=False)
+    del state["cameras"]  # as written before the camera optimizer had a state of its own
+    torch.save(state, path)
+    with pytest.raises(WarpbagsError, match="older warpbags \\(no cameras\\); it cannot be resumed"):
+        make_trainer(scene_dir, tmp_path, iters=2).resume()
+    path.write_bytes(path.read_bytes()[:200])  # cut short
+    result = runner.invoke(app, ["train", str(scene_dir), "--resume", "--out", str(tmp_path)])
+    errors = [line for line in result.output.splitlines() if line.startswith("error:")]
+    assert result.exit_code == 2 and "Traceback" not in result.output, result.output
+    assert len(errors) == 1 and "unreadable checkpoint" in errors[0], result.output
+
+
 @pytest.fixture(scope="module")
 def pose_run(scene_dir, tmp_path_factory):
     trainer = make_trainer(scene_dir, tmp_path_factory.mktemp("pose"), **POSE_TEST)

@@ -46,7 +46,7 @@ ALIGNMENTS = ("procrustes", "pairwise")
 
 @dataclass
 class TrainingRun:
-    """What a finished run folder holds (see `warpbags.trainer` for the layout)."""
+    """What a finished run folder holds (see `warpbags.run_folder` for the layout)."""
 
     path: Path
     info: dict

@@ -4,26 +4,14 @@ One class for every variant (pose optimization on/off, gauge choice, repair on/o
 `TrainConfig`. The first `iters` iterations are the coarse stage; the `repair.iters` after them the repair stage
 (`warpbags.repair.RepairStage`: pseudo views supervised by repaired renders, next to the real views).
 
-Run folder layout (`out_dir`):
-    config.json        the resolved TrainConfig plus scene/view information
-    poses_true.npy     [C,4,4] world-to-camera poses of the training views (normalized scene world)
-    poses_init.npy     [C,4,4] the (noisy) poses given to training
-    poses_start.npy    [C,4,4] the poses the optimization starts from (after the mask-centroid start, if used)
-    intrinsics.npy     [C,3,3] the training views' intrinsics at the training resolution
-    log.jsonl          one JSON object per iteration
-    checkpoints/       checkpoint_XXXXXX.pt, written atomically (temp file + os.replace); the newest 3 kept
-    gaussians.ply      final Gaussians, standard 3DGS PLY layout
-    poses_final.npy    [C,4,4] optimized world-to-camera poses (the camera optimizer's corrections of poses_start)
-    coarse/            with a repair stage: the coarse stage's result as a run folder of its own (same files but
-                       log and checkpoints), so `warpbags eval RUN/coarse` measures what repair changed
-    repair/            the repair stage's pairs, repairer and sample pictures (see `warpbags.repair.stage`)
+The run folder's files (config, poses, log, checkpoints, results) are written by `warpbags.run_folder.RunFolder`,
+whose docstring gives the layout.
 """
 
 from __future__ import annotations
 
 import contextlib
 import copy
-import json
 import math
 import signal
 import time
@@ -37,8 +25,7 @@ from warpbags.configs.train import TrainConfig
 from warpbags.data.noise import PoseNoise, noisy_viewmats
 from warpbags.data.scene import Scene
 from warpbags.errors import WarpbagsError
-from warpbags.files import atomic_output
-from warpbags.gaussians import render_gaussians, write_ply
+from warpbags.gaussians import render_gaussians
 from warpbags.init import hull_or_random_points, initial_gaussians
 from warpbags.losses import depth_loss, gaussian_blur, mask_loss, photometric_loss
 from warpbags.camera_optimizer import CameraOptimizer, CameraOptimizerSettings, exponential_lr
@@ -46,16 +33,10 @@ from warpbags.alignment import pose_errors
 from warpbags.cameras import camera_centers
 from warpbags.repair import RepairStage, repairer_factory
 from warpbags.repair.stage import pseudo_ratio
+from warpbags.run_folder import RunFolder
 from warpbags.silhouette import SilhouetteTargets, centroid_start, rays_meeting_point
 from warpbags.strategy import DensifyStrategy
 from warpbags.threads import torch_threads
-
-CHECKPOINTS_KEPT = 3
-
-
-def _save_atomic(obj, path: Path) -> None:
-    with atomic_output(path) as temporary:
-        torch.save(obj, temporary)
 
 
 class Trainer:
@@ -65,7 +46,7 @@ class Trainer:
         scene: the scene, already restricted to the training views (``Scene.subset``) and downscaled; its
             ``viewmats`` are the true poses.
         config: the training configuration.
-        out_dir: run folder (created).
+        out_dir: run folder (created when first written).
         device: "cpu" or "cuda".
         viewmats_init: [C,4,4] starting poses; default: the true poses with the config's noise injected.
         log: callable receiving a one-line notice (e.g. "no depth maps: depth term skipped").
@@ -80,8 +61,7 @@ class Trainer:
         if config.repair.iters > 0:
             repairer_factory(config.repair.repairer)  # a bad --repairer fails now, not after the coarse stage
         self.config, self.device, self.log = config, torch.device(device), log
-        self.out_dir = Path(out_dir)
-        self.checkpoint_dir = self.out_dir / "checkpoints"
+        self.run_folder = RunFolder(out_dir)
         self.num_cameras = scene.num_views
         to = dict(device=self.device)
         self.full_scene = scene
@@ -424,13 +404,15 @@ class Trainer:
         self.strategy.load_state_dict(copy.deepcopy(other.strategy.state_dict()))
 
     # ----------------------------------------------------------------------------------------------- files
+    @property
+    def out_dir(self) -> Path:
+        return self.run_folder.path
+
     def latest_checkpoint(self) -> Path | None:
-        found = sorted(self.checkpoint_dir.glob("checkpoint_*.pt"))
-        return found[-1] if found else None
+        return self.run_folder.latest_checkpoint()
 
     def save_checkpoint(self) -> Path:
-        self.checkpoint_dir.mkdir(parents=True, exist_ok=True)
-        state = {
+        return self.run_folder.save_checkpoint({
             "iteration": self.iteration,
             "config": self.config.to_dict(),
             "params": {name: param.detach().cpu() for name, param in self.params.items()},
@@ -440,19 +422,15 @@ class Trainer:
             "generator": self.generator.get_state(),
             "viewmats_init": self.viewmats_init.cpu(),
             "repair": None if self.repair_stage is None else self.repair_stage.state_dict(),
-        }
-        path = self.checkpoint_dir / f"checkpoint_{self.iteration:06d}.pt"
-        _save_atomic(state, path)
-        for old in sorted(self.checkpoint_dir.glob("checkpoint_*.pt"))[:-CHECKPOINTS_KEPT]:
-            old.unlink()
-        return path
+        })
 
     def load_checkpoint(self, path: Path) -> None:
-        """Restore everything a checkpoint holds (into the existing pose parameter and optimizer objects)."""
-        state = torch.load(path, map_location=self.device, weights_only=False)
-        if "cameras" not in state:
-            raise WarpbagsError(f"{path} was written by an older warpbags (no camera-optimizer state); it cannot be "
-                                "resumed, start a new run")
+        """Restore everything a checkpoint holds (into the existing pose parameter and optimizer objects).
+
+        Raises:
+            WarpbagsError: the checkpoint is unreadable or from an older warpbags.
+        """
+        state = self.run_folder.load_checkpoint(path, self.device)
         self.iteration = state["iteration"]
         self.params = {name: torch.nn.Parameter(value.to(self.device)) for name, value in state["params"].items()}
         self.optimizer = self._make_optimizer()
@@ -471,36 +449,20 @@ class Trainer:
         if path is None:
             return False
         self.load_checkpoint(path)
-        log_path = self.out_dir / "log.jsonl"
-        if log_path.exists():
-            lines = [line for line in log_path.read_text().splitlines() if line.strip()]
-            kept = [line for line in lines if json.loads(line)["iter"] <= self.iteration]
-            log_path.write_text("".join(line + "\n" for line in kept))
+        self.run_folder.truncate(self.iteration)
         self.log(f"resumed from {path} (iteration {self.iteration})")
         return True
 
     def write_run_files(self, extra: dict | None = None, folder: Path | None = None) -> None:
-        """config.json, poses_true.npy, poses_init.npy, intrinsics.npy into `folder` (default: the run folder)."""
-        folder = self.out_dir if folder is None else folder
-        folder.mkdir(parents=True, exist_ok=True)
-        scene = self.full_scene  # the full training resolution, whatever level a round trains at
-        normalization = scene.normalization
-        info = {"config": self.config.to_dict(), "scene": scene.name, "image_names": scene.image_names,
-                "scene_root": str(Path(scene.root).resolve()), "resolution": scene.resolution,
-                "normalization": {"center": list(normalization.center), "scale": normalization.scale},
-                "width": scene.width, "height": scene.height, "device": str(self.device), **(extra or {})}
-        (folder / "config.json").write_text(json.dumps(info, indent=2))
-        np.save(folder / "poses_true.npy", self.viewmats_true.cpu().numpy())
-        np.save(folder / "poses_init.npy", self.viewmats_init.cpu().numpy())
-        np.save(folder / "poses_start.npy", self.viewmats_start.cpu().numpy())
-        np.save(folder / "intrinsics.npy", scene.Ks.cpu().numpy())
+        """config.json, poses_true/init/start.npy, intrinsics.npy into `folder` (default: the run folder)."""
+        run_folder = self.run_folder if folder is None else RunFolder(folder)
+        # The full training resolution, whatever level a round trains at.
+        run_folder.write_setup(self.config, self.full_scene, str(self.device), self.viewmats_true, self.viewmats_init,
+                               self.viewmats_start, extra)
 
     def write_results(self, folder: Path | None = None) -> None:
         """gaussians.ply and poses_final.npy into `folder` (default: the run folder)."""
-        folder = self.out_dir if folder is None else folder
-        write_ply(folder / "gaussians.ply", self.params)
-        with atomic_output(folder / "poses_final.npy") as temporary:
-            np.save(temporary, self.current_viewmats().cpu().numpy())
+        (self.run_folder if folder is None else RunFolder(folder)).write_results(self.params, self.current_viewmats())
 
     # ----------------------------------------------------------------------------------------------- loop
     def _request_stop(self, signum, frame) -> None:
@@ -521,7 +483,6 @@ class Trainer:
         """
         total = self.config.total_iters
         stop_at = total if stop_at is None else min(stop_at, total)
-        self.out_dir.mkdir(parents=True, exist_ok=True)
         previous_handler = None
         try:
             previous_handler = signal.signal(signal.SIGINT, self._request_stop)
@@ -531,11 +492,10 @@ class Trainer:
         # On the CPU Warp runs its own host threads; torch's OpenMP workers would fight them.
         threads = torch_threads(1) if self.device.type == "cpu" else contextlib.nullcontext()
         try:
-            with threads, open(self.out_dir / "log.jsonl", "a") as log_file:
+            with threads, self.run_folder.log_writer() as write_log:
                 while self.iteration < stop_at:
                     record = self.train_step()
-                    log_file.write(json.dumps(record) + "\n")
-                    log_file.flush()
+                    write_log(record)
                     if callback is not None:
                         callback(record)
                     coarse_done = self.iteration == self.config.iters and self.config.repair.iters > 0
@@ -582,19 +542,18 @@ def default_run_dir(scene_name: str, views: int, root: str | Path = "runs") -> P
 
 def start_or_resume(scene: Scene, config: TrainConfig, out_dir: str | Path, device: str = "cpu", resume: bool = False,
                     log: Callable[[str], None] = print) -> Trainer:
-    """A Trainer for `out_dir`: fresh (run files written) or, with `resume`, continued from its last checkpoint.
+    """A Trainer for `out_dir`: fresh (run files written) or, with `resume`, continued from its last checkpoint
+    (with the config saved in the run folder).
 
     Raises:
         WarpbagsError: `resume` without a checkpoint in `out_dir`, or a fresh run into a folder that has one.
     """
-    out_dir = Path(out_dir)
-    has_checkpoint = any((out_dir / "checkpoints").glob("checkpoint_*.pt"))
+    run_folder = RunFolder(out_dir)
     if resume:
-        if not has_checkpoint:
-            raise WarpbagsError(f"--resume: no checkpoint in {out_dir / 'checkpoints'}")
-        saved = json.loads((out_dir / "config.json").read_text())["config"]
-        config = TrainConfig.from_dict(saved)
-    elif has_checkpoint:
+        if not run_folder.has_checkpoint():
+            raise WarpbagsError(f"--resume: no checkpoint in {run_folder.checkpoints}")
+        config = run_folder.saved_config()
+    elif run_folder.has_checkpoint():
         raise WarpbagsError(f"{out_dir} already holds a run; pass --resume to continue it or choose another --out")
     trainer = Trainer(scene, config, out_dir, device=device, log=log)
     if resume:

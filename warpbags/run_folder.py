@@ -1,0 +1,156 @@
+"""`RunFolder`: the files of a training run, and the one place that writes them (`warpbags.evaluation` reads them).
+
+Layout:
+    config.json        the resolved TrainConfig plus scene/view information
+    poses_true.npy     [C,4,4] world-to-camera poses of the training views (normalized scene world)
+    poses_init.npy     [C,4,4] the (noisy) poses given to training
+    poses_start.npy    [C,4,4] the poses the optimization starts from (after the mask-centroid start, if used)
+    intrinsics.npy     [C,3,3] the training views' intrinsics at the training resolution
+    log.jsonl          one JSON object per iteration (its "iter" is the count of iterations done)
+    checkpoints/       checkpoint_XXXXXX.pt, written atomically (temp file + os.replace); the newest 3 kept
+    gaussians.ply      final Gaussians, standard 3DGS PLY layout
+    poses_final.npy    [C,4,4] optimized world-to-camera poses (the camera optimizer's corrections of poses_start)
+    coarse/            with a repair stage: the coarse stage's result as a run folder of its own (same files but
+                       log and checkpoints), so `warpbags eval RUN/coarse` measures what repair changed
+    repair/            the repair stage's pairs, repairer and sample pictures (see `warpbags.repair.stage`)
+
+A checkpoint is a dict with the keys of `CHECKPOINT_KEYS` and "repair" (what `warpbags.trainer.Trainer` saves);
+resuming cuts log.jsonl back to the checkpoint's iteration, so the log describes the trajectory that led to it.
+"""
+
+from __future__ import annotations
+
+import json
+import pickle
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from warpbags.configs.train import TrainConfig
+from warpbags.data.scene import Scene
+from warpbags.errors import WarpbagsError
+from warpbags.files import atomic_output
+from warpbags.gaussians import write_ply
+
+CHECKPOINTS_KEPT = 3
+# What a checkpoint must hold to be resumed; it also holds "repair" (the repair stage's state, or None).
+CHECKPOINT_KEYS = ("iteration", "config", "params", "optimizer", "strategy", "cameras", "generator", "viewmats_init")
+LOG_FILE = "log.jsonl"
+
+
+class RunFolder:
+    """A run folder at `path` (created when first written)."""
+
+    def __init__(self, path: str | Path):
+        self.path = Path(path)
+        self.checkpoints = self.path / "checkpoints"
+
+    # ----------------------------------------------------------------------------------------------- setup, results
+    def write_setup(self, config: TrainConfig, scene: Scene, device: str, viewmats_true: torch.Tensor,
+                    viewmats_init: torch.Tensor, viewmats_start: torch.Tensor, extra: dict | None = None) -> None:
+        """config.json, poses_true/init/start.npy and intrinsics.npy.
+
+        Args:
+            scene: the training views at the full training resolution (their intrinsics are saved).
+            viewmats_true, viewmats_init, viewmats_start: [C,4,4] world-to-camera.
+            extra: more entries for config.json.
+        """
+        self.path.mkdir(parents=True, exist_ok=True)
+        normalization = scene.normalization
+        info = {"config": config.to_dict(), "scene": scene.name, "image_names": scene.image_names,
+                "scene_root": str(Path(scene.root).resolve()), "resolution": scene.resolution,
+                "normalization": {"center": list(normalization.center), "scale": normalization.scale},
+                "width": scene.width, "height": scene.height, "device": device, **(extra or {})}
+        (self.path / "config.json").write_text(json.dumps(info, indent=2))
+        np.save(self.path / "poses_true.npy", viewmats_true.cpu().numpy())
+        np.save(self.path / "poses_init.npy", viewmats_init.cpu().numpy())
+        np.save(self.path / "poses_start.npy", viewmats_start.cpu().numpy())
+        np.save(self.path / "intrinsics.npy", scene.Ks.cpu().numpy())
+
+    def saved_config(self) -> TrainConfig:
+        """The TrainConfig in config.json.
+
+        Raises:
+            WarpbagsError: no config.json, or one that cannot be read.
+        """
+        path = self.path / "config.json"
+        try:
+            return TrainConfig.from_dict(json.loads(path.read_text())["config"])
+        except (OSError, json.JSONDecodeError, KeyError, TypeError) as error:
+            raise WarpbagsError(f"{path}: unreadable ({error})") from None
+
+    def write_results(self, params: dict[str, torch.Tensor], viewmats: torch.Tensor) -> None:
+        """gaussians.ply and poses_final.npy ([C,4,4] world-to-camera)."""
+        write_ply(self.path / "gaussians.ply", params)
+        with atomic_output(self.path / "poses_final.npy") as temporary:
+            np.save(temporary, viewmats.cpu().numpy())
+
+    # ----------------------------------------------------------------------------------------------- log
+    @contextmanager
+    def log_writer(self) -> Iterator[Callable[[dict], None]]:
+        """A function appending one record to log.jsonl (flushed at once), open for the block."""
+        self.path.mkdir(parents=True, exist_ok=True)
+        with open(self.path / LOG_FILE, "a") as log_file:
+            def write(record: dict) -> None:
+                log_file.write(json.dumps(record) + "\n")
+                log_file.flush()
+
+            yield write
+
+    def truncate(self, iteration: int) -> None:
+        """Drop what was logged after `iteration` (a resumed run replays those iterations); a line cut short by a
+        crash is dropped too."""
+        path = self.path / LOG_FILE
+        if not path.exists():
+            return
+        kept = []
+        for line in path.read_text().splitlines():
+            try:
+                if json.loads(line)["iter"] <= iteration:
+                    kept.append(line)
+            except (json.JSONDecodeError, KeyError, TypeError):
+                continue
+        with atomic_output(path) as temporary:
+            temporary.write_text("".join(line + "\n" for line in kept))
+
+    # ----------------------------------------------------------------------------------------------- checkpoints
+    def has_checkpoint(self) -> bool:
+        return self.latest_checkpoint() is not None
+
+    def latest_checkpoint(self) -> Path | None:
+        found = sorted(self.checkpoints.glob("checkpoint_*.pt"))
+        return found[-1] if found else None
+
+    def save_checkpoint(self, state: dict) -> Path:
+        """Write `state` (the keys of CHECKPOINT_KEYS and "repair") atomically as checkpoint_<iteration>.pt; keep
+        the newest CHECKPOINTS_KEPT."""
+        missing = [key for key in CHECKPOINT_KEYS if key not in state]
+        if missing:
+            raise ValueError(f"checkpoint state lacks {missing}")
+        self.checkpoints.mkdir(parents=True, exist_ok=True)
+        path = self.checkpoints / f"checkpoint_{state['iteration']:06d}.pt"
+        with atomic_output(path) as temporary:
+            torch.save(state, temporary)
+        for old in sorted(self.checkpoints.glob("checkpoint_*.pt"))[:-CHECKPOINTS_KEPT]:
+            old.unlink()
+        return path
+
+    def load_checkpoint(self, path: Path, device: torch.device | str) -> dict:
+        """The state saved in `path`, tensors on `device`.
+
+        Raises:
+            WarpbagsError: the file cannot be read, or an older warpbags wrote it (keys missing).
+        """
+        try:
+            state = torch.load(path, map_location=device, weights_only=False)
+        except (OSError, RuntimeError, EOFError, ValueError, pickle.UnpicklingError) as error:
+            reason = (str(error).splitlines() or [""])[0]
+            raise WarpbagsError(f"{path}: unreadable checkpoint ({type(error).__name__}: {reason})") from None
+        missing = [key for key in CHECKPOINT_KEYS if not isinstance(state, dict) or key not in state]
+        if missing:
+            raise WarpbagsError(f"{path} was written by an older warpbags (no {', '.join(missing)}); it cannot be "
+                                "resumed, start a new run")
+        return state
