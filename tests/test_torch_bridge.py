@@ -114,6 +114,8 @@ def test_every_launch_names_its_device_and_stream_from_worker_threads(recorder, 
     monkeypatch.setattr(wp, "ScopedDevice", no_scoped_device)
     leaves, width, height = _leaves(device=device, sh_degree=1)
     stream = torch.cuda.Stream(device) if device == "cuda" else None
+    if stream is not None:
+        stream.wait_stream(torch.cuda.current_stream(device))  # the inputs were written on the default stream
     with torch.cuda.stream(stream) if stream is not None else contextlib.nullcontext():
         out, alpha, _ = warpbags.rasterization(**leaves, width=width, height=height, sh_degree=1, cpu_threads=2)
         (out.sum() + alpha.sum()).backward()

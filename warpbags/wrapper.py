@@ -492,8 +492,10 @@ _SPLAT_KINDS = {"means2d": "vec2", "conics": "vec3", "colors": "vec3", "opacitie
 
 def _flat_splats(means2d, conics, colors, opacities, depths) -> dict[str, torch.Tensor]:
     """The rasterizer's per-Gaussian inputs, detached, flattened over cameras and contiguous."""
-    return dict(means2d=means2d.detach().reshape(-1, 2).contiguous(), conics=conics.detach().reshape(-1, 3).contiguous(),
-                colors=colors.detach().reshape(-1, 3).contiguous(), opacities=opacities.detach().contiguous(),
+    return dict(means2d=means2d.detach().reshape(-1, 2).contiguous(),
+                conics=conics.detach().reshape(-1, 3).contiguous(),
+                colors=colors.detach().reshape(-1, 3).contiguous(),
+                opacities=opacities.detach().contiguous(),
                 depths=depths.detach().reshape(-1).contiguous())
 
 
@@ -526,7 +528,8 @@ class _RasterizeToPixels(torch.autograd.Function):
         isect_end = torch.zeros(cams, height, width, dtype=torch.int32, device=device)
 
         outputs = dict(
-            out_colors=_to_warp(out_colors.view(pixels, 3), "vec3"), out_depths=_to_warp(out_depths.view(pixels), "scalar"),
+            out_colors=_to_warp(out_colors.view(pixels, 3), "vec3"),
+            out_depths=_to_warp(out_depths.view(pixels), "scalar"),
             out_alphas=_to_warp(out_alphas.view(pixels), "scalar"),
             final_transmittance=_to_warp(final_transmittance.view(pixels), "scalar"),
             isect_end=_to_warp(isect_end.view(pixels), "int32"),
