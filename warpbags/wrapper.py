@@ -1,8 +1,9 @@
 """Thin torch wrappers around the Warp kernels, one per stage (gsplat's layout).
 
-Projection, spherical harmonics and the pose transform have no dynamic loops, so their gradients come from the
-adjoint kernels Warp generates for them, launched by torch's backward (no Warp Tape: nothing process-wide, and
-nothing at all when torch records no gradients). The rasterizer has a hand-written backward kernel (see
+Projection, spherical harmonics and the pose transform have no dynamic loops, so their gradients come from Warp's
+Tape: a stage that torch differentiates records its launch on a Tape of its own (explicitly, never as the current
+Tape, so other threads' launches cannot land on it), and torch's backward runs that Tape's backward, the adjoint
+kernels Warp generates. Nothing is recorded when torch records no gradients. The rasterizer has a hand-written backward kernel (see
 kernels/rasterize.py). Binning is not differentiable.
 
 Tensors stay where they are: CPU tensors run on Warp's "cpu" device, CUDA tensors on the matching CUDA device and
@@ -11,6 +12,8 @@ passed by parameter name. float32 and float64 are both supported (float64 for gr
 """
 
 from __future__ import annotations
+
+import contextlib
 
 import math
 import os
@@ -69,8 +72,8 @@ class _Launcher(NamedTuple):
     """Where a stage's kernels run: the Warp device of its tensors and, on CUDA, torch's current stream there.
 
     Every launch names both, so host worker threads never rely on Warp's process-wide default device (which
-    `wp.ScopedDevice` would set for every thread at once), and CUDA work stays ordered with torch's. Launches are
-    never recorded on a Warp Tape: gradients go through torch's autograd.
+    `wp.ScopedDevice` would set for every thread at once), and CUDA work stays ordered with torch's. No launch is
+    recorded on a current Tape: a differentiable stage records its own launch on its own Tape.
     """
 
     device: object  # warp Device
@@ -165,33 +168,41 @@ def _warp_inputs(stage: _Stage, args: Sequence, scalar: torch.dtype, grads: Sequ
     return arguments
 
 
-def _stage_forward(stage: _Stage, dim, shape: tuple, args: Sequence) -> tuple[torch.Tensor, ...]:
+def _stage_forward(stage: _Stage, dim, shape: tuple, args: Sequence, tape: wp.Tape | None = None):
+    """Run the stage; returns its output tensors and the Warp arguments it was launched with. With `tape`, the launch
+    is also recorded on it (explicitly: no Tape is made current, so other threads' launches never land on it)."""
     tensors = [a for a in args if isinstance(a, torch.Tensor)]
     device = tensors[0].device
     scalar = next(t.dtype for t in tensors if t.is_floating_point())
     outputs = {name: _output_tensor(kind, shape, scalar, device) for name, kind in stage.outputs.items()}
     arguments = _warp_inputs(stage, args, scalar)
     arguments.update((name, _to_warp(outputs[name], kind)) for name, kind in stage.outputs.items())
-    _launcher(device).launch(stage.kernel, dim, **arguments)
-    return tuple(outputs.values())
+    launcher = _launcher(device)
+    launcher.launch(stage.kernel, dim, **arguments)
+    if tape is not None:
+        values = [arguments[name] for name in _parameter_names(stage.kernel)]
+        tape.record_launch(stage.kernel, dim, 0, values, [], launcher.device)
+    return tuple(outputs.values()), arguments
 
 
 def _run_stage(stage: _Stage, dim, shape: tuple, **inputs) -> tuple[torch.Tensor, ...]:
     """Launch `stage` over `dim` threads with its inputs by parameter name; outputs are arrays of `shape`.
 
-    Differentiable when torch records gradients and an input tensor requires one. Otherwise (torch.no_grad(),
-    inference_mode(), or nothing to differentiate) the kernel just runs: no autograd node, no adjoint buffers.
+    Differentiable when torch records gradients and an input tensor requires one: the launch is then recorded on a
+    Warp Tape whose backward gives the gradients. Otherwise (torch.no_grad(), inference_mode(), or nothing to
+    differentiate) the kernel just runs: no Tape, no autograd node, no adjoint buffers.
     """
     if inputs.keys() != stage.inputs.keys():
         raise TypeError(f"kernel {stage.kernel.key} takes inputs {list(stage.inputs)}, got {list(inputs)}")
     args = [inputs[name] for name in stage.inputs]
     if torch.is_grad_enabled() and any(isinstance(a, torch.Tensor) and a.requires_grad for a in args):
         return _DifferentiableStage.apply(stage, dim, shape, *args)
-    return _stage_forward(stage, dim, shape, args)
+    return _stage_forward(stage, dim, shape, args)[0]
 
 
 class _DifferentiableStage(torch.autograd.Function):
-    """A `_Stage` under autograd: backward launches the kernel's Warp-generated adjoint with the cotangents.
+    """A `_Stage` under autograd: forward records its launch on a Warp Tape, backward runs the Tape's backward (the
+    kernel's Warp-generated adjoint) with torch's cotangents.
 
     The input tensors are kept with `save_for_backward`, so an in-place change to one of them between forward and
     backward fails autograd's version check instead of silently giving the gradient at the changed values.
@@ -199,40 +210,35 @@ class _DifferentiableStage(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, stage, dim, shape, *args):
-        outputs = _stage_forward(stage, dim, shape, args)
-        ctx.stage, ctx.dim, ctx.shape = stage, dim, shape
-        ctx.plain_args = [None if isinstance(a, torch.Tensor) else a for a in args]
+        ctx.tape = wp.Tape()
+        outputs, ctx.arguments = _stage_forward(stage, dim, shape, args, tape=ctx.tape)
+        ctx.stage, ctx.device = stage, next(a for a in args if isinstance(a, torch.Tensor)).device
         ctx.save_for_backward(*[a for a in args if isinstance(a, torch.Tensor)])
         ctx.mark_non_differentiable(*[o for o in outputs if not o.is_floating_point()])
         return outputs
 
     @staticmethod
     def backward(ctx, *v_outputs):
-        stage = ctx.stage
-        saved = iter(ctx.saved_tensors)
-        args = [next(saved) if plain is None else plain for plain in ctx.plain_args]
-        tensors = [a for a in args if isinstance(a, torch.Tensor)]
-        device = tensors[0].device
-        scalar = next(t.dtype for t in tensors if t.is_floating_point())
-        input_grads = [
-            torch.zeros(arg.shape, dtype=arg.dtype, device=device) if needs and arg.is_floating_point() else None
-            for arg, needs in zip(args, ctx.needs_input_grad[3:])
-        ]
-        arguments = _warp_inputs(stage, args, scalar, input_grads)
-        adjoints = {name: arguments[name].grad for name, grad in zip(stage.inputs, input_grads) if grad is not None}
-        has_cotangent = False
-        for (name, kind), v_out in zip(stage.outputs.items(), v_outputs):
-            # The adjoint reads the outputs' cotangents, never their values (Warp does not replay array stores),
-            # so the value arrays are placeholders. A cotangent is the output array's own adjoint buffer (a copy of
-            # torch's), as under a Warp Tape: the adjoint of a store consumes and clears it.
-            cotangent = None
-            if kind in _KIND_SHAPES and v_out is not None:
-                cotangent = v_out.contiguous().clone()
-                has_cotangent = True
-            arguments[name] = _to_warp(_output_tensor(kind, ctx.shape, scalar, device, torch.empty), kind, cotangent)
-            adjoints[name] = arguments[name].grad
-        if has_cotangent:
-            _launcher(device).launch(stage.kernel, ctx.dim, adjoints=adjoints, **arguments)
+        stage, arguments = ctx.stage, ctx.arguments
+        saved = iter(ctx.saved_tensors)  # reading them runs autograd's version check of the inputs
+        input_grads = []
+        for (name, kind), needs in zip(stage.inputs.items(), ctx.needs_input_grad[3:]):
+            value = next(saved) if kind not in (None, "float") else None
+            grad = None
+            if needs and value is not None and value.is_floating_point():
+                # Fresh buffers every backward: torch may keep a returned gradient as a parameter's .grad.
+                grad = torch.zeros_like(value, memory_format=torch.contiguous_format)
+                arguments[name].grad = _to_warp(grad, kind)
+            input_grads.append(grad)
+        # The adjoint of a store consumes and clears its output's adjoint, so the Tape gets copies of torch's.
+        cotangents = {arguments[name]: _to_warp(v_out.contiguous().clone(), kind)
+                      for (name, kind), v_out in zip(stage.outputs.items(), v_outputs)
+                      if kind in _KIND_SHAPES and v_out is not None}
+        if cotangents:
+            # The Tape launches on its recorded device, on that device's current stream: torch's, on CUDA.
+            stream = _launcher(ctx.device).stream
+            with wp.ScopedStream(stream) if stream is not None else contextlib.nullcontext():
+                ctx.tape.backward(grads=cotangents)
         return (None, None, None, *input_grads)
 
 
