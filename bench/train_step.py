@@ -8,9 +8,9 @@
 The step is built from the pieces `warpbags.trainer.Trainer` runs (as the speed comparison with OpenSplat
 configures it: SH degree 0, no densification, the object on a white background, loss (1-0.2) L1 + 0.2 (1-SSIM) +
 0.01 mask BCE on the rendered alpha, render mode RGB+ED, pose deltas optimized): `warpbags.init` points and
-`initial_gaussians`, `warpbags.gaussians.render_gaussians`, `warpbags.losses`, one Adam per parameter group as
-`Trainer._make_optimizer`, `DensifyStrategy.accumulate`. Every configuration runs in its own process, so each peak
-RSS is its own.
+`initial_gaussians`, `warpbags.gaussians.render_gaussians`, `warpbags.losses`, the Gaussians' Adam groups
+(`warpbags.model.gaussian_optimizer`), `DensifyStrategy.accumulate`. Every configuration runs in its own process, so
+each peak RSS is its own.
 
 Phases. The rendering stages are timed by wrapping the functions `warpbags.rendering.rasterization` calls
 (forward: wall time of each call; backward: identity markers on each stage's inputs and outputs stamp the time
@@ -161,9 +161,9 @@ def instrumented(clock: PhaseClock):
 
 def build_problem(init: str, points: int, seed: int = 0) -> dict:
     """The 4 training views of maryrose at full resolution, initial Gaussians and optimizers (as the trainer)."""
-    from warpbags.cameras import camera_centers
     from warpbags.configs.train import DensifyConfig, load_preset
     from warpbags.init import hull_or_random_points, initial_gaussians
+    from warpbags.model import gaussian_optimizer, scene_extent
     from warpbags.strategy import DensifyStrategy
     from warpbags.trainer import training_scene
 
@@ -177,13 +177,9 @@ def build_problem(init: str, points: int, seed: int = 0) -> dict:
         missed_views=config.hull_missed_views, generator=generator,
     )
     params = {name: torch.nn.Parameter(value) for name, value in initial_gaussians(xyz, colors, 0).items()}
-    centers = camera_centers(scene.viewmats)
-    extent = 1.1 * float((centers - centers.mean(0)).norm(dim=-1).max())
+    extent = scene_extent(scene.viewmats)
+    optimizer = gaussian_optimizer(params, config, extent)
     lr = config.lr
-    rates = {"means": lr.means_init * extent, "scales": lr.scales, "quats": lr.quats, "opacities": lr.opacities,
-             "sh0": lr.sh_dc}
-    optimizer = torch.optim.Adam([{"params": [p], "lr": rates[n], "name": n} for n, p in params.items()], lr=0.0,
-                                 eps=lr.adam_eps)
     cams = scene.num_views
     pose_rotations = torch.nn.Parameter(torch.zeros(cams, 3))
     pose_translations = torch.nn.Parameter(torch.zeros(cams, 3))

@@ -1,0 +1,56 @@
+"""Where a fit's cameras start: the given poses (with the config's noise injected for experiments), the
+mask-centroid start, the object centre, and the `CameraOptimizer` built on them.
+
+The trainer starts every run here; the repair stage's leave-one-out fits build their (frozen) cameras the same way.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import torch
+
+from warpbags.camera_optimizer import CameraOptimizer, CameraOptimizerSettings
+from warpbags.cameras import camera_centers
+from warpbags.configs.train import TrainConfig
+from warpbags.data.noise import PoseNoise, noisy_viewmats
+from warpbags.data.scene import Scene
+from warpbags.silhouette import centroid_start, rays_meeting_point
+
+
+def given_viewmats(scene: Scene, config: TrainConfig) -> torch.Tensor:
+    """[C,4,4] the poses given to training: the scene's true poses with the config's noise injected (`rot_noise_deg`,
+    `trans_noise`, `noise_seed`)."""
+    viewmats = noisy_viewmats(scene, PoseNoise(config.rot_noise_deg, config.trans_noise, config.noise_seed))
+    if config.camera.fix_first_camera:
+        # The gauge camera defines the world frame (as the first camera in bundle adjustment): it is taken as
+        # known, since its delta stays zero and its noise could never be corrected.
+        viewmats[0] = scene.viewmats[0]
+    return viewmats
+
+
+def starting_poses(viewmats: torch.Tensor, masks: torch.Tensor | None, Ks: torch.Tensor, config: TrainConfig,
+                   log: Callable[[str], None]) -> tuple[torch.Tensor, torch.Tensor]:
+    """The poses the optimization starts from ([C,4,4]) and the object centre ([3], world) the cameras agree on.
+
+    With masks, pose optimization and `camera.centroid_start`, each camera is first turned so that its mask-centroid
+    ray passes through the rays' meeting point. Otherwise the poses stay as given and the centre is where the
+    optical axes (nearly) meet.
+    """
+    if masks is not None and config.camera.centroid_start and config.pose_opt:
+        start, center = centroid_start(masks.cpu(), viewmats.cpu(), Ks.cpu())
+        return start.to(viewmats), center.to(viewmats)
+    if masks is None and config.camera.centroid_start and config.pose_opt:
+        log("no masks: no mask-centroid start")
+    axes = viewmats[:, 2, :3].double().cpu()  # camera z axes in world coordinates
+    center = rays_meeting_point(camera_centers(viewmats).double().cpu(), axes)
+    return viewmats.clone(), center.to(viewmats)
+
+
+def training_cameras(config: TrainConfig, viewmats: torch.Tensor, object_center: torch.Tensor, Ks: torch.Tensor,
+                     width: int, height: int, points: torch.Tensor) -> CameraOptimizer:
+    """The camera optimizer of a fit starting at [C,4,4] `viewmats`, as the config sets it (parameterization, gauge,
+    learning rates); its preconditioner comes from [P,3] object `points` seen by cameras `Ks` at width x height."""
+    settings = CameraOptimizerSettings.from_config(config.camera, lr=config.lr.pose,
+                                                   translation_scale=config.lr.pose_translation_scale)
+    return CameraOptimizer(viewmats, settings, object_center, Ks, width, height, points)

@@ -1,0 +1,121 @@
+"""`Schedule`: what a training iteration does, as a function of the iteration and the config alone.
+
+Rounds (fresh Gaussians each), the pyramid level of each round, the SH degree, the coarse-to-fine blur, the
+windows of the silhouette and depth terms, the pose window and both learning-rate schedules all follow from
+(`TrainConfig`, iteration). `Schedule.at(iteration)` gathers them into a `StepSettings` that the Gaussian model
+(`warpbags.model`) and the camera optimizer are given for one step; the trainer and the repair stage's
+leave-one-out fits run the same schedule.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+from warpbags.camera_optimizer import exponential_lr
+from warpbags.configs.train import TrainConfig
+
+
+@dataclass(frozen=True)
+class StepSettings:
+    """Everything one iteration needs from the schedule.
+
+    Attributes:
+        iteration: iterations done before this one (0-based index of this one).
+        round_iteration: iterations done in the current round (Gaussian schedules restart with each round).
+        in_repair: the coarse iterations are done and this is a repair-stage iteration.
+        sh_degree: SH degree rendered.
+        blur_sigma: coarse-to-fine blur of renders and targets, pixels (0 = none).
+        silhouette: the mask-distance and chamfer terms are on.
+        depth: the depth term is on.
+        pose_active: the cameras rendered take an Adam step.
+        gaussian_lr_fraction: position-lr schedule position in [0, 1] (exponential from `lr.means_init` to
+            `lr.means_final`).
+        pose_lr: the camera optimizer's rotation learning rate.
+    """
+
+    iteration: int
+    round_iteration: int
+    in_repair: bool
+    sh_degree: int
+    blur_sigma: float
+    silhouette: bool
+    depth: bool
+    pose_active: bool
+    gaussian_lr_fraction: float
+    pose_lr: float
+
+
+class Schedule:
+    """The iteration schedule of one `TrainConfig`: coarse rounds, then the repair stage."""
+
+    def __init__(self, config: TrainConfig):
+        self.config = config
+        # Rounds re-carve the hull with improved poses; with frozen poses (the baseline) they would only throw
+        # trained Gaussians away, so the baseline trains one round with the whole budget.
+        rounds = config.rounds if config.pose_opt else 1
+        self.round_length = math.ceil(config.iters / rounds)
+
+    def round_iteration(self, iteration: int) -> int:
+        return iteration % self.round_length
+
+    def starts_round(self, iteration: int) -> bool:
+        """True at the first iteration of every coarse round after the first (fresh Gaussians)."""
+        return iteration > 0 and not self.in_repair(iteration) and self.round_iteration(iteration) == 0
+
+    def in_repair(self, iteration: int) -> bool:
+        return self.config.repair.iters > 0 and iteration >= self.config.iters
+
+    def pyramid_level(self, iteration: int) -> int:
+        """The round's level: with L levels, round r of R trains at 1/2^(L-1-r) of the resolution (never finer than
+        full), so the last rounds are at full resolution; the repair stage is too."""
+        if self.in_repair(iteration):
+            return 0
+        rounds = math.ceil(self.config.iters / self.round_length)
+        current = min(iteration // self.round_length, rounds - 1)  # a finished run stays in its last round
+        return min(self.config.pyramid_levels - 1, rounds - 1 - current)
+
+    def sh_degree(self, iteration: int) -> int:
+        if self.in_repair(iteration):
+            return self.config.sh_degree
+        return min(self.config.sh_degree, self.round_iteration(iteration) // max(self.config.sh_degree_every, 1))
+
+    def blur_sigma(self, iteration: int) -> float:
+        """Coarse-to-fine blur (pixels)."""
+        config = self.config
+        if config.blur_until <= 0 or self.in_repair(iteration):
+            return 0.0
+        return config.blur_sigma_px * max(0.0, 1.0 - self.round_iteration(iteration) / config.blur_until)
+
+    def pose_window(self, iteration: int) -> tuple[int, int]:
+        """[start, end) iterations of the current round in which poses are updated (`pose_round_window`, no earlier
+        than `pose_opt_start`)."""
+        config = self.config
+        round_start = iteration - self.round_iteration(iteration)
+        window_start, window_end = config.pose_round_window
+        start = max(round_start + math.ceil(window_start * self.round_length), config.pose_opt_start)
+        return start, min(round_start + math.ceil(window_end * self.round_length), config.iters)
+
+    def pose_active(self, iteration: int) -> bool:
+        """Poses are updated from `pose_opt_start` on, inside `pose_round_window` of every coarse round (and in the
+        repair stage)."""
+        if not self.config.pose_opt or iteration < self.config.pose_opt_start:
+            return False
+        start, end = self.pose_window(iteration)
+        return self.in_repair(iteration) or start <= iteration < end
+
+    def at(self, iteration: int) -> StepSettings:
+        config, round_iteration, in_repair = self.config, self.round_iteration(iteration), self.in_repair(iteration)
+        # GaussianObject's repair keeps the final position lr; the poses keep their final lr. The pose lr decays
+        # within each round's pose window (a warm restart per round: each round is a fresh coarse-to-fine fit).
+        gaussian_fraction = 1.0 if in_repair else round_iteration / max(self.round_length - 1, 1)
+        pose_start, pose_end = self.pose_window(iteration)
+        pose_fraction = 1.0 if in_repair else (iteration - pose_start) / max(pose_end - pose_start - 1, 1)
+        return StepSettings(
+            iteration=iteration, round_iteration=round_iteration, in_repair=in_repair,
+            sh_degree=self.sh_degree(iteration), blur_sigma=self.blur_sigma(iteration),
+            silhouette=(config.silhouette_until <= 0 or round_iteration < config.silhouette_until) and not in_repair,
+            depth=not in_repair and round_iteration < config.depth_until and config.lambda_depth > 0,
+            pose_active=self.pose_active(iteration), gaussian_lr_fraction=gaussian_fraction,
+            pose_lr=exponential_lr(config.lr.pose, config.lr.pose_final, pose_fraction),
+        )
