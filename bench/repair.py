@@ -35,7 +35,6 @@ from warpbags.configs.train import load_preset, parse_settings
 from warpbags.data import SyntheticOptions, ensure_synthetic_scene, load_scene, open_scene
 from warpbags.evaluation import evaluate_run, held_out_views, load_run
 from warpbags.gaussians import render_gaussians, sh_degree_of
-from warpbags.repair import RepairStage
 from warpbags.trainer import Trainer, training_scene
 
 
@@ -74,7 +73,7 @@ def _continue(scene, config, checkpoint: Path, out: Path, repairer=None) -> tupl
     trainer.write_run_files()
     trainer.load_checkpoint(checkpoint)
     if repairer is not None:
-        trainer.repair_stage = RepairStage(trainer, log=lambda message: None, repairer=repairer)
+        trainer.start_repair_stage(repairer)
     started = time.perf_counter()
     trainer.train()
     return out, time.perf_counter() - started
@@ -136,7 +135,7 @@ def main() -> None:
             coarse_checkpoint = root / f"{name}-coarse.pt"  # the run keeps only its newest checkpoints
             shutil.copy(trainer.latest_checkpoint(), coarse_checkpoint)
             started = time.perf_counter()
-            trainer.repair_stage = RepairStage(trainer, log=lambda message: None)  # pairs + fit, timed on their own
+            trainer.start_repair_stage()  # pairs + fit, timed on their own
             preparation_seconds = time.perf_counter() - started
             started = time.perf_counter()
             trainer.train()

@@ -152,6 +152,9 @@ def test_repair_stage_runs_end_to_end_and_writes_its_samples(scene_dir, tmp_path
     assert repair_records[-1]["pseudo_ratio"] == 0.0  # the last 30% train on the real views alone
     assert all(np.isfinite(r["loss"]) for r in repair_records)
 
+    # The leave-one-out fits are models without a run folder: repair/ holds the stage's own files only.
+    assert sorted(path.name for path in (tmp_path / "repair").iterdir()) == ["fit.json", "pairs.pt", "repairer.pt",
+                                                                             "samples"]
     fit = json.loads((tmp_path / "repair" / "fit.json").read_text())
     assert fit["pairs"] == {LEAVE_ONE_OUT: 4 * 2, NOISE: 4 * 2}
     pairs = RepairPairs.load(tmp_path / "repair" / "pairs.pt")

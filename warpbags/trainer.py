@@ -30,7 +30,7 @@ from warpbags.configs.train import TrainConfig
 from warpbags.data.scene import Scene
 from warpbags.errors import WarpbagsError
 from warpbags.model import Diverged, GaussianModel, TrainingViews, camera_viewmats, scene_extent
-from warpbags.repair import RepairStage, repairer_factory
+from warpbags.repair import RepairStage, Repairer, repairer_factory
 from warpbags.repair.stage import pseudo_ratio
 from warpbags.run_folder import RunFolder
 from warpbags.schedule import Schedule
@@ -182,36 +182,22 @@ class Trainer:
                                                   settings)
             loss, terms = (1 - ratio) * real, {**terms, **real_terms}
         if ratio > 0:
-            pseudo, pseudo_terms = self.repair_stage.loss(self)
+            pseudo, pseudo_terms = self.repair_stage.loss(self.model, self.current_viewmats(), self.iteration)
             loss, terms = loss + ratio * pseudo, {**terms, **pseudo_terms}
         with self._divergence_reported():
             self.model.optimize(loss, self.cameras, views if settings.pose_active else None)
         self.iteration += 1
         return self._record("repair", loss, terms, started)
 
-    def start_repair_stage(self) -> RepairStage:
-        """Build the repair stage on the coarse result (pairs and a fitted repairer, or those of a resumed run)."""
-        self.repair_stage = RepairStage(self, self.log)
+    def start_repair_stage(self, repairer: Repairer | None = None) -> RepairStage:
+        """Build the repair stage on the coarse result (pairs and a fitted repairer, or those of a resumed run), or
+        use `repairer` as it is."""
+        self.repair_stage = RepairStage(self.config, self.out_dir / "repair", self.model, self.current_viewmats(),
+                                        self.generator, log=self.log, should_stop=lambda: self._stop_requested,
+                                        repairer=repairer)
         if self._repair_state is not None:
             self.repair_stage.load_state_dict(self._repair_state)
         return self.repair_stage
-
-    # Used by the repair package's leave-one-out trainers and pseudo views.
-    @property
-    def targets(self) -> torch.Tensor:
-        return self.model.training_views.targets
-
-    @property
-    def stop_requested(self) -> bool:
-        return self._stop_requested
-
-    def render_views(self, viewmats: torch.Tensor, Ks: torch.Tensor | None = None,
-                     params: dict[str, torch.Tensor] | None = None) -> torch.Tensor:
-        return self.model.render_views(viewmats, Ks, params, self.schedule.sh_degree(self.iteration))
-
-    def continue_from(self, other: Trainer) -> None:
-        self.model.continue_from(other.model)
-        self.iteration = other.iteration
 
     @contextlib.contextmanager
     def _divergence_reported(self) -> Iterator[None]:

@@ -19,8 +19,12 @@ from typing import Callable
 
 import torch
 
+from warpbags.camera_setup import starting_poses, training_cameras
 from warpbags.configs.train import TrainConfig
+from warpbags.errors import WarpbagsError
 from warpbags.files import atomic_output
+from warpbags.model import Diverged, GaussianModel, TrainingViews, scene_extent
+from warpbags.schedule import Schedule
 
 # Parameters that get 3D noise (GaussianObject's add_statistics_noise leaves colours alone).
 NOISY_PARAMETERS = ("means", "scales", "quats", "opacities")
@@ -81,27 +85,77 @@ def leave_one_out_config(config: TrainConfig) -> TrainConfig:
                                repair=dataclasses.replace(repair, iters=0))
 
 
-def _render(trainer, view: int, params: dict[str, torch.Tensor] | None = None) -> torch.Tensor:
-    """[H, W, 3] CPU render of `trainer`'s view `view` at its current pose (no gradient)."""
+class LeaveOneOutFit:
+    """Gaussians fitted to some training views with their poses frozen: a `GaussianModel` and the (never stepped)
+    camera optimizer it renders through, on the coarse schedule of a leave-one-out config. No run folder.
+
+    Args:
+        config: a `leave_one_out_config`.
+        training_views: the views it fits.
+        viewmats: [C,4,4] their frozen poses.
+    """
+
+    def __init__(self, config: TrainConfig, training_views: TrainingViews, viewmats: torch.Tensor):
+        self.schedule, self.iteration = Schedule(config), 0
+        viewmats = viewmats.float()
+        start, center = starting_poses(viewmats, training_views.masks, training_views.Ks, config, log=_silent)
+        generator = torch.Generator().manual_seed(config.seed)  # each fit draws its own initialization and views
+        self.model = GaussianModel.initialized(config, training_views, start, scene_extent(viewmats), generator,
+                                               log=_silent)
+        self.cameras = training_cameras(config, start, center, training_views.Ks, training_views.scene.width,
+                                        training_views.scene.height, self.model.params["means"].detach())
+
+    def continue_from(self, other: LeaveOneOutFit) -> None:
+        """Go on from `other`'s Gaussians, optimizer state and iteration, fitting this fit's views."""
+        self.model.continue_from(other.model)
+        self.iteration = other.iteration
+
+    def train_until(self, iteration: int, should_stop: Callable[[], bool]) -> None:
+        """Coarse steps until `iteration` are done.
+
+        Raises:
+            KeyboardInterrupt: `should_stop()` turned true (checked every iteration).
+            WarpbagsError: the fit diverged.
+        """
+        while self.iteration < iteration:
+            if should_stop():
+                raise KeyboardInterrupt
+            try:
+                self.model.fit_step(self.cameras, self.schedule.at(self.iteration))
+            except Diverged as error:
+                raise WarpbagsError(f"a leave-one-out fit diverged at iteration {self.iteration}: {error}") from None
+            self.iteration += 1
+
+    def render(self, view: int) -> torch.Tensor:
+        """[H, W, 3] CPU render of view `view` at its pose and the schedule's SH degree (no gradient)."""
+        return _render(self.model, self.cameras.viewmats(), view, sh_degree=self.schedule.sh_degree(self.iteration))
+
+
+def _silent(message: str) -> None:
+    """Leave-one-out fits say nothing (the coarse run already said how it initialized)."""
+
+
+def _render(model: GaussianModel, viewmats: torch.Tensor, view: int, params: dict[str, torch.Tensor] | None = None,
+            sh_degree: int | None = None) -> torch.Tensor:
+    """[H, W, 3] CPU render of training view `view` from [C,4,4] `viewmats` (no gradient)."""
     with torch.no_grad():
-        images = trainer.render_views(trainer.current_viewmats()[view:view + 1], trainer.Ks[view:view + 1], params)
+        images = model.render_views(viewmats[view:view + 1], model.training_views.Ks[view:view + 1], params,
+                                    sh_degree)
     return images[0].clamp(0, 1).cpu()
 
 
-def _train_until(trainer, iteration: int, should_stop: Callable[[], bool]) -> None:
-    while trainer.iteration < iteration:
-        if should_stop():
-            raise KeyboardInterrupt
-        trainer.train_step()
+def leave_one_out(coarse: GaussianModel, viewmats: torch.Tensor, config: TrainConfig, left_out: int,
+                  should_stop: Callable[[], bool] = lambda: False) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+    """Train the leave-one-out pair of fits for view `left_out` of a finished coarse stage.
 
+    A fit of the other views trains to `loo_snapshot`; then one copy goes on without the view ("unseen") and one
+    with it added back ("seen"), to `loo_iters`. The seen copy renders the view `loo_samples` times over the first
+    quarter of its continuation (the first render is the pure leave-one-out one).
 
-def leave_one_out(trainer, left_out: int, should_stop: Callable[[], bool] = lambda: False
-                  ) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
-    """Train the leave-one-out pair of models for view `left_out` of `trainer` (a finished coarse stage).
-
-    A model of the other views trains to `loo_snapshot`; then one copy goes on without the view ("unseen") and
-    one with it added back ("seen"), to `loo_iters`. The seen copy renders the view `loo_samples` times over the
-    first quarter of its continuation (the first render is the pure leave-one-out one).
+    Args:
+        coarse: the coarse model (its training views, at the full training resolution, are the ones used).
+        viewmats: [C,4,4] the coarse stage's poses, frozen here.
+        config: the run's config.
 
     Returns:
         ([S, H, W, 3] renders of the left-out view, name -> [N, ...] unseen - seen final parameters), on the CPU.
@@ -109,28 +163,27 @@ def leave_one_out(trainer, left_out: int, should_stop: Callable[[], bool] = lamb
     Raises:
         KeyboardInterrupt: `should_stop()` turned true (checked every iteration).
     """
-    config = leave_one_out_config(trainer.config)
-    repair = trainer.config.repair
-    viewmats = trainer.current_viewmats()
-    others = [view for view in range(trainer.num_cameras) if view != left_out]
-    folder = trainer.out_dir / "repair" / f"loo_{left_out}"  # never written: these trainers only train_step
-    make = lambda scene, poses: type(trainer)(scene, config, folder, device=str(trainer.device),  # noqa: E731
-                                              viewmats_init=poses, log=lambda message: None)
-    unseen = make(trainer.scene.subset(others), viewmats[others])
-    _train_until(unseen, repair.loo_snapshot, should_stop)
-    seen = make(trainer.scene, viewmats)
+    loo_config, repair = leave_one_out_config(config), config.repair
+    views = coarse.training_views
+    others = [view for view in range(views.num_views) if view != left_out]
+    unseen = LeaveOneOutFit(loo_config, TrainingViews.of(views.scene.subset(others), loo_config, views.device),
+                            viewmats[others])
+    unseen.train_until(repair.loo_snapshot, should_stop)
+    # The seen copy starts as any fit would (so its random stream is a fresh fit's), then takes over the Gaussians.
+    seen = LeaveOneOutFit(loo_config, views, viewmats)
     seen.continue_from(unseen)
     span = max((repair.loo_iters - repair.loo_snapshot) // 4, 1)
     sample_at = {repair.loo_snapshot + round(k * span / repair.loo_samples) for k in range(repair.loo_samples)}
     samples = []
     for iteration in sorted(sample_at):
-        _train_until(seen, iteration, should_stop)
-        samples.append(_render(seen, left_out))
-    _train_until(seen, repair.loo_iters, should_stop)
-    _train_until(unseen, repair.loo_iters, should_stop)
-    if len(seen.params["means"]) != len(unseen.params["means"]):  # densification stopped at the snapshot
+        seen.train_until(iteration, should_stop)
+        samples.append(seen.render(left_out))
+    seen.train_until(repair.loo_iters, should_stop)
+    unseen.train_until(repair.loo_iters, should_stop)
+    if seen.model.num_gaussians != unseen.model.num_gaussians:  # densification stopped at the snapshot
         raise RuntimeError("leave-one-out copies diverged in Gaussian count after the snapshot")
-    differences = {name: (unseen.params[name] - seen.params[name]).detach().cpu() for name in NOISY_PARAMETERS}
+    differences = {name: (unseen.model.params[name] - seen.model.params[name]).detach().cpu()
+                   for name in NOISY_PARAMETERS}
     return torch.stack(samples), differences
 
 
@@ -162,33 +215,40 @@ def _uniform(bounds: tuple[float, float], generator: torch.Generator) -> float:
     return bounds[0] + (bounds[1] - bounds[0]) * torch.rand(1, generator=generator).item()
 
 
-def build_pairs(trainer, log: Callable[[str], None] = print) -> RepairPairs:
-    """Leave-one-out and 3D-noise pairs for `trainer` (a finished coarse stage), as `RepairConfig` sets them.
+def build_pairs(coarse: GaussianModel, viewmats: torch.Tensor, config: TrainConfig,
+                should_stop: Callable[[], bool] = lambda: False, log: Callable[[str], None] = print) -> RepairPairs:
+    """Leave-one-out and 3D-noise pairs of a finished coarse stage, as `config.repair` sets them.
+
+    Args:
+        coarse: the coarse model; its training views (full training resolution) give the targets.
+        viewmats: [C,4,4] the coarse stage's poses.
+        config: the run's config.
+        should_stop: checked every leave-one-out iteration.
 
     Draws come from a generator seeded with the run's seed, so a resumed run that rebuilds them gets the same.
 
     Raises:
-        KeyboardInterrupt: Ctrl-C was pressed (`trainer.stop_requested`).
+        KeyboardInterrupt: `should_stop()` turned true.
     """
-    repair = trainer.config.repair
-    generator = torch.Generator().manual_seed(trainer.config.seed)
-    should_stop = lambda: trainer.stop_requested  # noqa: E731
-    corrupted, targets, kinds, views, differences = [], [], [], [], []
-    for view in range(trainer.num_cameras):
-        samples, difference = leave_one_out(trainer, view, should_stop)
-        log(f"leave-one-out model {view + 1}/{trainer.num_cameras}: {len(samples)} renders of view {view}")
+    repair, targets = config.repair, coarse.training_views.targets
+    generator = torch.Generator().manual_seed(config.seed)
+    corrupted, pair_targets, kinds, views, differences = [], [], [], [], []
+    count = len(viewmats)
+    for view in range(count):
+        samples, difference = leave_one_out(coarse, viewmats, config, view, should_stop)
+        log(f"leave-one-out model {view + 1}/{count}: {len(samples)} renders of view {view}")
         corrupted += list(samples)
-        targets += [trainer.targets[view].cpu()] * len(samples)
+        pair_targets += [targets[view].cpu()] * len(samples)
         kinds += [LEAVE_ONE_OUT] * len(samples)
         views += [view] * len(samples)
         differences.append(difference)
     noise = noise_statistics(differences)
-    for view in range(trainer.num_cameras):
+    for view in range(count):
         for _ in range(repair.noise_renders):
-            params = perturbed_gaussians(trainer.params, noise, _uniform(repair.noise_clamp_std, generator),
+            params = perturbed_gaussians(coarse.params, noise, _uniform(repair.noise_clamp_std, generator),
                                          _uniform(repair.noise_dropout, generator), generator)
-            corrupted.append(_render(trainer, view, params))
-            targets.append(trainer.targets[view].cpu())
+            corrupted.append(_render(coarse, viewmats, view, params))
+            pair_targets.append(targets[view].cpu())
             kinds.append(NOISE)
             views.append(view)
-    return RepairPairs(torch.stack(corrupted), torch.stack(targets), kinds, views, noise)
+    return RepairPairs(torch.stack(corrupted), torch.stack(pair_targets), kinds, views, noise)

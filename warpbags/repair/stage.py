@@ -1,6 +1,6 @@
-"""`RepairStage`: the pseudo-view half of GaussianObject's repair optimization, attached to a `Trainer`.
+"""`RepairStage`: the pseudo-view half of GaussianObject's repair optimization.
 
-After the coarse stage the trainer builds one RepairStage, which
+After the coarse stage the trainer (`warpbags.trainer`) builds one RepairStage, which
 1. builds the repairer's training pairs (`warpbags.repair.pairs`) and fits the repairer, or loads both from the
    run folder when a resumed run already made them;
 2. every `refresh_every` iterations draws `pseudo_views` novel cameras in the gaps between the training cameras,
@@ -21,15 +21,17 @@ from __future__ import annotations
 
 import json
 import math
+from pathlib import Path
 from typing import Callable
 
 import torch
 
 from warpbags.camera_paths import interpolated_viewmats
 from warpbags.cameras import camera_centers
-from warpbags.configs.train import RepairConfig
+from warpbags.configs.train import RepairConfig, TrainConfig
 from warpbags.files import atomic_output
 from warpbags.losses import load_lpips, repair_loss
+from warpbags.model import GaussianModel
 from warpbags.repair.network import Repairer, make_repairer
 from warpbags.repair.pairs import LEAVE_ONE_OUT, NOISE, RepairPairs, build_pairs
 from warpbags.report import write_image_grid
@@ -59,34 +61,43 @@ def pseudo_ratio(config: RepairConfig, repair_iteration: int) -> float:
 
 
 class RepairStage:
-    """Pseudo ground truth from a repairer, for a trainer whose coarse stage is finished.
+    """Pseudo ground truth from a repairer, for a run whose coarse stage is finished.
 
     Args:
-        trainer: the `warpbags.trainer.Trainer` (its config's `repair` group sets everything here).
+        config: the run's config (its `repair` group sets everything here).
+        folder: where its files go (the run folder's repair/).
+        coarse: the coarse model the pairs are built from.
+        viewmats: [C,4,4] the coarse stage's poses.
+        generator: the run's random stream (pseudo cameras and which one each iteration uses).
         log: receives one-line progress notices.
+        should_stop: checked while the pairs are built (KeyboardInterrupt when it turns true).
         repairer: an already fitted repairer to use as it is (no pairs are built); default: the config's,
             fitted on this run's pairs.
     """
 
-    def __init__(self, trainer, log: Callable[[str], None] = print, repairer: Repairer | None = None):
-        self.config = trainer.config.repair
-        self.folder = trainer.out_dir / "repair"
+    def __init__(self, config: TrainConfig, folder: Path, coarse: GaussianModel, viewmats: torch.Tensor,
+                 generator: torch.Generator, log: Callable[[str], None] = print,
+                 should_stop: Callable[[], bool] = lambda: False, repairer: Repairer | None = None):
+        self.config, self.generator = config.repair, generator
+        self.coarse_iters = config.iters  # repair iterations count from here
+        self.folder = Path(folder)
         self.samples = self.folder / "samples"
         self.samples.mkdir(parents=True, exist_ok=True)
         self.log = log
+        device = str(coarse.training_views.device)
         pairs_path, repairer_path = self.folder / "pairs.pt", self.folder / "repairer.pt"
         if repairer is not None:
             self.repairer = repairer
         elif pairs_path.is_file() and repairer_path.is_file():  # a resumed run: reuse what it made
-            self.repairer = make_repairer(self.config, trainer.config.seed, str(trainer.device))
+            self.repairer = make_repairer(self.config, config.seed, device)
             pairs = RepairPairs.load(pairs_path)
             self.repairer.load_state_dict(torch.load(repairer_path, weights_only=False))
             log(f"repair: loaded {len(pairs.kinds)} pairs and the fitted repairer from {self.folder}")
         else:
-            self.repairer = make_repairer(self.config, trainer.config.seed, str(trainer.device))
-            log(f"repair: building training pairs ({trainer.num_cameras} leave-one-out models, "
+            self.repairer = make_repairer(self.config, config.seed, device)
+            log(f"repair: building training pairs ({len(viewmats)} leave-one-out models, "
                 f"{self.config.loo_iters} iterations each)")
-            pairs = build_pairs(trainer, log)
+            pairs = build_pairs(coarse, viewmats, config, should_stop, log)
             pairs.save(pairs_path)
             stats = self.repairer.fit(pairs, log)
             with atomic_output(repairer_path) as temporary:
@@ -97,39 +108,40 @@ class RepairStage:
             self._save_pair_samples(pairs)
         self.lpips, unavailable = load_lpips() if self.config.weight_lpips > 0 else (None, None)
         if self.lpips is not None:
-            self.lpips.to(trainer.device)
+            self.lpips.to(device)
         if unavailable:
             log(f"repair: LPIPS unavailable ({unavailable}); the pseudo-view loss is L1 + L2 only")
         self.viewmats: torch.Tensor | None = None  # [K,4,4] current pseudo cameras
         self.targets: torch.Tensor | None = None  # [K,H,W,3] their repaired renders
         self.weights: torch.Tensor | None = None  # [K] their distance weights
 
-    def refresh(self, trainer) -> None:
-        """Draw new pseudo cameras, render them and store their repaired renders as the pseudo ground truth.
+    def refresh(self, model: GaussianModel, viewmats: torch.Tensor, iteration: int) -> None:
+        """Draw new pseudo cameras between the training cameras at [C,4,4] `viewmats`, render them with `model` and
+        store their repaired renders as the pseudo ground truth (sample sheet named after `iteration`).
 
         The cameras use training camera 0's intrinsics (GaussianObject takes a real view's field of view too).
         """
-        config, generator = self.config, trainer.generator
-        train_viewmats = trainer.current_viewmats()
-        gaps = torch.randint(trainer.num_cameras, (config.pseudo_views,), generator=generator)
+        config, generator = self.config, self.generator
+        gaps = torch.randint(len(viewmats), (config.pseudo_views,), generator=generator)
         fractions = 0.3 + 0.4 * torch.rand(config.pseudo_views, generator=generator)  # GaussianObject: 0.5 +- 0.2
-        self.viewmats = interpolated_viewmats(train_viewmats.double(), gaps, fractions.double()).float()
-        self.weights = distance_weights(self.viewmats, train_viewmats)
+        self.viewmats = interpolated_viewmats(viewmats.double(), gaps, fractions.double()).float()
+        self.weights = distance_weights(self.viewmats, viewmats)
         with torch.no_grad():
-            renders = trainer.render_views(self.viewmats).clamp(0, 1)
+            renders = model.render_views(self.viewmats).clamp(0, 1)
         self.targets = self.repairer.repair(renders)
         rows = [[render.cpu(), target.cpu()] for render, target in zip(renders[:SAMPLE_ROWS], self.targets)]
-        write_image_grid(self.samples / f"pseudo_{trainer.iteration:06d}.png", rows)
+        write_image_grid(self.samples / f"pseudo_{iteration:06d}.png", rows)
         for old in sorted(self.samples.glob("pseudo_*.png"))[:-config.samples_kept]:
             old.unlink()
 
-    def loss(self, trainer) -> tuple[torch.Tensor, dict]:
-        """The pseudo-view loss of one random pseudo view (refreshing the pseudo ground truth when due)."""
-        repair_iteration = trainer.iteration - trainer.config.iters
+    def loss(self, model: GaussianModel, viewmats: torch.Tensor, iteration: int) -> tuple[torch.Tensor, dict]:
+        """The pseudo-view loss of `model` on one random pseudo view at run iteration `iteration` (refreshing the
+        pseudo ground truth when due, around the training cameras at [C,4,4] `viewmats`)."""
+        repair_iteration = iteration - self.coarse_iters
         if self.targets is None or repair_iteration % self.config.refresh_every == 0:
-            self.refresh(trainer)
-        pick = torch.randint(len(self.viewmats), (1,), generator=trainer.generator)
-        images = trainer.render_views(self.viewmats[pick])
+            self.refresh(model, viewmats, iteration)
+        pick = torch.randint(len(self.viewmats), (1,), generator=self.generator)
+        images = model.render_views(self.viewmats[pick])
         config = self.config
         losses, terms = repair_loss(images, self.targets[pick], config.weight_l1, config.weight_l2, config.weight_lpips,
                                     self.lpips)
