@@ -13,7 +13,9 @@ from warpbags.configs.train import TrainConfig, load_preset
 
 from warpbags.data import SyntheticOptions, ensure_synthetic_scene, load_scene
 from warpbags.errors import WarpbagsError
+from warpbags import run_folder
 from warpbags.losses import depth_loss, ssim
+from warpbags.pose_history import read_pose_history
 from warpbags.strategy import replace_rows
 from warpbags.trainer import Trainer, training_scene
 
@@ -177,6 +179,10 @@ def test_resume_equals_uninterrupted(scene_dir, tmp_path, rounds):
     torch.testing.assert_close(resumed.cameras.params(), full.cameras.params(), rtol=0, atol=1e-7)
     log = (tmp_path / "part" / "log.jsonl").read_text().splitlines()
     assert [json.loads(line)["iter"] for line in log] == list(range(1, 25))
+    # The pose history (every 10 iterations) follows the resumed trajectory, and records where it was resumed.
+    full_history, resumed_history = read_pose_history(tmp_path / "full"), read_pose_history(tmp_path / "part")
+    assert full_history.iterations.tolist() == [10, 20] and resumed_history.iterations.tolist() == [10, 16, 20]
+    np.testing.assert_allclose(resumed_history.viewmats[[0, 2]], full_history.viewmats, rtol=0, atol=1e-6)
 
 
 def test_nan_is_caught_and_last_checkpoint_kept(scene_dir, tmp_path):
@@ -201,14 +207,20 @@ def test_resuming_a_finished_run_trains_nothing(scene_dir, tmp_path):
     assert len((tmp_path / "log.jsonl").read_text().splitlines()) == 4  # no iteration ran again
 
 
-def test_resume_cuts_the_log_back_to_the_checkpoint_and_drops_a_torn_line(scene_dir, tmp_path):
-    trainer = make_trainer(scene_dir, tmp_path, iters=4, checkpoint_every=2)
-    trainer.train(stop_at=3)  # checkpoints at 2 and 3
+def test_resume_cuts_log_and_pose_history_back_to_the_checkpoint(scene_dir, tmp_path, monkeypatch):
+    monkeypatch.setattr(run_folder, "RECORD_EVERY", 1)
+    trainer = make_trainer(scene_dir, tmp_path, iters=6, checkpoint_every=2)
+    trainer.train(stop_at=5)  # checkpoints at 2, 4 and 5
+    (tmp_path / "checkpoints" / "checkpoint_000005.pt").unlink()  # the run goes on past its last checkpoint,
     with open(tmp_path / "log.jsonl", "a") as log:
-        log.write('{"iter": 4, "stage": "coa')  # a crash in the middle of a line
-    resumed = make_trainer(scene_dir, tmp_path, iters=4)
-    assert resumed.resume() and resumed.iteration == 3
-    assert [json.loads(line)["iter"] for line in (tmp_path / "log.jsonl").read_text().splitlines()] == [1, 2, 3]
+        log.write('{"iter": 6, "stage": "coa')  # and stops in the middle of a line
+    assert read_pose_history(tmp_path).iterations.tolist() == [1, 2, 3, 4, 5]
+    resumed = make_trainer(scene_dir, tmp_path, iters=6)
+    assert resumed.resume() and resumed.iteration == 4
+    assert [json.loads(line)["iter"] for line in (tmp_path / "log.jsonl").read_text().splitlines()] == [1, 2, 3, 4]
+    history = read_pose_history(tmp_path)
+    assert history.iterations.tolist() == [1, 2, 3, 4]
+    np.testing.assert_array_equal(history.viewmats[-1], resumed.current_viewmats().numpy())
 
 
 def test_an_old_or_damaged_checkpoint_is_one_line(scene_dir, tmp_path):

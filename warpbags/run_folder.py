@@ -7,6 +7,10 @@ Layout:
     poses_start.npy    [C,4,4] the poses the optimization starts from (after the mask-centroid start, if used)
     intrinsics.npy     [C,3,3] the training views' intrinsics at the training resolution
     log.jsonl          one JSON object per iteration (its "iter" is the count of iterations done)
+    poses_history.npz  the poses every RECORD_EVERY (10) iterations, for `warpbags view`: `iterations` [T] int64,
+                       increasing, and `viewmats` [T,C,4,4] float32 world-to-camera (the camera optimizer's estimate
+                       after that many iterations); rewritten atomically at each record (`warpbags.pose_history`
+                       writes and reads it)
     checkpoints/       checkpoint_XXXXXX.pt, written atomically (temp file + os.replace); the newest 3 kept
     gaussians.ply      final Gaussians, standard 3DGS PLY layout
     poses_final.npy    [C,4,4] optimized world-to-camera poses (the camera optimizer's corrections of poses_start)
@@ -15,7 +19,8 @@ Layout:
     repair/            the repair stage's pairs, repairer and sample pictures (see `warpbags.repair.stage`)
 
 A checkpoint is a dict with the keys of `CHECKPOINT_KEYS` and "repair" (what `warpbags.trainer.Trainer` saves);
-resuming cuts log.jsonl back to the checkpoint's iteration, so the log describes the trajectory that led to it.
+resuming cuts log.jsonl and the pose history back to the checkpoint's iteration (the history then ends with the
+checkpoint's poses), so both describe the trajectory that led to it.
 """
 
 from __future__ import annotations
@@ -34,6 +39,7 @@ from warpbags.data.scene import Scene
 from warpbags.errors import WarpbagsError
 from warpbags.files import atomic_output
 from warpbags.gaussians import write_ply
+from warpbags.pose_history import HISTORY_FILE, RECORD_EVERY, record_poses
 
 CHECKPOINTS_KEPT = 3
 # What a checkpoint must hold to be resumed; it also holds "repair" (the repair stage's state, or None).
@@ -100,21 +106,28 @@ class RunFolder:
 
             yield write
 
-    def truncate(self, iteration: int) -> None:
-        """Drop what was logged after `iteration` (a resumed run replays those iterations); a line cut short by a
-        crash is dropped too."""
+    def record_poses(self, iteration: int, viewmats: torch.Tensor) -> None:
+        """Append [C,4,4] `viewmats` to the pose history when `iteration` is a multiple of RECORD_EVERY."""
+        if iteration % RECORD_EVERY == 0:
+            record_poses(self.path, iteration, viewmats)
+
+    def truncate(self, iteration: int, viewmats: torch.Tensor) -> None:
+        """Drop what was logged after `iteration` (a resumed run replays those iterations): log.jsonl lines (and a
+        line cut short by a crash) and pose-history records; the history then ends with [C,4,4] `viewmats`, the
+        poses at `iteration`."""
         path = self.path / LOG_FILE
-        if not path.exists():
-            return
-        kept = []
-        for line in path.read_text().splitlines():
-            try:
-                if json.loads(line)["iter"] <= iteration:
-                    kept.append(line)
-            except (json.JSONDecodeError, KeyError, TypeError):
-                continue
-        with atomic_output(path) as temporary:
-            temporary.write_text("".join(line + "\n" for line in kept))
+        if path.exists():
+            kept = []
+            for line in path.read_text().splitlines():
+                try:
+                    if json.loads(line)["iter"] <= iteration:
+                        kept.append(line)
+                except (json.JSONDecodeError, KeyError, TypeError):
+                    continue
+            with atomic_output(path) as temporary:
+                temporary.write_text("".join(line + "\n" for line in kept))
+        if (self.path / HISTORY_FILE).exists():
+            record_poses(self.path, iteration, viewmats)  # records at or after `iteration` are replaced
 
     # ----------------------------------------------------------------------------------------------- checkpoints
     def has_checkpoint(self) -> bool:

@@ -244,12 +244,12 @@ class Trainer:
         self.repair_stage, self._repair_state = None, state.get("repair")
 
     def resume(self) -> bool:
-        """Load the newest checkpoint and cut log.jsonl back to it; False when there is none."""
+        """Load the newest checkpoint and cut log.jsonl and the pose history back to it; False when there is none."""
         path = self.latest_checkpoint()
         if path is None:
             return False
         self.load_checkpoint(path)
-        self.run_folder.truncate(self.iteration)
+        self.run_folder.truncate(self.iteration, self.current_viewmats())
         self.log(f"resumed from {path} (iteration {self.iteration})")
         return True
 
@@ -271,6 +271,7 @@ class Trainer:
     def train(self, stop_at: int | None = None, callback: Callable[[dict], None] | None = None) -> dict:
         """Train until `stop_at` (default: all coarse and repair iterations) are done; returns the last record.
 
+        Logs every iteration and records the poses every `warpbags.pose_history.RECORD_EVERY` iterations.
         Checkpoints every `checkpoint_every` iterations, at the end of the coarse stage and at the end. With a
         repair stage, the coarse result is also written to coarse/ as a run folder of its own. Ctrl-C (SIGINT)
         finishes the current iteration, saves a checkpoint and raises KeyboardInterrupt. Divergence raises
@@ -291,6 +292,7 @@ class Trainer:
                 while self.iteration < stop_at:
                     record = self.train_step()
                     write_log(record)
+                    self.run_folder.record_poses(self.iteration, self.current_viewmats())
                     if callback is not None:
                         callback(record)
                     coarse_done = self.iteration == self.config.iters and self.config.repair.iters > 0
