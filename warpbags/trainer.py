@@ -11,7 +11,10 @@ renders, next to the real views). The parts it runs, each in its own module:
     warpbags.camera_setup      the starting poses and the camera optimizer (`warpbags.camera_optimizer`)
     warpbags.run_folder        config, poses, log, checkpoints and results on disk (the layout is documented there)
 
-The trainer adds the loop itself: rounds, the repair stage, checkpoint cadence, the log and Ctrl-C.
+The trainer adds the loop itself: rounds, the repair stage, checkpoint cadence, the log and Ctrl-C. The module is
+a little over 300 lines because it also holds the run's entry points that the command line, the benchmarks, the
+sweep and the tests import from here (`training_scene`, `start_or_resume`, `default_run_dir`) and the attributes
+they read (`params`, `cameras`, `scene`, `Ks`, `pose_error`).
 """
 
 from __future__ import annotations
