@@ -1,0 +1,181 @@
+"""Images, masks and depth maps of a scene folder, read at one resolution, and their undistortion.
+
+`images`, `images_2|4|8` (a missing downsampled folder is made from `images` in memory), `masks/` (same stem, png
+or jpg, 255 = object), depth maps (`zoe_depth/*.png` 16-bit millimetres, or `depths/*.npy` in scene units).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from warpbags.errors import WarpbagsError
+
+IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".PNG", ".JPG", ".JPEG")
+
+
+def default_resolution(root: Path) -> int:
+    """1 if `images/` exists, else the first factor of `images_2|4|8/` that does."""
+    if (root / "images").is_dir():
+        return 1
+    for factor in (2, 4, 8):
+        if (root / f"images_{factor}").is_dir():
+            return factor
+    raise WarpbagsError(f"no image folder in {root}: expected images/ or images_2|4|8/")
+
+
+def first_existing_image_dir(root: Path) -> Path:
+    """The folder of `default_resolution`."""
+    factor = default_resolution(root)
+    return root / ("images" if factor == 1 else f"images_{factor}")
+
+
+def resolution_path(root: Path, full_path: Path, resolution: int) -> Path:
+    """The file to read for `full_path` at `resolution`: `images_{r}/...` if present, else the full-size one."""
+    if resolution == 1:
+        return full_path
+    relative = full_path.relative_to(root)
+    if relative.parts and relative.parts[0] == "images":
+        downsampled = root.joinpath(f"images_{resolution}", *relative.parts[1:])
+        if downsampled.is_file():
+            return downsampled
+        if downsampled.with_suffix(".png").is_file():  # some tools convert to png when downsampling
+            return downsampled.with_suffix(".png")
+    return full_path
+
+
+def _read_image(path: Path) -> np.ndarray:
+    image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED) if path.is_file() else None
+    if image is None:
+        if path.is_file():
+            raise WarpbagsError(f"image {path} is unreadable")
+        raise WarpbagsError(f"image {path} is missing (named by the camera file)")
+    scale = 65535.0 if image.dtype == np.uint16 else 255.0
+    image = image.astype(np.float32) / scale
+    if image.ndim == 2:
+        image = np.repeat(image[:, :, None], 3, axis=2)
+    channels = image.shape[2]
+    if channels == 4:
+        return cv2.cvtColor(image, cv2.COLOR_BGRA2RGBA)
+    return cv2.cvtColor(image[:, :, :3], cv2.COLOR_BGR2RGB)
+
+
+def read_images(
+    files: list[Path], full_paths: list[Path], resolution: int
+) -> tuple[np.ndarray, np.ndarray | None, int, int]:
+    """Read all images; resize those read at full size to 1/resolution. Returns images, alphas, width, height."""
+    images = alphas = None
+    width = height = 0
+    for index, (path, full_path) in enumerate(zip(files, full_paths)):
+        image = _read_image(path)
+        if path == full_path and resolution > 1:
+            target = (round(image.shape[1] / resolution), round(image.shape[0] / resolution))
+            image = cv2.resize(image, target, interpolation=cv2.INTER_AREA)
+        if images is None:
+            height, width = image.shape[:2]
+            images = np.empty((len(files), height, width, 3), dtype=np.float32)
+            if image.shape[2] == 4:
+                alphas = np.empty((len(files), height, width), dtype=np.float32)
+        if image.shape[:2] != (height, width):
+            raise WarpbagsError(
+                f"image {path} is {image.shape[1]}x{image.shape[0]}, the others are {width}x{height}"
+            )
+        images[index] = image[:, :, :3]
+        if alphas is not None:
+            alphas[index] = image[:, :, 3] if image.shape[2] == 4 else 1.0
+    return images, alphas, width, height
+
+
+def _find_by_stem(folder: Path, name: str, extensions: tuple[str, ...]) -> Path | None:
+    """`folder/<stem><ext>`, trying the name with its sub-folders, then the bare file name (transforms.json
+    names such as images/frame_001.png look up masks/frame_001.png), then `<name><ext>` (frame_001.png.png)."""
+    relative = Path(name)
+    stems = [relative.with_suffix(""), Path(relative.stem), relative]
+    for extension in extensions:
+        for stem in stems:
+            candidate = folder / f"{stem}{extension}"
+            if candidate.is_file():
+                return candidate
+    return None
+
+
+def _resize_to(array: np.ndarray, width: int, height: int, path: Path, what: str, nearest: bool) -> np.ndarray:
+    """Accept `array` at (width, height) or at an integer multiple of it (another resolution); else raise."""
+    found_height, found_width = array.shape[:2]
+    if (found_width, found_height) == (width, height):
+        return array
+    factor_x, factor_y = found_width / width, found_height / height
+    same_aspect = abs(factor_x - factor_y) <= 0.02 * factor_x and factor_x >= 1.0
+    if not same_aspect or abs(factor_x - round(factor_x)) > 0.02:
+        raise WarpbagsError(f"{what} {path} is {found_width}x{found_height}, its image is {width}x{height}")
+    interpolation = cv2.INTER_NEAREST if nearest else cv2.INTER_AREA
+    return cv2.resize(array, (width, height), interpolation=interpolation)
+
+
+def read_masks(root: Path, names: list[str], width: int, height: int, resolution: int) -> np.ndarray | None:
+    """[C,H,W] float32 0/1 masks from `masks_{resolution}/` or `masks/`, or None without a mask folder."""
+    folder = root / f"masks_{resolution}" if (root / f"masks_{resolution}").is_dir() else root / "masks"
+    if not folder.is_dir():
+        return None
+    masks = np.empty((len(names), height, width), dtype=np.float32)
+    for index, name in enumerate(names):
+        path = _find_by_stem(folder, name, (".png", ".jpg", ".jpeg", ".JPG", ".PNG"))
+        if path is None:
+            raise WarpbagsError(f"mask for image {name} is missing: expected {folder / Path(name).stem}.png or .jpg")
+        mask = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
+        if mask is None:
+            raise WarpbagsError(f"mask {path} is unreadable")
+        mask = _resize_to(mask.astype(np.float32) / 255.0, width, height, path, "mask", nearest=False)
+        masks[index] = mask >= 0.5
+    return masks
+
+
+def read_depths(root: Path, names: list[str], width: int, height: int) -> tuple[np.ndarray | None, str | None]:
+    """`depths/*.npy` (scene units) or `zoe_depth/*.png` (16-bit millimetres, monocular: relative)."""
+    for folder, extension, units in ((root / "depths", ".npy", "scene"), (root / "zoe_depth", ".png", "relative")):
+        if not folder.is_dir():
+            continue
+        depths = np.empty((len(names), height, width), dtype=np.float32)
+        for index, name in enumerate(names):
+            path = _find_by_stem(folder, name, (extension,))
+            if path is None:
+                expected = folder / f"{Path(name).stem}{extension}"
+                raise WarpbagsError(f"depth map for image {name} is missing: expected {expected}")
+            if extension == ".npy":
+                try:
+                    depth = np.load(path).astype(np.float32)
+                except (OSError, ValueError) as error:
+                    raise WarpbagsError(f"cannot read depth map {path}: {error}") from None
+            else:
+                raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+                if raw is None or raw.ndim != 2:
+                    raise WarpbagsError(f"depth map {path} is not a single-channel 16-bit PNG")
+                depth = raw.astype(np.float32) / 1000.0
+            depth = np.squeeze(depth)
+            if depth.ndim != 2:
+                raise WarpbagsError(f"depth map {path} has shape {depth.shape}, expected [H,W]")
+            depths[index] = _resize_to(depth, width, height, path, "depth map", nearest=True)
+        return depths, units
+    return None, None
+
+
+def undistort(
+    images: np.ndarray, masks: np.ndarray | None, depths: np.ndarray | None, Ks: np.ndarray, distortions: np.ndarray
+) -> None:
+    """Undistort in place to the same pinhole K (OpenCV's pixel centres are at integers: shift by 0.5)."""
+    height, width = images.shape[1:3]
+    for index in range(len(images)):
+        if not np.any(distortions[index]):
+            continue
+        K_opencv = Ks[index].copy()
+        K_opencv[:2, 2] -= 0.5
+        map_x, map_y = cv2.initUndistortRectifyMap(
+            K_opencv, distortions[index], None, K_opencv, (width, height), cv2.CV_32FC1
+        )
+        images[index] = cv2.remap(images[index], map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
+        if masks is not None:
+            masks[index] = cv2.remap(masks[index], map_x, map_y, cv2.INTER_NEAREST)
+        if depths is not None:
+            depths[index] = cv2.remap(depths[index], map_x, map_y, cv2.INTER_NEAREST)

@@ -1,0 +1,163 @@
+"""Camera readers, one per scene-folder layout, each returning a layout's cameras before images are read.
+
+- COLMAP / MipNeRF360 / GaussianObject: `sparse/0/{cameras,images,points3D}.{bin,txt}` (or `sparse/`).
+- LLFF: `poses_bounds.npy`, one row per image in sorted file-name order.
+- nerfstudio / instant-ngp / Blender: `transforms.json` (OpenGL camera axes).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from warpbags.data.colmap import read_model
+from warpbags.data.images import IMAGE_EXTENSIONS, first_existing_image_dir, resolution_path
+from warpbags.errors import WarpbagsError
+
+# OpenGL (x right, y up, z back) camera axes to OpenCV (x right, y down, z forward): flip y and z.
+OPENGL_TO_OPENCV = np.diag([1.0, -1.0, -1.0, 1.0])
+
+
+@dataclass
+class LayoutCameras:
+    """Camera data from a layout, before images are read: everything at the calibration resolution."""
+
+    layout: str
+    image_paths: list[Path]  # full-resolution image files (may not exist when only a downsampled folder does)
+    image_names: list[str]
+    viewmats: np.ndarray  # [C,4,4] float64 world-to-camera, OpenCV axes
+    Ks: np.ndarray  # [C,3,3] float64 at calibration sizes
+    calibration_sizes: np.ndarray  # [C,2] (width, height) the Ks refer to
+    distortions: np.ndarray  # [C,4] OpenCV k1, k2, p1, p2
+    points: np.ndarray | None = None
+    colors: np.ndarray | None = None
+    test_names: set[str] | None = None
+
+
+def colmap_cameras(root: Path) -> LayoutCameras:
+    """`sparse/0/` (or `sparse/`) read through pycolmap, with its SfM points."""
+    model_dir = root / "sparse" / "0" if (root / "sparse" / "0").is_dir() else root / "sparse"
+    model = read_model(model_dir)
+    return LayoutCameras(
+        layout="colmap",
+        image_paths=[root / "images" / name for name in model.image_names],
+        image_names=model.image_names,
+        viewmats=model.viewmats,
+        Ks=np.stack([camera.K for camera in model.cameras]),
+        calibration_sizes=np.array([[camera.width, camera.height] for camera in model.cameras], dtype=np.float64),
+        distortions=np.stack([camera.distortion for camera in model.cameras]),
+        points=model.points,
+        colors=model.colors,
+    )
+
+
+def llff_cameras(root: Path) -> LayoutCameras:
+    """`poses_bounds.npy`: per image [R | t | hwf] 3x5 camera-to-world, columns (down, right, back), then near/far."""
+    path = root / "poses_bounds.npy"
+    try:
+        poses_bounds = np.load(path)
+    except (OSError, ValueError) as error:
+        raise WarpbagsError(f"cannot read {path}: {error}") from None
+    if poses_bounds.ndim != 2 or poses_bounds.shape[1] != 17:
+        raise WarpbagsError(f"{path} has shape {poses_bounds.shape}, expected [N,17]")
+    image_dir = first_existing_image_dir(root)
+    names = sorted(p.name for p in image_dir.iterdir() if p.suffix in IMAGE_EXTENSIONS)
+    if len(names) != len(poses_bounds):
+        raise WarpbagsError(f"{path} has {len(poses_bounds)} poses but {image_dir} holds {len(names)} images")
+    matrices = poses_bounds[:, :15].reshape(-1, 3, 5)
+    down, right, back = matrices[:, :, 0], matrices[:, :, 1], matrices[:, :, 2]
+    camera_to_world = np.tile(np.eye(4), (len(names), 1, 1))
+    camera_to_world[:, :3, 0] = right
+    camera_to_world[:, :3, 1] = down
+    camera_to_world[:, :3, 2] = -back
+    camera_to_world[:, :3, 3] = matrices[:, :, 3]
+    height, width, focal = matrices[:, 0, 4], matrices[:, 1, 4], matrices[:, 2, 4]
+    Ks = np.zeros((len(names), 3, 3))
+    Ks[:, 0, 0] = Ks[:, 1, 1] = focal
+    Ks[:, 0, 2], Ks[:, 1, 2], Ks[:, 2, 2] = width / 2, height / 2, 1.0
+    return LayoutCameras(
+        layout="llff",
+        image_paths=[root / "images" / name for name in names],
+        image_names=names,
+        viewmats=np.linalg.inv(camera_to_world),
+        Ks=Ks,
+        calibration_sizes=np.stack([width, height], axis=1),
+        distortions=np.zeros((len(names), 4)),
+    )
+
+
+def transforms_cameras(root: Path) -> LayoutCameras:
+    """nerfstudio / instant-ngp `transforms.json` or Blender `transforms_{train,val,test}.json` (OpenGL axes)."""
+    if (root / "transforms.json").is_file():
+        sources = [root / "transforms.json"]
+    else:
+        sources = [root / f"transforms_{part}.json" for part in ("train", "val", "test")]
+        sources = [path for path in sources if path.is_file()]
+    frames, test_names = [], set()
+    for path in sources:
+        try:
+            meta = json.loads(path.read_text())
+        except (OSError, ValueError) as error:
+            raise WarpbagsError(f"cannot read {path}: {error}") from None
+        if not isinstance(meta, dict) or not isinstance(meta.get("frames"), list) or not meta["frames"]:
+            raise WarpbagsError(f"{path} has no 'frames' list")
+        for frame in meta["frames"]:
+            frames.append((path, meta, frame))
+            if path.name == "transforms_test.json":
+                test_names.add(_frame_name(root, frame, path))
+    rows = []
+    for path, meta, frame in frames:
+        name = _frame_name(root, frame, path)
+        image_path = root / name
+        merged = {**meta, **frame}
+        try:
+            camera_to_world = np.asarray(frame["transform_matrix"], dtype=np.float64)
+        except (KeyError, ValueError, TypeError):
+            raise WarpbagsError(f"{path}: frame {name} has no valid transform_matrix") from None
+        if camera_to_world.shape not in ((4, 4), (3, 4)):
+            raise WarpbagsError(f"{path}: frame {name} transform_matrix has shape {camera_to_world.shape}")
+        camera_to_world = np.vstack([camera_to_world[:3], [0, 0, 0, 1]]) @ OPENGL_TO_OPENCV
+        width, height = merged.get("w"), merged.get("h")
+        if width is None or height is None:
+            probe = cv2.imread(str(resolution_path(root, image_path, 1)), cv2.IMREAD_UNCHANGED)
+            if probe is None:
+                raise WarpbagsError(f"image {image_path} (named in {path.name}) is missing or unreadable")
+            height, width = probe.shape[:2]
+        if "fl_x" in merged:
+            fx = float(merged["fl_x"])
+            fy = float(merged.get("fl_y", fx))
+        elif "camera_angle_x" in merged:
+            fx = 0.5 * width / math.tan(0.5 * float(merged["camera_angle_x"]))
+            fy = 0.5 * height / math.tan(0.5 * float(merged["camera_angle_y"])) if "camera_angle_y" in merged else fx
+        else:
+            raise WarpbagsError(f"{path}: no focal length (fl_x or camera_angle_x)")
+        K = np.array([[fx, 0, merged.get("cx", width / 2)], [0, fy, merged.get("cy", height / 2)], [0, 0, 1]], float)
+        distortion = np.array([merged.get(key, 0.0) for key in ("k1", "k2", "p1", "p2")], dtype=np.float64)
+        if any(merged.get(key, 0.0) for key in ("k3", "k4")):
+            raise WarpbagsError(f"{path}: k3/k4 distortion is not supported (undistort the images first)")
+        rows.append((name, image_path, np.linalg.inv(camera_to_world), K, (width, height), distortion))
+    rows.sort(key=lambda row: row[0])
+    return LayoutCameras(
+        layout="transforms",
+        image_paths=[row[1] for row in rows],
+        image_names=[row[0] for row in rows],
+        viewmats=np.stack([row[2] for row in rows]),
+        Ks=np.stack([row[3] for row in rows]),
+        calibration_sizes=np.array([row[4] for row in rows], dtype=np.float64),
+        distortions=np.stack([row[5] for row in rows]),
+        test_names=test_names or None,
+    )
+
+
+def _frame_name(root: Path, frame: dict, source: Path) -> str:
+    if "file_path" not in frame:
+        raise WarpbagsError(f"{source}: a frame has no file_path")
+    relative = Path(str(frame["file_path"]))
+    if not relative.suffix:  # Blender writes "./train/r_0" for "./train/r_0.png"
+        relative = relative.with_suffix(".png")
+    return (root / relative).resolve().relative_to(root.resolve()).as_posix()

@@ -1,0 +1,67 @@
+"""View splits of a scene folder: `sparse_{4,6,9,test}.txt`, else published, farthest-point or every-8th views."""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+from warpbags.data.scene import DEFAULT_SPLIT_SIZES, Scene, farthest_views
+from warpbags.errors import WarpbagsError
+
+logger = logging.getLogger("warpbags.data")
+
+TEST_EVERY = 8
+"""Without `sparse_test.txt`, every 8th view not used for training is a test view (the MipNeRF360 hold-out)."""
+
+
+def read_split_file(path: Path, num_views: int) -> list[int]:
+    """0-based view indices, one per line (blank lines ignored)."""
+    indices = []
+    for line_number, line in enumerate(path.read_text().splitlines(), start=1):
+        if not line.strip():
+            continue
+        try:
+            index = int(line.strip())
+        except ValueError:
+            raise WarpbagsError(f"{path}:{line_number}: {line.strip()!r} is not a view index") from None
+        if not 0 <= index < num_views:
+            raise WarpbagsError(f"{path}:{line_number}: view index {index} out of range for {num_views} images")
+        indices.append(index)
+    return indices
+
+
+def read_splits(
+    root: Path, scene: Scene, default_splits: dict[str, list[int]] | None, test_names: set[str] | None
+) -> tuple[dict[str, list[int]], dict[str, str]]:
+    """The scene's splits (key -> view indices) and where each came from (key -> file name or rule)."""
+    splits, sources = {}, {}
+    for path in sorted(root.glob("sparse_*.txt")):
+        key = path.stem.removeprefix("sparse_")
+        splits[key], sources[key] = read_split_file(path, scene.num_views), path.name
+    for key, indices in (default_splits or {}).items():
+        if key in splits:
+            continue
+        bad = [index for index in indices if not 0 <= index < scene.num_views]
+        if bad:
+            raise WarpbagsError(
+                f"split {key} of scene {scene.name}: view index {bad[0]} out of range for {scene.num_views} images"
+            )
+        splits[key], sources[key] = list(indices), "preset"
+        logger.warning("%s: sparse_%s.txt missing, using the published split %s", scene.name, key, indices)
+    centers = scene.camera_centers().double().numpy()
+    for size in DEFAULT_SPLIT_SIZES:
+        if str(size) in splits or size > scene.num_views:
+            continue
+        splits[str(size)] = sorted(farthest_views(centers, size))
+        sources[str(size)] = "farthest-point"
+        logger.warning("%s: sparse_%d.txt missing, farthest-point views %s", scene.name, size, splits[str(size)])
+    if "test" not in splits:
+        if test_names:
+            splits["test"] = [i for i, name in enumerate(scene.image_names) if name in test_names]
+            sources["test"] = "transforms_test.json"
+        else:
+            train = {index for key, indices in splits.items() for index in indices}
+            splits["test"] = [i for i in range(0, scene.num_views, TEST_EVERY) if i not in train]
+            sources["test"] = f"every {TEST_EVERY}th"
+            logger.warning("%s: sparse_test.txt missing, test views %s", scene.name, splits["test"])
+    return splits, sources
