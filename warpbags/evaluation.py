@@ -24,19 +24,17 @@ import math
 from dataclasses import dataclass
 from pathlib import Path
 
-import cv2
 import numpy as np
 import torch
 from skimage.metrics import peak_signal_noise_ratio, structural_similarity
 
 from warpbags.alignment import align_viewmats, centre_floor_errors, pose_errors
 from warpbags.camera_optimizer import CameraOptimizer, CameraOptimizerSettings
-from warpbags.camera_paths import turntable_viewmats
 from warpbags.configs.train import TrainConfig
 from warpbags.data import ORBIT_RADIUS, Scene, SceneNormalization, load_scene
 from warpbags.errors import WarpbagsError
 from warpbags.files import atomic_output
-from warpbags.gaussians import read_ply, render_gaussians, sh_degree_of, to_source_frame, write_ply
+from warpbags.gaussians import read_ply, render_gaussians, sh_degree_of
 from warpbags.losses import load_lpips, photometric_loss
 from warpbags.report import write_image_grid, write_run_report
 from warpbags.threads import torch_threads
@@ -311,53 +309,3 @@ def _json_default(value):
     if isinstance(value, float) and not math.isfinite(value):
         return None
     raise TypeError(f"not JSON serializable: {type(value).__name__}")
-
-
-def export_run(path: str | Path, out: str | Path | None = None) -> Path:
-    """Write the run's Gaussians and final poses in the input scene's own frame (not the normalized one).
-
-    Writes `<out>/gaussians.ply` (standard 3DGS PLY) and `<out>/poses_final.npy` ([C,4,4] world-to-camera,
-    OpenCV axes, the training views in `config.json`'s image order). Default `out`: `<run>/export`.
-    """
-    run = load_run(path)
-    if "normalization" not in run.info:
-        raise WarpbagsError(f"{run.path / 'config.json'} has no normalization: written by an older warpbags")
-    normalization = SceneNormalization(tuple(run.info["normalization"]["center"]), run.info["normalization"]["scale"])
-    out = Path(out) if out is not None else run.path / "export"
-    out.mkdir(parents=True, exist_ok=True)
-    write_ply(out / "gaussians.ply", to_source_frame(run.params, normalization.center, normalization.scale))
-    poses = normalization.invert_viewmats(run.poses_final)
-    with atomic_output(out / "poses_final.npy") as temporary:
-        np.save(temporary, poses.numpy())
-    return out
-
-
-@torch_threads(1)
-def render_turntable(path: str | Path, frames: int = 36, video: bool = True) -> Path:
-    """Novel views on a full orbit of the object: `<run>/turntable/frame_XXX.png` and, with `video`,
-    `<run>/turntable.mp4` (OpenCV, mp4v, 12 fps). The orbit starts at training camera 0 and turns about the
-    training cameras' mean up axis through the object centre. Returns the frame folder."""
-    if frames < 1:
-        raise WarpbagsError(f"--frames must be >= 1, got {frames}")
-    run = load_run(path)
-    width, height = run.info["width"], run.info["height"]
-    if not (run.path / "intrinsics.npy").is_file():
-        raise WarpbagsError(f"{run.path / 'intrinsics.npy'} is missing: written by an older warpbags")
-    camera_0 = torch.from_numpy(np.load(run.path / "intrinsics.npy"))[0].float()
-    viewmats = turntable_viewmats(run.poses_final, frames).float()
-    Ks = camera_0.expand(frames, 3, 3).contiguous()
-    out = run.path / "turntable"
-    out.mkdir(exist_ok=True)
-    with torch.no_grad():
-        images, _, _ = render_gaussians(run.params, viewmats, Ks, width, height, sh_degree=sh_degree_of(run.params),
-                                        backgrounds=torch.ones(frames, 3))
-    pixels = (images.clamp(0, 1).numpy() * 255 + 0.5).astype(np.uint8)
-    for index, image in enumerate(pixels):
-        cv2.imwrite(str(out / f"frame_{index:03d}.png"), cv2.cvtColor(image, cv2.COLOR_RGB2BGR))
-    if video:
-        with atomic_output(run.path / "turntable.mp4") as temporary:
-            writer = cv2.VideoWriter(str(temporary), cv2.VideoWriter_fourcc(*"mp4v"), 12, (width, height))
-            for image in pixels:
-                writer.write(cv2.cvtColor(image, cv2.COLOR_RGB2BGR))
-            writer.release()
-    return out
