@@ -3,6 +3,9 @@
 `paper` follows the BAGS report's coarse schedule with GaussianObject's / 3DGS's Gaussian learning rates (the
 dataclass defaults, stated once there) and its repair stage;
 `quick` is a CPU-sized schedule (low resolution, few Gaussians, all views every step) for demos and tests.
+
+It stays one module because it is one typed configuration: `TrainConfig` and the sections it nests, the two
+presets written against them and the override parser that checks against the same fields.
 """
 
 from __future__ import annotations

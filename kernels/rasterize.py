@@ -21,6 +21,9 @@ one Gaussian list at a time; `first_block` offsets the launch so host threads ca
 image and its tiles come in one `TileGeometry` (shared with kernels/bin.py).
 Gradient buffers are written with atomic adds: on CUDA one buffer, on CPU one private buffer per host thread
 (CPU atomics are plain adds).
+
+It stays one module because the forward and backward kernels are one stage: the backward replays the forward's
+block layout, termination rule and `@wp.func` helpers exactly, and splitting them would separate what must agree.
 """
 
 from typing import Any

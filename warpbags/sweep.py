@@ -5,6 +5,9 @@ Each combination is one run folder `<out>/<method>-<views>v-rot<noise>-seed<seed
 interrupted sweep continues where it stopped. An executor maps `run_combination` over the combinations:
 `LocalExecutor` runs them one after another in this process, `RayExecutor` as Ray tasks on this machine or on an
 existing cluster. Results: `<out>/sweep.json`, `<out>/sweep.csv` and the plots of `warpbags.report`.
+
+It stays one module (a little over 300 lines) because the executors are the sweep's own map: both call
+`run_combination` and `make_executor` picks between them, so moving them out would make an import cycle.
 """
 
 from __future__ import annotations

@@ -9,6 +9,10 @@ kernels/rasterize.py). Binning is not differentiable.
 Tensors stay where they are: CPU tensors run on Warp's "cpu" device, CUDA tensors on the matching CUDA device and
 the current torch stream, without host copies; every launch names its device and stream. Kernel arguments are
 passed by parameter name. float32 and float64 are both supported (float64 for gradchecks).
+
+It stays one module, as gsplat's `_wrapper.py` does, because it is one thing, the torch-Warp bridge: one
+autograd stage per kernel, the launch plumbing they share, and the CPU host-thread rasterizer that splits one
+launch over disjoint tile ranges; a stage read apart from its launcher or its thread split would not read whole.
 """
 
 from __future__ import annotations

@@ -10,6 +10,9 @@ object. The scene is written in the MipNeRF360 / GaussianObject layout, so `load
 
 Texture sources (all bundled with scikit-image): brick, grass, gravel (CC0), coffee, chelsea (CC0),
 astronaut (public domain, NASA).
+
+It stays one module because it is one generator: the object, the ray caster that renders only that object's
+primitives, the dome of cameras and the writer of the folder, used nowhere else.
 """
 
 from __future__ import annotations
