@@ -33,15 +33,17 @@ def evaluate(
     result = evaluate_run(run_dir, alignment=alignment, refine_iters=refine_iters, log=stdout.print)
 
     poses = Table(title=f"training-camera pose error ({result['views']} views)", title_justify="left")
-    for column in ("alignment", "stage", "rotation mean (deg)", "rotation median", "translation mean",
-                   "% of orbit"):
-        poses.add_column(column)
+    for column in ("alignment", "stage", "rot mean", "rot median", "centre floor", "trans mean", "% orbit"):
+        poses.add_column(column, no_wrap=column in ("alignment", "stage"))
     for name, entry in result["poses"].items():
         for stage in ("initial", "final"):
             e = entry[stage]
             poses.add_row(name, stage, f"{e['rotation_deg_mean']:.3f}", f"{e['rotation_deg_median']:.3f}",
-                          f"{e['translation_mean']:.4f}", f"{e['translation_percent_of_orbit']:.2f}")
+                          _fmt(e.get("rotation_deg_centre_floor_mean"), 3), f"{e['translation_mean']:.4f}",
+                          f"{e['translation_percent_of_orbit']:.2f}")
     stdout.print(poses)
+    stdout.print("rotations in degrees; centre floor: the rotation error that the camera centres alone force on "
+                 "cameras that look at the object")
 
     images = Table(title=f"held-out views ({result['test_views']}, {alignment} alignment)", title_justify="left")
     for column in ("test poses", "PSNR", "SSIM", "FLIP", "LPIPS"):

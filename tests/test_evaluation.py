@@ -45,6 +45,13 @@ def test_eval_writes_metrics_and_pictures(finished_run):
     # free gauge: all four cameras carry the injected noise (std 4 deg, so a mean |angle| of about 3.2 deg)
     initial = report["poses"]["procrustes"]["initial"]["rotation_deg"]
     assert 0.5 < float(np.mean(initial)) < 8.0
+    # the centre floor: what the centres alone force, per camera and as the mean shown in the table (Procrustes only)
+    for stage in ("initial", "final"):
+        entry = report["poses"]["procrustes"][stage]
+        assert len(entry["rotation_deg_centre_floor"]) == 4
+        assert entry["rotation_deg_centre_floor_mean"] == pytest.approx(np.mean(entry["rotation_deg_centre_floor"]))
+        assert "rotation_deg_centre_floor" not in report["poses"]["pairwise"][stage]
+    assert "centre floor" in result.output
     for key in ("images", "images_after_test_pose_refinement"):
         mean = report[key]["mean"]
         assert 5.0 < mean["psnr"] < 60.0 and 0.0 < mean["ssim"] <= 1.0
@@ -69,6 +76,7 @@ def test_pose_accuracy_is_zero_for_true_poses(finished_run):
     report = pose_accuracy(run)
     assert report["procrustes"]["final"]["rotation_deg_mean"] < 1e-4
     assert report["procrustes"]["final"]["translation_mean"] < 1e-5
+    assert report["procrustes"]["final"]["rotation_deg_centre_floor_mean"] < 1e-4
 
 
 def test_image_metrics_match_scikit_image():
@@ -266,6 +274,7 @@ def test_report_has_the_metrics_and_pictures(finished_run):
     assert runner.invoke(app, ["eval", str(finished_run), "--refine-iters", "0"]).exit_code == 0
     report = (finished_run / "report.md").read_text()
     assert "| procrustes | final |" in report and "PSNR" in report
+    assert "| centre floor (deg) |" in report
     assert "| test poses | PSNR | SSIM | FLIP | LPIPS |" in report
     flip = json.loads((finished_run / "eval.json").read_text())["images"]["mean"]["flip"]
     assert f"| {flip:.4f} |" in report

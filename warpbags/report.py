@@ -71,13 +71,18 @@ def write_run_report(run_dir: Path, result: dict) -> Path:
     records = read_log(run_dir)
     lines = [f"# {result['scene']}: {result['views']} views", "", f"Run folder: `{run_dir}`", ""]
     lines += ["## Camera poses (training views)", "",
-              "| alignment | stage | rotation mean (deg) | rotation median (deg) | translation mean | % of orbit |",
-              "|---|---|---|---|---|---|"]
+              "| alignment | stage | rotation mean (deg) | rotation median (deg) | centre floor (deg) | translation mean "
+              "| % of orbit |",
+              "|---|---|---|---|---|---|---|"]
     for name, entry in result["poses"].items():
         for stage in ("initial", "final"):
             e = entry[stage]
+            floor = e.get("rotation_deg_centre_floor_mean")
             lines.append(f"| {name} | {stage} | {e['rotation_deg_mean']:.3f} | {e['rotation_deg_median']:.3f} | "
-                         f"{e['translation_mean']:.4f} | {e['translation_percent_of_orbit']:.2f} |")
+                         f"{'n/a' if floor is None else f'{floor:.3f}'} | {e['translation_mean']:.4f} | "
+                         f"{e['translation_percent_of_orbit']:.2f} |")
+    lines += ["", "Centre floor: the rotation error that the camera centres alone force on cameras that look at the "
+              "object (Procrustes only)."]
     lines += ["", f"## Held-out views ({result['test_views']}, test cameras aligned by {result['alignment']})", "",
               "| test poses | PSNR | SSIM | FLIP | LPIPS |", "|---|---|---|---|---|"]
     rows = [("aligned", result["images"])]
