@@ -51,12 +51,14 @@ def reach_quadric(conic: Any, opacity: Any):
 
 @wp.func
 def row_tile_span(mean2d: Any, a: float, b: float, c: float, t: float, ty: int, x0: int, x1: int, tile_size: int,
-                  height: int):
+                  width: int, height: int):
     """Half-open tile columns [tx0, tx1) of tile row `ty`, within [x0, x1), that the ellipse of reach meets.
 
     The row's band is its pixel centres' y-range; the ellipse's points in the band project onto an x-interval whose
     ends are the ellipse's own x-extremes where they fall inside the band, else the band edge nearest to them (the
-    boundary x(dy) is concave). A conic that is not positive definite keeps the whole [x0, x1).
+    boundary x(dy) is concave); the interval is then cut to the image's pixel centres, so a Gaussian that reaches a
+    cut last tile only beyond the image is not listed there. A conic that is not positive definite keeps the whole
+    [x0, x1).
     """
     det = a * c - b * b
     if a <= 0.0 or c <= 0.0 or det <= 0.0:
@@ -77,8 +79,10 @@ def row_tile_span(mean2d: Any, a: float, b: float, c: float, t: float, ty: int, 
     dy_left = wp.clamp(b * dx_reach / c, band_lo, band_hi)
     root_right = wp.sqrt(wp.max(b * b * dy_right * dy_right - a * (c * dy_right * dy_right - t), 0.0))
     root_left = wp.sqrt(wp.max(b * b * dy_left * dy_left - a * (c * dy_left * dy_left - t), 0.0))
-    x_hi = mx + (-b * dy_right + root_right) / a
+    x_hi = wp.min(mx + (-b * dy_right + root_right) / a, float(width) - 0.5)
     x_lo = mx + (-b * dy_left - root_left) / a
+    if x_lo > x_hi:
+        return x0, x0
     # tile tx holds pixel centres tx * ts + 0.5 ... tx * ts + ts - 0.5
     tx0 = wp.max(int(wp.ceil((x_lo + 0.5) / ts - 1.0)), x0)
     tx1 = wp.min(int(wp.floor((x_hi - 0.5) / ts)) + 1, x1)
@@ -102,7 +106,7 @@ def count_tiles_kernel(
     x0, x1, y0, y1 = tile_bounds(means2d[gid], radii[gid], tiles.tile_size, tiles.tiles_x, tiles.tiles_y)
     count = int(0)
     for ty in range(y0, y1):
-        tx0, tx1 = row_tile_span(means2d[gid], a, b, c, t, ty, x0, x1, tiles.tile_size, tiles.height)
+        tx0, tx1 = row_tile_span(means2d[gid], a, b, c, t, ty, x0, x1, tiles.tile_size, tiles.width, tiles.height)
         count += tx1 - tx0
     tile_counts[gid] = count
 
@@ -128,7 +132,7 @@ def emit_intersections_kernel(
     depth_key = wp.int64(depth_bits[gid])
     cursor = write_offsets[gid]
     for ty in range(y0, y1):
-        tx0, tx1 = row_tile_span(means2d[gid], a, b, c, t, ty, x0, x1, tiles.tile_size, tiles.height)
+        tx0, tx1 = row_tile_span(means2d[gid], a, b, c, t, ty, x0, x1, tiles.tile_size, tiles.width, tiles.height)
         for tx in range(tx0, tx1):
             tile = cam * tiles.tiles_x * tiles.tiles_y + ty * tiles.tiles_x + tx
             isect_keys[cursor] = (wp.int64(tile) << wp.int64(32)) | depth_key
@@ -154,7 +158,7 @@ def tile_histogram_kernel(
             a, b, c, t = reach_quadric(conics[gid], opacities[g])
             x0, x1, y0, y1 = tile_bounds(means2d[gid], radii[gid], tiles.tile_size, tiles.tiles_x, tiles.tiles_y)
             for ty in range(y0, y1):
-                tx0, tx1 = row_tile_span(means2d[gid], a, b, c, t, ty, x0, x1, tiles.tile_size, tiles.height)
+                tx0, tx1 = row_tile_span(means2d[gid], a, b, c, t, ty, x0, x1, tiles.tile_size, tiles.width, tiles.height)
                 for tx in range(tx0, tx1):
                     tile = cam * tiles.tiles_x * tiles.tiles_y + ty * tiles.tiles_x + tx
                     tile_counts[tile] = tile_counts[tile] + 1
@@ -182,7 +186,7 @@ def fill_tiles_front_to_back_kernel(
             a, b, c, t = reach_quadric(conics[gid], opacities[g])
             x0, x1, y0, y1 = tile_bounds(means2d[gid], radii[gid], tiles.tile_size, tiles.tiles_x, tiles.tiles_y)
             for ty in range(y0, y1):
-                tx0, tx1 = row_tile_span(means2d[gid], a, b, c, t, ty, x0, x1, tiles.tile_size, tiles.height)
+                tx0, tx1 = row_tile_span(means2d[gid], a, b, c, t, ty, x0, x1, tiles.tile_size, tiles.width, tiles.height)
                 for tx in range(tx0, tx1):
                     tile = cam * tiles.tiles_x * tiles.tiles_y + ty * tiles.tiles_x + tx
                     isect_ids[tile_cursors[tile]] = gid

@@ -249,9 +249,6 @@ def test_binning_matches_brute_force_per_tile(dtype, tile_size):
         assert (flat_depths[ids].diff() >= 0).all(), "front to back"
 
 
-@pytest.mark.xfail(strict=True, reason="kernels/bin.py row_tile_span clips a tile row's band to the image height but "
-                   "not the tile columns to its width: Gaussians just beyond the right edge are listed in tiles they "
-                   "reach only outside the image (harmless to the image, extra work for the rasterizer)")
 def test_binning_lists_no_tile_reached_only_beyond_the_image():
     """A unit-covariance Gaussian (reach 3.3 px) centred 2 px right of a 29 px wide image, and one 2 px below a 23 px
     high one: each reaches one tile of 8 px through pixel centres inside the image, and is listed there alone."""
