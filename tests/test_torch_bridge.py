@@ -15,6 +15,7 @@ from random_poses import generator, random_viewmats
 import warpbags
 from warpbags import wrapper
 from warpbags.lie import se3_exp
+from warpbags.losses import photometric_loss
 from warpbags.wrapper import apply_object_deltas, apply_pose_deltas
 
 DIFFERENTIABLE = ("means", "quats", "scales", "opacities", "colors", "viewmats", "Ks", "pose_deltas")
@@ -113,7 +114,7 @@ def test_in_place_edit_of_an_object_delta_input_fails_the_version_check(name):
 @pytest.mark.parametrize("device", DEVICES)
 def test_every_launch_names_its_device_and_stream_from_worker_threads(recorder, monkeypatch, device):
     """No launch relies on Warp's process-wide default device, and no ScopedDevice is entered, even with the CPU
-    path's host threads; on CUDA every launch is on torch's current stream."""
+    path's host threads (renderer and fused loss); on CUDA every launch is on torch's current stream."""
 
     def no_scoped_device(*args, **kwargs):
         raise AssertionError("wp.ScopedDevice changes the default device of every thread")
@@ -125,7 +126,8 @@ def test_every_launch_names_its_device_and_stream_from_worker_threads(recorder, 
         stream.wait_stream(torch.cuda.current_stream(device))  # the inputs were written on the default stream
     with torch.cuda.stream(stream) if stream is not None else contextlib.nullcontext():
         out, alpha, _ = warpbags.rasterization(**leaves, width=width, height=height, sh_degree=1, cpu_threads=2)
-        (out.sum() + alpha.sum()).backward()
+        loss, _ = photometric_loss(out, torch.rand_like(out).detach())  # the fused L1 + SSIM passes, threaded too
+        (loss + out.sum() + alpha.sum()).backward()
     launches = recorder["launches"]
     assert any(kwargs.get("adjoint") for _, kwargs in launches), "the backward launched Warp adjoints"
     expected = wp.device_from_torch(torch.device(device))

@@ -16,7 +16,7 @@ from warpbags.kernels.loss import (
     ssim_grad_row_pass_kernel,
     ssim_row_pass_kernel,
 )
-from warpbags.wrapper import _default_cpu_threads, _for_each_worker, _launch_scope, _to_warp
+from warpbags.wrapper import _default_cpu_threads, _for_each_worker, _launcher, _to_warp
 
 
 @functools.lru_cache(maxsize=8)
@@ -97,11 +97,13 @@ def _row_passes(kernel, before: list, after: list, batch_rows: int, width: int, 
     bounds = torch.linspace(1, batch_rows, 2 * workers + 1).round().long().tolist()
     rows = [(0, 1)] + [(a, b) for a, b in zip(bounds[:-1], bounds[1:]) if b > a]
 
-    def work(worker, first, stop):
-        wp.launch(kernel, dim=(stop - first) * width, inputs=[*before, first * width, *after])
+    launcher = _launcher(device)  # every launch names its device and stream: no process-wide default
 
-    with _launch_scope(device):
-        _for_each_worker(work, rows, workers)
+    def work(worker, first, stop):
+        wp.launch(kernel, dim=(stop - first) * width, inputs=[*before, first * width, *after],
+                  device=launcher.device, stream=launcher.stream)
+
+    _for_each_worker(work, rows, workers)
 
 
 class _FusedPhotometricLoss(torch.autograd.Function):

@@ -22,7 +22,6 @@ import contextlib
 import math
 import os
 from concurrent.futures import ThreadPoolExecutor
-from contextlib import ExitStack
 from typing import NamedTuple, Sequence
 
 import torch
@@ -106,19 +105,6 @@ def _launcher(device: torch.device) -> _Launcher:
     wp.init()
     stream = wp.stream_from_torch(device) if device.type == "cuda" else None
     return _Launcher(wp.device_from_torch(device), stream)
-
-
-def _launch_scope(device: torch.device) -> ExitStack:
-    """Make `device` Warp's default device (and torch's current stream its stream) for the block.
-
-    Only for callers whose launches do not name their device (warpbags/losses.py); the stages here use
-    `_Launcher`. The scope is process-wide, not per thread.
-    """
-    scope = ExitStack()
-    scope.enter_context(wp.ScopedDevice(wp.device_from_torch(device)))
-    if device.type == "cuda":
-        scope.enter_context(wp.ScopedStream(wp.stream_from_torch(device)))
-    return scope
 
 
 class _Stage(NamedTuple):
