@@ -154,6 +154,18 @@ def test_initializations(scene_dir, tmp_path, init, note):
     assert any(note in line for line in notes), notes
 
 
+def test_two_cameras_say_that_the_logged_pose_error_is_pairwise(scene_dir, tmp_path):
+    notes = []
+    config = tiny_config(views=2, rot_noise_deg=5.0)
+    trainer = Trainer(training_scene(load_scene(scene_dir, name="tiny"), config), config, tmp_path, log=notes.append)
+    assert sum("pose error uses pairwise alignment" in line for line in notes) == 1, notes
+    assert trainer.pose_error()["rot_err_deg"] > 0.5  # pairwise fits two cameras; procrustes would raise
+    notes.clear()
+    Trainer(training_scene(load_scene(scene_dir, name="tiny"), tiny_config()), tiny_config(), tmp_path / "four",
+            log=notes.append)
+    assert not any("pairwise" in line for line in notes), notes
+
+
 def test_no_pose_opt_keeps_poses_and_trains_one_round(scene_dir, tmp_path):
     trainer = make_trainer(scene_dir, tmp_path, pose_opt=False, iters=12, rounds=3, rot_noise_deg=5.0)
     trainer.train()

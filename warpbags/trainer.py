@@ -75,6 +75,9 @@ class Trainer:
         self.scene_extent = scene_extent(self.viewmats_init)
         if full.depths is None and config.depth_until > 0:
             self.log("no depth maps in this scene: depth term skipped")
+        if self._pose_alignment() != config.pose_alignment:
+            self.log(f"{self.num_cameras} training cameras: the logged pose error uses pairwise alignment "
+                     "(procrustes needs 3 camera centres)")
         self.generator = torch.Generator().manual_seed(config.seed)  # initialization, view sampling, densification
         self.iteration = 0
         self.model = self._fresh_model(self.viewmats_start)
@@ -139,12 +142,16 @@ class Trainer:
     def pose_error(self, viewmats: torch.Tensor | None = None) -> dict[str, float]:
         """Mean rotation (deg) and camera-centre errors of `viewmats` (default: current) against the truth."""
         viewmats = self.current_viewmats() if viewmats is None else viewmats
-        if self.num_cameras < 3 and self.config.pose_alignment == "procrustes":
-            alignment = "pairwise"
-        else:
-            alignment = self.config.pose_alignment
-        errors = pose_errors(viewmats.double().cpu(), self.viewmats_true.double().cpu(), alignment=alignment)
+        errors = pose_errors(viewmats.double().cpu(), self.viewmats_true.double().cpu(),
+                             alignment=self._pose_alignment())
         return {"rot_err_deg": errors["rotation_error_deg_mean"], "trans_err": errors["translation_error_mean"]}
+
+    def _pose_alignment(self) -> str:
+        """The logged pose error's alignment: the configured one, pairwise where procrustes cannot fit (< 3 cameras;
+        said once, when the trainer is made)."""
+        if self.num_cameras < 3 and self.config.pose_alignment == "procrustes":
+            return "pairwise"
+        return self.config.pose_alignment
 
     def render(self, views: torch.Tensor, pose_grad: bool = True, sh_degree: int | None = None):
         """Render training views `views` ([B] long) at the current poses; returns (colors, alphas, meta)."""
