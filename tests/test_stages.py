@@ -162,23 +162,30 @@ def _sh_inputs(degree, dtype=F64, device="cpu", seed=2, n=30, cams=3):
             for name in ("means", "colors", "viewmats")}
 
 
-@pytest.mark.parametrize("device", DEVICES)
-@pytest.mark.parametrize("degree", [0, 1, 2, 3])
-def test_sh_matches_reference_float64(degree, device):
-    """Colours within 1e-12, gradients within 1e-12 of each input's largest (measured: 3.3e-16 and 9e-16);
-    coefficients above the degree get none."""
-    ours_in, ref_in = _sh_inputs(degree, device=device), _sh_inputs(degree)
+def _sh_against_reference(degree: int, dtype: torch.dtype, device: str, value_atol: float, grad_atol: float):
+    """Colours within `value_atol` of the float64 reference, gradients within `grad_atol` of each input's largest;
+    returns our inputs (with their gradients)."""
+    ours_in, ref_in = _sh_inputs(degree, dtype, device=device), _sh_inputs(degree)
     ours = spherical_harmonics(ours_in["means"], ours_in["colors"], ours_in["viewmats"], degree)
     ref = sh_colors_reference(ref_in["means"], ref_in["colors"], ref_in["viewmats"], degree)
-    torch.testing.assert_close(ours.cpu(), ref, rtol=0, atol=1e-12)
+    torch.testing.assert_close(ours.cpu().double(), ref, rtol=0, atol=value_atol)
     assert (ref == 0).float().mean() < 0.2, "mostly unclamped colours"
     cotangents = _cotangents([ours])
     _backward([ours], cotangents)
     _backward([ref], cotangents)
     for name in ref_in:
         expected = _grad(ref_in[name])
-        torch.testing.assert_close(_grad(ours_in[name]).cpu(), expected, rtol=0, atol=1e-12 * expected.abs().max().item(),
-                                   msg=lambda m: f"{name}: {m}")
+        torch.testing.assert_close(_grad(ours_in[name]).cpu().double(), expected, rtol=0,
+                                   atol=grad_atol * expected.abs().max().item(), msg=lambda m: f"{name}: {m}")
+    return ours_in
+
+
+@pytest.mark.parametrize("device", DEVICES)
+@pytest.mark.parametrize("degree", [0, 1, 2, 3])
+def test_sh_matches_reference_float64(degree, device):
+    """Colours within 1e-12, gradients within 1e-12 of each input's largest (measured: 3.3e-16 and 9e-16);
+    coefficients above the degree get none."""
+    ours_in = _sh_against_reference(degree, torch.float64, device, 1e-12, 1e-12)
     assert (ours_in["colors"].grad[:, (degree + 1) ** 2:] == 0).all()
 
 
@@ -190,17 +197,7 @@ def test_sh_gradcheck_float64():
 
 def test_sh_float32_against_float64_reference():
     """float32 colours within 2e-6 and gradients within 4e-6 of each input's largest (measured: 1.7e-7, 4e-7)."""
-    ours_in, ref_in = _sh_inputs(3, torch.float32), _sh_inputs(3)
-    ours = spherical_harmonics(ours_in["means"], ours_in["colors"], ours_in["viewmats"], 3)
-    ref = sh_colors_reference(ref_in["means"], ref_in["colors"], ref_in["viewmats"], 3)
-    torch.testing.assert_close(ours.double(), ref, rtol=0, atol=2e-6)
-    cotangents = _cotangents([ours])
-    _backward([ours], cotangents)
-    _backward([ref], cotangents)
-    for name in ref_in:
-        expected = _grad(ref_in[name])
-        torch.testing.assert_close(_grad(ours_in[name]).double(), expected, rtol=0, atol=4e-6 * expected.abs().max().item(),
-                                   msg=lambda m: f"{name}: {m}")
+    _sh_against_reference(3, torch.float32, "cpu", 2e-6, 4e-6)
 
 
 def _listed(bins, cams, n):
