@@ -8,7 +8,7 @@ import pytest
 import torch
 from random_poses import F64, generator, random_sim3, random_viewmats
 
-from warpbags.alignment import Sim3, align_viewmats, centre_floor_errors, pose_errors, umeyama
+from warpbags.alignment import Sim3, align_viewmats, alignment_for, centre_floor_errors, pose_errors, umeyama
 from warpbags.cameras import camera_centers, moved_keeping_target
 from warpbags.data.noise import perturb_viewmats
 from warpbags.lie import so3_exp
@@ -231,3 +231,9 @@ def test_centre_floor_is_zero_for_orientation_noise_and_gauge_free_for_centre_no
     assert floor.mean() > 1.0
     torch.testing.assert_close(centre_floor_errors(align_viewmats(looking, random_sim3(gen, scale=0.6)), truth, origin),
                                floor, atol=1e-8, rtol=0)
+
+
+def test_alignment_for_falls_back_to_pairwise_only_where_procrustes_cannot_fit():
+    assert alignment_for(3) == "procrustes" and alignment_for(2) == "pairwise"
+    assert alignment_for(2, "pairwise") == "pairwise" and alignment_for(9, "pairwise") == "pairwise"
+    assert alignment_for(2, "none") == "none"

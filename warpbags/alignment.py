@@ -15,7 +15,7 @@ import torch
 from warpbags.cameras import camera_centers, moved_keeping_target, viewmats_from_centers
 from warpbags.lie import rotation_error_deg
 
-__all__ = ["Sim3", "align_viewmats", "centre_floor_errors", "pose_errors", "umeyama"]
+__all__ = ["Sim3", "align_viewmats", "alignment_for", "centre_floor_errors", "pose_errors", "umeyama"]
 
 
 @dataclass(frozen=True)
@@ -185,6 +185,11 @@ def _pairwise_sim3(viewmats_est: torch.Tensor, viewmats_ref: torch.Tensor) -> Si
     if best_sim3 is None:
         raise ValueError("pairwise alignment failed: all estimated camera centres coincide, the scale is undefined")
     return best_sim3
+
+
+def alignment_for(num_cameras: int, preferred: str = "procrustes") -> str:
+    """`preferred`, or "pairwise" where procrustes cannot be fitted (fewer than 3 camera centres)."""
+    return "pairwise" if preferred == "procrustes" and num_cameras < 3 else preferred
 
 
 def pose_errors(

@@ -27,10 +27,11 @@ from pathlib import Path
 
 import torch
 
-from warpbags.alignment import pose_errors
+from warpbags.alignment import alignment_for, pose_errors
 from warpbags.camera_setup import given_viewmats, starting_poses, training_cameras
 from warpbags.configs.train import TrainConfig
 from warpbags.data.scene import Scene
+from warpbags.devices import torch_device
 from warpbags.errors import WarpbagsError
 from warpbags.model import Diverged, GaussianModel, TrainingViews, camera_viewmats, scene_extent
 from warpbags.repair import RepairStage, Repairer, repairer_factory
@@ -55,13 +56,10 @@ class Trainer:
 
     def __init__(self, scene: Scene, config: TrainConfig, out_dir: str | Path, device: str = "cpu",
                  viewmats_init: torch.Tensor | None = None, log: Callable[[str], None] = print):
-        if device == "cuda" and not torch.cuda.is_available():
-            raise WarpbagsError("--device cuda: no CUDA device is available")
-        if device not in ("cpu", "cuda"):
-            raise WarpbagsError(f"--device must be cpu or cuda, got {device!r}")
+        self.device = torch_device(device)
         if config.repair.iters > 0:
             repairer_factory(config.repair.repairer)  # a bad --repairer fails now, not after the coarse stage
-        self.config, self.device, self.log = config, torch.device(device), log
+        self.config, self.log = config, log
         self.run_folder = RunFolder(out_dir)
         self.schedule = Schedule(config)
         self.num_cameras = scene.num_views
@@ -149,9 +147,7 @@ class Trainer:
     def _pose_alignment(self) -> str:
         """The logged pose error's alignment: the configured one, pairwise where procrustes cannot fit (< 3 cameras;
         said once, when the trainer is made)."""
-        if self.num_cameras < 3 and self.config.pose_alignment == "procrustes":
-            return "pairwise"
-        return self.config.pose_alignment
+        return alignment_for(self.num_cameras, self.config.pose_alignment)
 
     def render(self, views: torch.Tensor, pose_grad: bool = True, sh_degree: int | None = None):
         """Render training views `views` ([B] long) at the current poses; returns (colors, alphas, meta)."""

@@ -16,7 +16,7 @@ import cv2
 import numpy as np
 import torch
 
-from warpbags.alignment import align_viewmats, pose_errors
+from warpbags.alignment import align_viewmats, alignment_for, pose_errors
 from warpbags.camera_paths import mean_up_axis
 from warpbags.configs.train import TrainConfig
 from warpbags.errors import WarpbagsError
@@ -161,9 +161,8 @@ def _aligned_reference(path: Path, final: np.ndarray, log: Callable[[str], None]
     if true is None:
         return None
     final_t, true_t = torch.from_numpy(final), torch.from_numpy(true)
-    alignment = "procrustes" if len(final) >= 3 else "pairwise"
     try:
-        sim3 = pose_errors(final_t, true_t, alignment=alignment)["sim3"]
+        sim3 = pose_errors(final_t, true_t, alignment=alignment_for(len(final)))["sim3"]
     except ValueError as error:
         log(f"reference cameras left out: {error}")
         return None

@@ -21,7 +21,7 @@ import viser
 import viser.transforms as vtf
 
 from warpbags.cameras import camera_centers, viewmats_from_centers
-from warpbags.errors import WarpbagsError
+from warpbags.devices import torch_device
 from warpbags.gaussians import render_gaussians
 from warpbags.threads import torch_threads
 from warpbags.viewer.content import ViewerContent
@@ -71,13 +71,7 @@ class DeviceGaussians:
     """
 
     def __init__(self, content: ViewerContent, device: str | None = None):
-        if device is None:
-            device = "cuda" if torch.cuda.is_available() else "cpu"
-        if device not in ("cpu", "cuda"):
-            raise WarpbagsError(f"--device must be cpu or cuda, got {device!r}")
-        if device == "cuda" and not torch.cuda.is_available():
-            raise WarpbagsError("--device cuda: no CUDA device is available")
-        self.device = torch.device(device)
+        self.device = torch_device(device)
         self.params = {name: value.to(self.device) for name, value in content.params.items()}
         self.sh_degree = content.sh_degree
         self.background = torch.tensor([content.background], dtype=torch.float32, device=self.device)
