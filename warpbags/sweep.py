@@ -27,6 +27,7 @@ from warpbags.errors import WarpbagsError
 from warpbags.evaluation import evaluate_run
 from warpbags.files import atomic_output
 from warpbags.report import plot_sweep
+from warpbags.run_folder import RunFolder
 from warpbags.threads import usable_cores
 from warpbags.trainer import start_or_resume, training_scene
 
@@ -111,7 +112,7 @@ def run_combination(spec: SweepSpec, run: SweepRun, scene: Scene, render_threads
                              trans_noise=spec.trans_noise, pose_opt=METHODS[run.method], seed=run.seed,
                              noise_seed=run.seed, **settings)
         trainer = start_or_resume(training_scene(scene, config), config, run_dir, device=spec.device,
-                                  resume=_has_checkpoint(run_dir), log=_quiet)
+                                  resume=RunFolder(run_dir).has_checkpoint(), log=_quiet)
         trainer.train()
         evaluate_run(run_dir, refine_iters=spec.refine_iters, log=_quiet)
     return _row(run_dir, run)
@@ -122,7 +123,7 @@ def progress(spec: SweepSpec, run: SweepRun) -> str:
     run_dir = spec.out / run.name
     if _is_done(run_dir):
         return f"skip {run.name} (done)"
-    return f"{'resume' if _has_checkpoint(run_dir) else 'train'} {run.name}"
+    return f"{'resume' if RunFolder(run_dir).has_checkpoint() else 'train'} {run.name}"
 
 
 class LocalExecutor:
@@ -288,10 +289,6 @@ def _task_result(ray, ref, run: SweepRun) -> dict:
 
 def _is_done(run_dir: Path) -> bool:
     return (run_dir / "eval.json").is_file()
-
-
-def _has_checkpoint(run_dir: Path) -> bool:
-    return any((run_dir / "checkpoints").glob("checkpoint_*.pt"))
 
 
 def _quiet(message: str) -> None:
