@@ -37,6 +37,7 @@ from warpbags.files import atomic_output
 from warpbags.gaussians import read_ply, render_gaussians, sh_degree_of
 from warpbags.losses import load_lpips, photometric_loss
 from warpbags.report import write_image_grid, write_run_report
+from warpbags.run_folder import RunFolder
 from warpbags.threads import torch_threads
 
 ALIGNMENTS = ("procrustes", "pairwise")
@@ -76,20 +77,13 @@ def load_run(path: str | Path) -> TrainingRun:
     path = Path(path)
     if not (path / "config.json").is_file():
         raise WarpbagsError(f"{path} is not a training run (no config.json)")
-    try:
-        info = json.loads((path / "config.json").read_text())
-        config = TrainConfig.from_dict(info["config"])
-    except (json.JSONDecodeError, KeyError, TypeError) as error:
-        raise WarpbagsError(f"{path / 'config.json'}: unreadable ({error})") from None
+    folder = RunFolder(path)
+    info = folder.read_info()
+    config = folder.saved_config(info)
     for name in ("gaussians.ply", "poses_true.npy", "poses_init.npy", "poses_final.npy"):
         if not (path / name).is_file():
             raise WarpbagsError(f"{path / name} is missing: the run has not finished (continue it with --resume)")
-    poses = {}
-    for name in ("poses_true", "poses_init", "poses_final"):
-        try:
-            poses[name] = torch.from_numpy(np.load(path / f"{name}.npy")).double()
-        except (OSError, ValueError) as error:
-            raise WarpbagsError(f"{path / name}.npy: unreadable ({error})") from None
+    poses = {name: torch.from_numpy(folder.read_poses(name)) for name in ("poses_true", "poses_init", "poses_final")}
     return TrainingRun(path, info, config, read_ply(path / "gaussians.ply"), **poses)
 
 

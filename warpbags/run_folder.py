@@ -76,16 +76,42 @@ class RunFolder:
         np.save(self.path / "poses_start.npy", viewmats_start.cpu().numpy())
         np.save(self.path / "intrinsics.npy", scene.Ks.cpu().numpy())
 
-    def saved_config(self) -> TrainConfig:
-        """The TrainConfig in config.json.
+    def read_info(self) -> dict:
+        """config.json: the TrainConfig (under "config") and the scene and view information written with it.
 
         Raises:
             WarpbagsError: no config.json, or one that cannot be read.
         """
         path = self.path / "config.json"
         try:
-            return TrainConfig.from_dict(json.loads(path.read_text())["config"])
-        except (OSError, json.JSONDecodeError, KeyError, TypeError) as error:
+            return json.loads(path.read_text())
+        except (OSError, json.JSONDecodeError) as error:
+            raise WarpbagsError(f"{path}: unreadable ({error})") from None
+
+    def saved_config(self, info: dict | None = None) -> TrainConfig:
+        """The TrainConfig in config.json (or in `info`, config.json already read).
+
+        Raises:
+            WarpbagsError: no config.json, or one that cannot be read.
+        """
+        info = self.read_info() if info is None else info
+        try:
+            return TrainConfig.from_dict(info["config"])
+        except (KeyError, TypeError) as error:
+            raise WarpbagsError(f"{self.path / 'config.json'}: unreadable ({error})") from None
+
+    def read_poses(self, name: str) -> np.ndarray | None:
+        """`name`.npy ([C,4,4] poses, or [C,3,3] intrinsics) as float64, None when the run has none.
+
+        Raises:
+            WarpbagsError: the file exists but cannot be read.
+        """
+        path = self.path / f"{name}.npy"
+        if not path.is_file():
+            return None
+        try:
+            return np.load(path).astype(np.float64)
+        except (OSError, ValueError) as error:
             raise WarpbagsError(f"{path}: unreadable ({error})") from None
 
     def write_results(self, params: dict[str, torch.Tensor], viewmats: torch.Tensor) -> None:

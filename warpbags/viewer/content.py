@@ -7,7 +7,6 @@ from the optimized cameras to the reference ones, inverted.
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
@@ -18,10 +17,10 @@ import torch
 
 from warpbags.alignment import align_viewmats, alignment_for, pose_errors
 from warpbags.camera_paths import mean_up_axis
-from warpbags.configs.train import TrainConfig
 from warpbags.errors import WarpbagsError
 from warpbags.gaussians import read_ply, sh_degree_of
 from warpbags.pose_history import read_pose_history
+from warpbags.run_folder import RunFolder
 
 THUMBNAIL_SIDE = 160  # px: the longer side of the pictures shown on the frustums (they travel to every browser)
 BACKGROUNDS = {"white": (1.0, 1.0, 1.0), "black": (0.0, 0.0, 0.0)}
@@ -113,29 +112,17 @@ def _read_run_info(path: Path) -> dict | None:
     """config.json of a run, or None for a folder that merely holds a PLY (an export)."""
     if not (path / "config.json").is_file():
         return None
-    try:
-        return json.loads((path / "config.json").read_text())
-    except json.JSONDecodeError as error:
-        raise WarpbagsError(f"{path / 'config.json'}: unreadable ({error})") from None
-
-
-def _load_poses(path: Path, name: str) -> np.ndarray | None:
-    file = path / f"{name}.npy"
-    if not file.is_file():
-        return None
-    try:
-        return np.load(file).astype(np.float64)
-    except (OSError, ValueError) as error:
-        raise WarpbagsError(f"{file}: unreadable ({error})") from None
+    return RunFolder(path).read_info()
 
 
 def _training_cameras(path: Path, info: dict, log: Callable[[str], None]) -> TrainingCameras | None:
     """The run's cameras, or None (logged) when it lacks the files to draw them."""
-    Ks, final = _load_poses(path, "intrinsics"), _load_poses(path, "poses_final")
+    folder = RunFolder(path)
+    Ks, final = folder.read_poses("intrinsics"), folder.read_poses("poses_final")
     if Ks is None or final is None or "width" not in info:
         log(f"{path}: no intrinsics.npy, poses_final.npy or image size: showing the Gaussians without cameras")
         return None
-    start = _load_poses(path, "poses_start")
+    start = folder.read_poses("poses_start")
     iterations, frames = _pose_frames(path, info, start, final)
     return TrainingCameras(Ks, info["width"], info["height"], start, _aligned_reference(path, final, log),
                            iterations, frames, _thumbnails(info, log))
@@ -143,7 +130,7 @@ def _training_cameras(path: Path, info: dict, log: Callable[[str], None]) -> Tra
 
 def _pose_frames(path: Path, info: dict, start: np.ndarray | None, final: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Iterations [T] and poses [T,C,4,4]: the start at 0, the recorded history, the final poses at the end."""
-    total = TrainConfig.from_dict(info["config"]).total_iters
+    total = RunFolder(path).saved_config(info).total_iters
     iterations, frames = [], []
     if start is not None:
         iterations, frames = [0], [start]
@@ -157,7 +144,7 @@ def _pose_frames(path: Path, info: dict, start: np.ndarray | None, final: np.nda
 
 def _aligned_reference(path: Path, final: np.ndarray, log: Callable[[str], None]) -> np.ndarray | None:
     """poses_true.npy mapped into the model's frame, as `warpbags eval` maps the test cameras; None without it."""
-    true = _load_poses(path, "poses_true")
+    true = RunFolder(path).read_poses("poses_true")
     if true is None:
         return None
     final_t, true_t = torch.from_numpy(final), torch.from_numpy(true)
