@@ -158,77 +158,84 @@ def _warp_inputs(stage: _Stage, args: Sequence, scalar: torch.dtype, grads: Sequ
     return arguments
 
 
-def _stage_forward(stage: _Stage, dim, shape: tuple, args: Sequence, tape: wp.Tape | None = None):
-    """Run the stage; returns its output tensors and the Warp arguments it was launched with. With `tape`, the launch
-    is also recorded on it (explicitly: no Tape is made current, so other threads' launches never land on it)."""
-    tensors = [a for a in args if isinstance(a, torch.Tensor)]
-    device = tensors[0].device
-    scalar = next(t.dtype for t in tensors if t.is_floating_point())
+def _floating_dtype(args: Sequence) -> torch.dtype:
+    return next(a.dtype for a in args if isinstance(a, torch.Tensor) and a.is_floating_point())
+
+
+def _stage_forward(stage: _Stage, dim, shape: tuple, args: Sequence) -> tuple[torch.Tensor, ...]:
+    """Run the stage on `args` (its inputs in order); returns its output tensors."""
+    device = next(a for a in args if isinstance(a, torch.Tensor)).device
+    scalar = _floating_dtype(args)
     outputs = {name: _output_tensor(kind, shape, scalar, device) for name, kind in stage.outputs.items()}
     arguments = _warp_inputs(stage, args, scalar)
     arguments.update((name, _to_warp(outputs[name], kind)) for name, kind in stage.outputs.items())
-    launcher = _launcher(device)
-    launcher.launch(stage.kernel, dim, **arguments)
-    if tape is not None:
-        values = [arguments[name] for name in _parameter_names(stage.kernel)]
-        tape.record_launch(stage.kernel, dim, 0, values, [], launcher.device)
-    return tuple(outputs.values()), arguments
+    _launcher(device).launch(stage.kernel, dim, **arguments)
+    return tuple(outputs.values())
 
 
 def _run_stage(stage: _Stage, dim, shape: tuple, **inputs) -> tuple[torch.Tensor, ...]:
     """Launch `stage` over `dim` threads with its inputs by parameter name; outputs are arrays of `shape`.
 
-    Differentiable when torch records gradients and an input tensor requires one: the launch is then recorded on a
-    Warp Tape whose backward gives the gradients. Otherwise (torch.no_grad(), inference_mode(), or nothing to
-    differentiate) the kernel just runs: no Tape, no autograd node, no adjoint buffers.
+    Differentiable when torch records gradients and an input tensor requires one: the backward then records the
+    launch on a Warp Tape and runs the Tape's backward. Otherwise (torch.no_grad(), inference_mode(), or nothing to
+    differentiate) the kernel just runs: no autograd node, no adjoint buffers.
     """
     if inputs.keys() != stage.inputs.keys():
         raise TypeError(f"kernel {stage.kernel.key} takes inputs {list(stage.inputs)}, got {list(inputs)}")
     args = [inputs[name] for name in stage.inputs]
     if torch.is_grad_enabled() and any(isinstance(a, torch.Tensor) and a.requires_grad for a in args):
         return _DifferentiableStage.apply(stage, dim, shape, *args)
-    return _stage_forward(stage, dim, shape, args)[0]
+    return _stage_forward(stage, dim, shape, args)
+
+
+_SAVED = object()  # stands for a tensor argument kept with save_for_backward
 
 
 class _DifferentiableStage(torch.autograd.Function):
-    """A `_Stage` under autograd: forward records its launch on a Warp Tape, backward runs the Tape's backward (the
-    kernel's Warp-generated adjoint) with torch's cotangents.
+    """A `_Stage` under autograd: backward records the stage's launch on a Warp Tape and runs the Tape's backward
+    (the kernel's Warp-generated adjoint) with torch's cotangents.
 
-    The input tensors are kept with `save_for_backward`, so an in-place change to one of them between forward and
-    backward fails autograd's version check instead of silently giving the gradient at the changed values.
+    Inputs and outputs are kept only with `save_for_backward`: Warp views of the outputs held on `ctx` would keep
+    the outputs alive, and through their autograd node the whole graph, in a cycle Python's collector cannot see
+    (it leaked every step's stage buffers). The recorded launch replays the forward exactly: the inputs pass
+    autograd's version check when read back, so an in-place change between forward and backward fails instead of
+    silently giving the gradient at the changed values.
     """
 
     @staticmethod
     def forward(ctx, stage, dim, shape, *args):
-        ctx.tape = wp.Tape()
-        outputs, ctx.arguments = _stage_forward(stage, dim, shape, args, tape=ctx.tape)
-        ctx.stage, ctx.device = stage, next(a for a in args if isinstance(a, torch.Tensor)).device
-        ctx.save_for_backward(*[a for a in args if isinstance(a, torch.Tensor)])
+        outputs = _stage_forward(stage, dim, shape, args)
+        ctx.stage, ctx.dim = stage, dim
+        ctx.plain_args = [_SAVED if isinstance(a, torch.Tensor) else a for a in args]
+        ctx.save_for_backward(*[a for a in args if isinstance(a, torch.Tensor)], *outputs)
         ctx.mark_non_differentiable(*[o for o in outputs if not o.is_floating_point()])
         return outputs
 
     @staticmethod
     def backward(ctx, *v_outputs):
-        stage, arguments = ctx.stage, ctx.arguments
-        saved = iter(ctx.saved_tensors)  # reading them runs autograd's version check of the inputs
-        input_grads = []
-        for (name, kind), needs in zip(stage.inputs.items(), ctx.needs_input_grad[3:]):
-            value = next(saved) if kind not in (None, "float") else None
-            grad = None
-            if needs and value is not None and value.is_floating_point():
-                # Fresh buffers every backward: torch may keep a returned gradient as a parameter's .grad.
-                grad = torch.zeros_like(value, memory_format=torch.contiguous_format)
-                arguments[name].grad = _to_warp(grad, kind)
-            input_grads.append(grad)
+        stage = ctx.stage
+        saved = ctx.saved_tensors  # reading them runs autograd's version check
+        tensor_count = len(saved) - len(stage.outputs)
+        inputs, outputs = iter(saved[:tensor_count]), saved[tensor_count:]
+        args = [next(inputs) if a is _SAVED else a for a in ctx.plain_args]
+        # Fresh buffers every backward: torch may keep a returned gradient as a parameter's .grad.
+        input_grads = [torch.zeros_like(a, memory_format=torch.contiguous_format)
+                       if needs and isinstance(a, torch.Tensor) and a.is_floating_point() else None
+                       for a, needs in zip(args, ctx.needs_input_grad[3:])]
+        arguments = _warp_inputs(stage, args, _floating_dtype(args), input_grads)
+        arguments.update((name, _to_warp(out, kind)) for (name, kind), out in zip(stage.outputs.items(), outputs))
         # The adjoint of a store consumes and clears its output's adjoint, so the Tape gets copies of torch's.
         cotangents = {arguments[name]: _to_warp(v_out.contiguous().clone(), kind)
                       for (name, kind), v_out in zip(stage.outputs.items(), v_outputs)
                       if kind in _KIND_SHAPES and v_out is not None}
         if cotangents:
+            launcher = _launcher(args[next(i for i, a in enumerate(ctx.plain_args) if a is _SAVED)].device)
+            tape = wp.Tape()
+            tape.record_launch(stage.kernel, ctx.dim, 0, [arguments[name] for name in _parameter_names(stage.kernel)],
+                               [], launcher.device)
             # The Tape launches on its recorded device, on that device's current stream: torch's, on CUDA.
-            stream = _launcher(ctx.device).stream
-            with wp.ScopedStream(stream) if stream is not None else contextlib.nullcontext():
-                ctx.tape.backward(grads=cotangents)
+            with wp.ScopedStream(launcher.stream) if launcher.stream is not None else contextlib.nullcontext():
+                tape.backward(grads=cotangents)
         return (None, None, None, *input_grads)
 
 
