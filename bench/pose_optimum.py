@@ -1,0 +1,115 @@
+"""Where the photometric optimum sits: Gaussians fitted at the reference poses (frozen), then the poses alone.
+
+    python bench/pose_optimum.py SCENE [SCENE ...] [--views 4] [--fit-iters 50,200,400] [--pose-iters 100]
+        [--max-image-size 128] [--pose-lr 3e-3] [--preset quick] [--set NAME=VALUE ...] [--json PATH]
+
+SCENE: as bench/pose_recovery.py (a preset, a folder, `synthetic-small` or `synthetic-tele-small`). For each
+scene, one model is trained on the training views at their reference poses, frozen (no noise, no mask-centroid
+start; one round of the preset's schedule otherwise). After `fit` iterations of it, for each value of
+--fit-iters, a copy of the camera optimizer takes --pose-iters Adam steps with every training view rendered and
+the Gaussians held fixed; the poses it reaches are compared with the reference after sim(3) Procrustes alignment
+(mean and max rotation error, centre floor, camera centres in % of the orbit radius), then the model trains on.
+
+This separates the two things a joint optimization mixes: how far a model's own pose optimum sits from the
+reference (the bias of a half-fitted model, the resolution, the data) and how far the joint optimization
+wanders from it when the Gaussians follow the poses (bench/pose_recovery.py's truth-start variant).
+"""
+
+from __future__ import annotations
+
+import argparse
+import copy
+import dataclasses
+import json
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from pose_recovery import _load, _numbers
+from warpbags.alignment import centre_floor_errors, pose_errors
+from warpbags.configs.train import load_preset, parse_settings
+from warpbags.data import ORBIT_RADIUS
+from warpbags.trainer import Trainer, training_scene
+
+
+def _errors(trainer: Trainer, viewmats: torch.Tensor) -> dict:
+    estimate, reference = viewmats.double().cpu(), trainer.viewmats_true.double().cpu()
+    errors = pose_errors(estimate, reference, alignment="procrustes")
+    rotations = np.asarray(errors["rotation_errors_deg"], dtype=float)
+    floor = centre_floor_errors(estimate, reference, torch.zeros(3, dtype=torch.float64))
+    return {"rotation_mean": float(rotations.mean()), "rotation_max": float(rotations.max()),
+            "centre_floor": float(np.mean(np.asarray(floor, dtype=float))),
+            "translation_pct": 100 * float(errors["translation_error_mean"]) / ORBIT_RADIUS}
+
+
+def pose_only_optimum(trainer: Trainer, steps: int, lr: float) -> dict:
+    """Adam steps of a copy of the trainer's cameras against its current Gaussians (held fixed); the errors at the
+    end. The trainer's own cameras and Gaussians are left as they were."""
+    cameras = copy.deepcopy(trainer.cameras)
+    cameras.reset_moments()
+    cameras.set_learning_rate(lr)
+    model, views = trainer.model, torch.arange(trainer.num_cameras)
+    settings = dataclasses.replace(trainer.schedule.at(trainer.iteration), pose_active=True, depth=False)
+    for _ in range(steps):
+        loss, _, _ = model.loss(views, cameras.apply(views), settings)
+        loss.backward()
+        cameras.step(views)
+        cameras.zero_grad()
+        model.optimizer.zero_grad(set_to_none=True)
+    return _errors(trainer, cameras.viewmats())
+
+
+def run_scene(name: str, views: int, fit_iters: list[int], pose_iters: int, lr: float, preset: str,
+              overrides: dict) -> list[dict]:
+    scene = _load(name)
+    settings = dict(views=views, rot_noise_deg=0.0, trans_noise=0.0, rounds=1, iters=max(fit_iters) + 1,
+                    pose_opt=True, pose_opt_start=10**9, repair={"iters": 0}, camera={"centroid_start": False})
+    for key, value in overrides.items():
+        settings[key] = {**settings.get(key, {}), **value} if isinstance(value, dict) else value
+    config = load_preset(preset, **settings)
+    trainer = Trainer(training_scene(scene, config), config, tempfile.mkdtemp(prefix="pose-optimum-"),
+                      log=lambda message: None)
+    rows, started = [], time.time()
+    for fit in sorted(fit_iters):
+        while trainer.iteration < fit:
+            trainer.train_step()
+        row = {"scene": name, "views": views, "size": trainer.scene.width, "fit_iters": fit, "pose_iters": pose_iters,
+               **pose_only_optimum(trainer, pose_iters, lr), "minutes": (time.time() - started) / 60}
+        rows.append(row)
+        print(f"{name:<22} {views:>5} {row['size']:>5} {fit:>8} {row['rotation_mean']:>10.2f} {row['rotation_max']:>8.2f}"
+              f" {row['centre_floor']:>12.2f} {row['translation_pct']:>14.2f} {row['minutes']:>8.1f}", flush=True)
+    return rows
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("scenes", nargs="+")
+    parser.add_argument("--views", type=int, default=4)
+    parser.add_argument("--fit-iters", default="50,200,400", help="comma-separated iterations of Gaussian fitting")
+    parser.add_argument("--pose-iters", type=int, default=100)
+    parser.add_argument("--pose-lr", type=float, default=3e-3, help="the rotation lr of the pose-only steps")
+    parser.add_argument("--max-image-size", type=int, default=None, help="default: the preset's")
+    parser.add_argument("--preset", default="quick")
+    parser.add_argument("--set", action="append", default=[], metavar="NAME=VALUE")
+    parser.add_argument("--json", type=Path)
+    args = parser.parse_args()
+    torch.set_num_threads(1)
+    overrides = parse_settings(args.set)
+    if args.max_image_size is not None:
+        overrides["max_image_size"] = args.max_image_size
+    print(f"{'scene':<22} {'views':>5} {'px':>5} {'fit its':>8} {'rot mean':>10} {'rot max':>8} {'centre floor':>12}"
+          f" {'centres % orbit':>14} {'min':>8}")
+    rows = []
+    for name in args.scenes:
+        rows += run_scene(name, args.views, _numbers(args.fit_iters, int), args.pose_iters, args.pose_lr,
+                          args.preset, overrides)
+    if args.json:
+        args.json.parent.mkdir(parents=True, exist_ok=True)
+        args.json.write_text(json.dumps(rows, indent=2))
+
+
+if __name__ == "__main__":
+    main()
