@@ -1,7 +1,8 @@
 """Where the photometric optimum sits: Gaussians fitted at the reference poses (frozen), then the poses alone.
 
     python bench/pose_optimum.py SCENE [SCENE ...] [--views 4] [--fit-iters 50,200,400] [--pose-iters 100]
-        [--max-image-size 128] [--pose-lr 3e-3] [--preset quick] [--set NAME=VALUE ...] [--json PATH]
+        [--max-image-size 128] [--pose-lr 3e-3] [--start-noise 0/0,5/0.1] [--preset quick] [--set NAME=VALUE ...]
+        [--json PATH]
 
 SCENE: as bench/pose_recovery.py (a preset, a folder, `synthetic-small` or `synthetic-tele-small`). For each
 scene, one model is trained on the training views at their reference poses, frozen (no noise, no mask-centroid
@@ -9,6 +10,9 @@ start; one round of the preset's schedule otherwise). After `fit` iterations of 
 --fit-iters, a copy of the camera optimizer takes --pose-iters Adam steps with every training view rendered and
 the Gaussians held fixed; the poses it reaches are compared with the reference after sim(3) Procrustes alignment
 (mean and max rotation error, centre floor, camera centres in % of the orbit radius), then the model trains on.
+With --start-noise ROT/TRANS[,...] the pose-only steps start, once per pair, from the reference poses perturbed as
+`--rot-noise-deg ROT --trans-noise TRANS` would (noise seed 0) instead of from the reference: how wide the basin
+of a model that fits the reference is.
 
 This separates the two things a joint optimization mixes: how far a model's own pose optimum sits from the
 reference (the bias of a half-fitted model, the resolution, the data) and how far the joint optimization
@@ -32,6 +36,7 @@ from pose_recovery import _load, _numbers
 from warpbags.alignment import centre_floor_errors, pose_errors
 from warpbags.configs.train import load_preset, parse_settings
 from warpbags.data import ORBIT_RADIUS
+from warpbags.data.noise import perturb_viewmats
 from warpbags.trainer import Trainer, training_scene
 
 
@@ -45,10 +50,15 @@ def _errors(trainer: Trainer, viewmats: torch.Tensor) -> dict:
             "translation_pct": 100 * float(errors["translation_error_mean"]) / ORBIT_RADIUS}
 
 
-def pose_only_optimum(trainer: Trainer, steps: int, lr: float) -> dict:
-    """Adam steps of a copy of the trainer's cameras against its current Gaussians (held fixed); the errors at the
-    end. The trainer's own cameras and Gaussians are left as they were."""
+def pose_only_optimum(trainer: Trainer, steps: int, lr: float, start_noise: tuple[float, float] = (0.0, 0.0)) -> dict:
+    """Adam steps of a copy of the trainer's cameras, started from the reference poses perturbed by `start_noise`
+    (rotation std in degrees, centre std in scene units), against its current Gaussians (held fixed); the errors at
+    the start and at the end. The trainer's own cameras and Gaussians are left as they were."""
     cameras = copy.deepcopy(trainer.cameras)
+    with torch.no_grad():
+        cameras.viewmats_init.copy_(perturb_viewmats(trainer.viewmats_true.to(cameras.viewmats_init), *start_noise,
+                                                     seed=0))
+    start = _errors(trainer, cameras.viewmats())
     cameras.reset_moments()
     cameras.set_learning_rate(lr)
     model, views = trainer.model, torch.arange(trainer.num_cameras)
@@ -59,11 +69,11 @@ def pose_only_optimum(trainer: Trainer, steps: int, lr: float) -> dict:
         cameras.step(views)
         cameras.zero_grad()
         model.optimizer.zero_grad(set_to_none=True)
-    return _errors(trainer, cameras.viewmats())
+    return {"start_rotation_mean": start["rotation_mean"], **_errors(trainer, cameras.viewmats())}
 
 
 def run_scene(name: str, views: int, fit_iters: list[int], pose_iters: int, lr: float, preset: str,
-              overrides: dict) -> list[dict]:
+              overrides: dict, start_noises: list[tuple[float, float]]) -> list[dict]:
     scene = _load(name)
     settings = dict(views=views, rot_noise_deg=0.0, trans_noise=0.0, rounds=1, iters=max(fit_iters) + 1,
                     pose_opt=True, pose_opt_start=10**9, repair={"iters": 0}, camera={"centroid_start": False})
@@ -76,11 +86,14 @@ def run_scene(name: str, views: int, fit_iters: list[int], pose_iters: int, lr: 
     for fit in sorted(fit_iters):
         while trainer.iteration < fit:
             trainer.train_step()
-        row = {"scene": name, "views": views, "size": trainer.scene.width, "fit_iters": fit, "pose_iters": pose_iters,
-               **pose_only_optimum(trainer, pose_iters, lr), "minutes": (time.time() - started) / 60}
-        rows.append(row)
-        print(f"{name:<22} {views:>5} {row['size']:>5} {fit:>8} {row['rotation_mean']:>10.2f} {row['rotation_max']:>8.2f}"
-              f" {row['centre_floor']:>12.2f} {row['translation_pct']:>14.2f} {row['minutes']:>8.1f}", flush=True)
+        for noise in start_noises:
+            row = {"scene": name, "views": views, "size": trainer.scene.width, "fit_iters": fit,
+                   "pose_iters": pose_iters, "start_noise": list(noise), **pose_only_optimum(trainer, pose_iters, lr, noise),
+                   "minutes": (time.time() - started) / 60}
+            rows.append(row)
+            print(f"{name:<22} {views:>5} {row['size']:>5} {fit:>8} {noise[0]:>5g}/{noise[1]:<5g}"
+                  f" {row['start_rotation_mean']:>9.2f} {row['rotation_mean']:>10.2f} {row['rotation_max']:>8.2f}"
+                  f" {row['centre_floor']:>12.2f} {row['translation_pct']:>14.2f} {row['minutes']:>8.1f}", flush=True)
     return rows
 
 
@@ -91,6 +104,7 @@ def main() -> None:
     parser.add_argument("--fit-iters", default="50,200,400", help="comma-separated iterations of Gaussian fitting")
     parser.add_argument("--pose-iters", type=int, default=100)
     parser.add_argument("--pose-lr", type=float, default=3e-3, help="the rotation lr of the pose-only steps")
+    parser.add_argument("--start-noise", default="0/0", help="comma-separated ROT_DEG/TRANS pairs")
     parser.add_argument("--max-image-size", type=int, default=None, help="default: the preset's")
     parser.add_argument("--preset", default="quick")
     parser.add_argument("--set", action="append", default=[], metavar="NAME=VALUE")
@@ -100,12 +114,13 @@ def main() -> None:
     overrides = parse_settings(args.set)
     if args.max_image_size is not None:
         overrides["max_image_size"] = args.max_image_size
-    print(f"{'scene':<22} {'views':>5} {'px':>5} {'fit its':>8} {'rot mean':>10} {'rot max':>8} {'centre floor':>12}"
-          f" {'centres % orbit':>14} {'min':>8}")
+    print(f"{'scene':<22} {'views':>5} {'px':>5} {'fit its':>8} {'start noise':>11} {'rot start':>9} {'rot mean':>10}"
+          f" {'rot max':>8} {'centre floor':>12} {'centres % orbit':>14} {'min':>8}")
     rows = []
     for name in args.scenes:
         rows += run_scene(name, args.views, _numbers(args.fit_iters, int), args.pose_iters, args.pose_lr,
-                          args.preset, overrides)
+                          args.preset, overrides, [tuple(float(v) for v in pair.split("/")) for pair in
+                                                   args.start_noise.split(",") if pair])
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)
         args.json.write_text(json.dumps(rows, indent=2))
