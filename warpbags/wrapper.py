@@ -162,9 +162,13 @@ def _floating_dtype(args: Sequence) -> torch.dtype:
     return next(a.dtype for a in args if isinstance(a, torch.Tensor) and a.is_floating_point())
 
 
+def _tensor_device(args: Sequence) -> torch.device:
+    return next(a.device for a in args if isinstance(a, torch.Tensor))
+
+
 def _stage_forward(stage: _Stage, dim, shape: tuple, args: Sequence) -> tuple[torch.Tensor, ...]:
     """Run the stage on `args` (its inputs in order); returns its output tensors."""
-    device = next(a for a in args if isinstance(a, torch.Tensor)).device
+    device = _tensor_device(args)
     scalar = _floating_dtype(args)
     outputs = {name: _output_tensor(kind, shape, scalar, device) for name, kind in stage.outputs.items()}
     arguments = _warp_inputs(stage, args, scalar)
@@ -229,7 +233,7 @@ class _DifferentiableStage(torch.autograd.Function):
                       for (name, kind), v_out in zip(stage.outputs.items(), v_outputs)
                       if kind in _KIND_SHAPES and v_out is not None}
         if cotangents:
-            launcher = _launcher(args[next(i for i, a in enumerate(ctx.plain_args) if a is _SAVED)].device)
+            launcher = _launcher(_tensor_device(args))
             tape = wp.Tape()
             tape.record_launch(stage.kernel, ctx.dim, 0, [arguments[name] for name in _parameter_names(stage.kernel)],
                                [], launcher.device)
