@@ -4,12 +4,13 @@
     python bench/train_step.py --inits random --views 1 --steps 20
     python bench/train_step.py --opensplat PATH      # adds OpenSplat's CPU trainer on the same views and points
     python bench/train_step.py --inits random --views 1 --pixel-blocks 1x1,2x2   # rasterizer pixel blocks compared
+    python bench/train_step.py --inits random --views 1 --points 100000 --sh-degree 2   # the paper preset's size
 
 The step is built from the pieces `warpbags.trainer.Trainer` runs (as the speed comparison with OpenSplat
-configures it: SH degree 0, no densification, the object on a white background, loss (1-0.2) L1 + 0.2 (1-SSIM) +
-0.01 mask BCE on the rendered alpha, render mode RGB+ED, pose deltas optimized): `warpbags.init` points and
-`initial_gaussians`, `warpbags.gaussians.render_gaussians`, `warpbags.losses`, the Gaussians' Adam groups
-(`warpbags.model.gaussian_optimizer`), `DensifyStrategy.accumulate`. Every configuration runs in its own process, so
+configures it: SH degree 0 unless --sh-degree, no densification, the object on a white background, loss
+(1-0.2) L1 + 0.2 (1-SSIM) + 0.01 mask BCE on the rendered alpha, render mode RGB+ED, pose deltas optimized):
+`warpbags.init` points and `initial_gaussians`, `warpbags.gaussians.render_gaussians`, `warpbags.losses`, the
+Gaussians' Adam groups (`warpbags.model.gaussian_optimizer`), `DensifyStrategy.accumulate`. Every configuration runs in its own process, so
 each peak RSS is its own.
 
 Phases. The rendering stages are timed by wrapping the functions `warpbags.rendering.rasterization` calls
@@ -159,7 +160,7 @@ def instrumented(clock: PhaseClock):
         wp.launch = launch
 
 
-def build_problem(init: str, points: int, seed: int = 0) -> dict:
+def build_problem(init: str, points: int, seed: int = 0, sh_degree: int = 0) -> dict:
     """The 4 training views of maryrose at full resolution, initial Gaussians and optimizers (as the trainer)."""
     from warpbags.configs.train import DensifyConfig, load_preset
     from warpbags.init import hull_or_random_points, initial_gaussians
@@ -167,7 +168,7 @@ def build_problem(init: str, points: int, seed: int = 0) -> dict:
     from warpbags.strategy import DensifyStrategy
     from warpbags.trainer import training_scene
 
-    config = load_preset("quick", max_image_size=0, init=init, init_points=points, sh_degree=0, views_per_step=1,
+    config = load_preset("quick", max_image_size=0, init=init, init_points=points, sh_degree=sh_degree, views_per_step=1,
                          seed=seed)
     scene = training_scene("maryrose", config)
     generator = torch.Generator().manual_seed(seed)
@@ -176,7 +177,7 @@ def build_problem(init: str, points: int, seed: int = 0) -> dict:
         resolution=config.hull_resolution, dilation_px=config.hull_dilation_px,
         missed_views=config.hull_missed_views, generator=generator,
     )
-    params = {name: torch.nn.Parameter(value) for name, value in initial_gaussians(xyz, colors, 0).items()}
+    params = {name: torch.nn.Parameter(value) for name, value in initial_gaussians(xyz, colors, sh_degree).items()}
     extent = scene_extent(scene.viewmats)
     optimizer = gaussian_optimizer(params, config, extent)
     lr = config.lr
@@ -207,7 +208,7 @@ def training_step(problem: dict, views_per_step: int, clock: PhaseClock | None =
     with clock.phase("other"):
         deltas = torch.cat([problem["pose_rotations"], problem["pose_translations"]], dim=1)[views]
     renders, alphas, meta = render_gaussians(
-        problem["params"], scene.viewmats[views], scene.Ks[views], scene.width, scene.height, sh_degree=0,
+        problem["params"], scene.viewmats[views], scene.Ks[views], scene.width, scene.height, sh_degree=config.sh_degree,
         backgrounds=problem["backgrounds"][views], pose_deltas=deltas, render_mode="RGB+ED",
     )
     meta["means2d"].retain_grad()
@@ -228,7 +229,7 @@ def training_step(problem: dict, views_per_step: int, clock: PhaseClock | None =
 
 
 def run_configuration(init: str, views_per_step: int, points: int, steps: int, warmup: int,
-                      pixel_block: tuple[int, int] | None = None) -> dict:
+                      pixel_block: tuple[int, int] | None = None, sh_degree: int = 0) -> dict:
     """Median ms per phase over `steps` instrumented steps, then the median of `steps` plain steps; `pixel_block`
     replaces the rasterizer's default CPU block (warpbags.wrapper.DEFAULT_PIXEL_BLOCK) for the whole run."""
     from warpbags.wrapper import DEFAULT_PIXEL_BLOCK
@@ -236,7 +237,7 @@ def run_configuration(init: str, views_per_step: int, points: int, steps: int, w
     torch.set_num_threads(1)  # as the trainer: Warp runs its own host threads
     if pixel_block is not None:
         DEFAULT_PIXEL_BLOCK["cpu"] = pixel_block
-    problem = build_problem(init, points)
+    problem = build_problem(init, points, sh_degree=sh_degree)
     for _ in range(warmup):
         training_step(problem, views_per_step)
     per_phase: dict[str, list[float]] = {name: [] for name in PHASES}
@@ -405,6 +406,8 @@ def main() -> None:
     parser.add_argument("--views", default="1,4", help="comma-separated views per step")
     parser.add_argument("--points", type=int, default=10_000, help="initial Gaussians")
     parser.add_argument("--steps", type=int, default=20, help="timed steps per configuration")
+    parser.add_argument("--sh-degree", type=int, default=0,
+                        help="SH degree of the Gaussians' colours (the paper preset ends at 2; OpenSplat runs at 0)")
     parser.add_argument("--warmup", type=int, default=50, help="untimed steps first (compilation, the early steps)")
     parser.add_argument("--opensplat", type=Path, help="an OpenSplat binary built with its CPU backend")
     parser.add_argument("--json", type=Path, help="also write the results here")
@@ -417,14 +420,15 @@ def main() -> None:
     if args.one:
         block = tuple(int(v) for v in args.block.split("x")) if args.block else None
         print(json.dumps(run_configuration(args.one[0], int(args.one[1]), args.points, args.steps, args.warmup,
-                                           block)))
+                                           block, args.sh_degree)))
         return
     rows = []
     for init in args.inits.split(","):
         for views in args.views.split(","):
             for block in (args.pixel_blocks.split(",") if args.pixel_blocks else [None]):
                 rows.append(_child(["--one", init, views, "--points", str(args.points), "--steps", str(args.steps),
-                                    "--warmup", str(args.warmup), *(["--block", block] if block else [])]))
+                                    "--warmup", str(args.warmup), "--sh-degree", str(args.sh_degree),
+                                    *(["--block", block] if block else [])]))
     opensplat = None
     if args.opensplat is not None:
         opensplat = run_opensplat(args.opensplat, args.points, args.steps, args.warmup)
