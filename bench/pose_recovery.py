@@ -13,6 +13,7 @@ Procrustes alignment. Variants:
     bags          the method (the preset as shipped)
     fixed-noisy   the same pipeline with the noisy poses frozen (GaussianObject's baseline)
     truth-start   bags started at the reference poses (no noise): where the method's own optimum sits on the scene
+    frozen-orbit  bags with the orbit about the object centre held in every round (`camera.orbit_from_round`)
     --ablations   bags with one part switched off in turn: no-centroid-start, no-silhouette (mask distance and
                   chamfer terms), no-precondition, camera-param (se(3) about the camera centre, no preconditioner),
                   poses-whole-round and poses-first-half (the pose window of each round, instead of from a quarter
@@ -51,6 +52,8 @@ VARIANTS = {
     "poses-first-half": dict(pose_round_window=(0.0, 0.5)),
     # no noise, poses optimized all the same: how far the method moves cameras that start at the reference poses
     "truth-start": dict(rot_noise_deg=0.0, trans_noise=0.0),
+    # the object-centric orbit held in every round (any value >= the preset's rounds)
+    "frozen-orbit": dict(camera={"orbit_from_round": 99}),
 }
 ABLATIONS = ["no-centroid-start", "no-silhouette", "no-precondition", "camera-param", "poses-whole-round",
              "poses-first-half"]

@@ -65,6 +65,7 @@ TRAIN_OPTIONS = (
                  help="Keep camera 0 at its given pose as the gauge (default: every camera is optimized; errors "
                       "after sim(3) alignment)."),
     ConfigOption("--camera-param", "camera.parameterization"),
+    ConfigOption("--orbit-from-round", "camera.orbit_from_round"),
     ConfigOption("--repair-iters", "repair.iters"),
     ConfigOption("--no-repair", "repair.iters", sets=0, help="Skip the repair stage."),
     ConfigOption("--repairer", "repair.repairer"),

@@ -141,3 +141,31 @@ def test_pose_kernels_compile_for_sm90(tmp_path):
         raise
     sources = "".join(path.read_text() for path in tmp_path.rglob("*.cu"))
     assert artifacts and "apply_object_deltas_kernel" in sources
+
+
+def test_a_frozen_orbit_stays_put_and_its_release_does_not_jump():
+    cameras = _optimizer(CameraOptimizerSettings(lr=1e-2))
+    cameras.set_orbit_free(False)
+    for _ in range(5):
+        cameras.apply()[:, :3, :].pow(2).sum().backward()  # a loss every parameter's gradient reaches
+        cameras.step()
+        cameras.zero_grad()
+    params = cameras.params().detach()
+    assert torch.all(params[:, :2] == 0) and params[:, 2:].abs().max() > 1e-3
+    latent = torch.cat([cameras.rotations, cameras.translations], dim=1).detach()
+    hidden = (cameras.preconditioner @ latent[..., None])[..., :2, 0]
+    assert hidden.abs().max() > 1e-3  # Adam moved the latents along the rows that were held
+    before = cameras.viewmats()
+    cameras.set_orbit_free(True)
+    torch.testing.assert_close(cameras.viewmats(), before, rtol=0, atol=1e-6)  # the release rebased: no jump
+    assert torch.all(cameras.rotations == 0) and not cameras.optimizer.state
+    cameras.apply()[:, :3, :].pow(2).sum().backward()
+    cameras.step()
+    assert cameras.params().detach()[:, :2].abs().max() > 1e-4  # the orbit moves now
+
+
+def test_orbit_freezing_needs_the_object_parameterization():
+    from warpbags.errors import WarpbagsError
+
+    with pytest.raises(WarpbagsError, match="object parameterization"):
+        _optimizer(CameraOptimizerSettings(parameterization="camera", precondition=False)).set_orbit_free(False)

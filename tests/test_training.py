@@ -17,6 +17,7 @@ from warpbags import run_folder
 from warpbags.losses import depth_loss, ssim
 from warpbags.pose_history import read_pose_history
 from warpbags.strategy import replace_rows
+from warpbags.schedule import Schedule
 from warpbags.trainer import Trainer, training_scene
 
 TINY = SyntheticOptions(views=16, width=96, height=96)
@@ -353,6 +354,31 @@ def test_pyramid_levels_train_early_rounds_at_lower_resolution(scene_dir, tmp_pa
     assert trainer.render(torch.arange(2))[0].shape[1:3] == (full, full)
     trainer.write_run_files()
     assert np.load(tmp_path / "intrinsics.npy")[0, 0, 2] == pytest.approx(trainer.full_scene.Ks[0, 0, 2].item())
+
+
+def test_the_orbit_is_held_until_its_round():
+    config = load_preset("quick", iters=30, rounds=3, camera={"orbit_from_round": 2}, repair={"iters": 5})
+    schedule = Schedule(config)
+    assert [schedule.at(i).orbit_free for i in (0, 9, 10, 19, 20, 29, 30, 34)] == [False] * 4 + [True] * 4
+    assert all(Schedule(load_preset("quick")).at(i).orbit_free for i in range(0, 600, 50))
+    with pytest.raises(WarpbagsError, match="object parameterization"):
+        load_preset("quick", camera={"parameterization": "camera", "orbit_from_round": 1})
+    with pytest.raises(WarpbagsError, match="orbit_from_round must be >= 0"):
+        load_preset("quick", camera={"orbit_from_round": -1})
+
+
+def test_a_run_holds_the_orbit_until_its_round_and_resumes_with_its_start(scene_dir, tmp_path):
+    trainer = make_trainer(scene_dir, tmp_path, iters=4, rounds=2, pose_opt_start=0, rot_noise_deg=5.0,
+                           camera={"orbit_from_round": 1})
+    trainer.train(stop_at=2)
+    assert not trainer.cameras.orbit_free and torch.all(trainer.cameras.params()[:, :2] == 0)
+    trainer.train()
+    assert trainer.cameras.orbit_free
+    resumed = make_trainer(scene_dir, tmp_path, iters=4, rounds=2, pose_opt_start=0, rot_noise_deg=5.0,
+                           camera={"orbit_from_round": 1})
+    resumed.resume()
+    torch.testing.assert_close(resumed.viewmats_start, trainer.viewmats_start, rtol=0, atol=0)
+    torch.testing.assert_close(resumed.current_viewmats(), trainer.current_viewmats(), rtol=0, atol=0)
 
 
 def test_cli_without_a_terminal_prints_compact_lines_and_no_warp_driver_warning(scene_dir, tmp_path):

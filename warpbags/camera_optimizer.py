@@ -15,6 +15,11 @@ P = (M + diag(max(1e-8, r diag M)))^(-1/2), M = J^T J / n, J the Jacobian of the
 divided by max(W, H)) with respect to the 6 parameters at zero. A unit step of z then moves the image by about the
 same amount in every direction, so one learning rate fits rotation and translation alike, and directions that
 barely move the image (a viewpoint turn about a far object) are not starved by Adam.
+
+Orbit freezing (object parameterization): `set_orbit_free(False)` holds wx, wy (the turn about the object centre
+that keeps the object where it is in the image) at zero. Adam's per-coordinate steps still move the latent along
+directions the frozen rows hide, so releasing the orbit first folds the current corrections into the base poses and
+restarts the latents and their moments at zero: the estimate does not jump.
 """
 
 from __future__ import annotations
@@ -30,6 +35,7 @@ from warpbags.cameras import project_points
 from warpbags.wrapper import apply_object_deltas, apply_pose_deltas
 
 PARAMETERIZATIONS = ("camera", "object")
+ORBIT_ROWS = (0, 1)  # wx, wy of the object parameterization
 
 
 def corrected_viewmats(parameterization: str, viewmats: torch.Tensor, params: torch.Tensor,
@@ -139,6 +145,7 @@ class CameraOptimizer(torch.nn.Module):
         else:
             matrix = torch.eye(6, dtype=torch.float64).expand(cams, 6, 6)
         self.register_buffer("preconditioner", matrix.to(**options).contiguous())
+        self.register_buffer("free_rows", torch.ones(6, **options))  # 0 where a parameter is held (orbit freezing)
         # Rotation and translation latents: two Adam groups, each created once (resume loads into them).
         self.rotations = torch.nn.Parameter(torch.zeros(cams, 3, **options))
         self.translations = torch.nn.Parameter(torch.zeros(cams, 3, **options))
@@ -152,9 +159,9 @@ class CameraOptimizer(torch.nn.Module):
         return self.viewmats_init.shape[0]
 
     def params(self) -> torch.Tensor:
-        """[C, 6] the real parameters, P @ latent, zero for the gauge camera."""
+        """[C, 6] the real parameters, P @ latent, zero for the gauge camera and in held rows."""
         latent = torch.cat([self.rotations, self.translations], dim=1)
-        return (self.preconditioner @ latent[..., None])[..., 0] * self.gauge
+        return (self.preconditioner @ latent[..., None])[..., 0] * self.gauge * self.free_rows
 
     def apply(self, views: torch.Tensor | None = None) -> torch.Tensor:
         """[B, 4, 4] corrected world-to-camera matrices of cameras `views` ([B] long, default all); differentiable."""
@@ -168,6 +175,30 @@ class CameraOptimizer(torch.nn.Module):
         """[C, 4, 4] the current estimate of every camera, without a graph."""
         with torch.no_grad():
             return self.apply()
+
+    @property
+    def orbit_free(self) -> bool:
+        return bool(self.free_rows[ORBIT_ROWS[0]] > 0)
+
+    def set_orbit_free(self, free: bool) -> None:
+        """Optimize the orbit rows (wx, wy) or hold them at zero (object parameterization only). Releasing them
+        rebases first (see the module docstring)."""
+        if free == self.orbit_free:
+            return
+        if self.settings.parameterization != "object":
+            raise WarpbagsError("orbit freezing needs the object parameterization")
+        if free:
+            self.rebase()
+        with torch.no_grad():
+            self.free_rows[list(ORBIT_ROWS)] = 1.0 if free else 0.0
+
+    def rebase(self) -> None:
+        """Fold the current corrections into the base poses; latents and Adam moments restart at zero."""
+        with torch.no_grad():
+            self.viewmats_init.copy_(self.apply())
+            self.rotations.zero_()
+            self.translations.zero_()
+        self.reset_moments()
 
     def set_learning_rate(self, lr: float) -> None:
         for group in self.optimizer.param_groups:

@@ -43,7 +43,8 @@ from warpbags.pose_history import HISTORY_FILE, RECORD_EVERY, record_poses
 
 CHECKPOINTS_KEPT = 3
 # What a checkpoint must hold to be resumed; it also holds "repair" (the repair stage's state, or None).
-CHECKPOINT_KEYS = ("iteration", "config", "params", "optimizer", "strategy", "cameras", "generator", "viewmats_init")
+CHECKPOINT_KEYS = ("iteration", "config", "params", "optimizer", "strategy", "cameras", "generator", "viewmats_init",
+                   "viewmats_start")
 LOG_FILE = "log.jsonl"
 
 

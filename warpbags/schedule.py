@@ -32,6 +32,7 @@ class StepSettings:
         gaussian_lr_fraction: position-lr schedule position in [0, 1] (exponential from `lr.means_init` to
             `lr.means_final`).
         pose_lr: the camera optimizer's rotation learning rate.
+        orbit_free: the object-centric orbit rows are optimized (`camera.orbit_from_round`).
     """
 
     iteration: int
@@ -44,6 +45,7 @@ class StepSettings:
     pose_active: bool
     gaussian_lr_fraction: float
     pose_lr: float
+    orbit_free: bool
 
 
 class Schedule:
@@ -72,8 +74,7 @@ class Schedule:
         if self.in_repair(iteration):
             return 0
         rounds = math.ceil(self.config.iters / self.round_length)
-        current = min(iteration // self.round_length, rounds - 1)  # a finished run stays in its last round
-        return min(self.config.pyramid_levels - 1, rounds - 1 - current)
+        return min(self.config.pyramid_levels - 1, rounds - 1 - self.round_index(iteration))
 
     def sh_degree(self, iteration: int) -> int:
         if self.in_repair(iteration):
@@ -86,6 +87,14 @@ class Schedule:
         if config.blur_until <= 0 or self.in_repair(iteration):
             return 0.0
         return config.blur_sigma_px * max(0.0, 1.0 - self.round_iteration(iteration) / config.blur_until)
+
+    def round_index(self, iteration: int) -> int:
+        """The 0-based coarse round of `iteration` (the repair stage counts as the last round)."""
+        rounds = math.ceil(self.config.iters / self.round_length)
+        return min(iteration // self.round_length, rounds - 1)
+
+    def orbit_free(self, iteration: int) -> bool:
+        return self.round_index(iteration) >= self.config.camera.orbit_from_round
 
     def pose_window(self, iteration: int) -> tuple[int, int]:
         """[start, end) iterations of the current round in which poses are updated (`pose_round_window`, no earlier
@@ -118,4 +127,5 @@ class Schedule:
             depth=not in_repair and round_iteration < config.depth_until and config.lambda_depth > 0,
             pose_active=self.pose_active(iteration), gaussian_lr_fraction=gaussian_fraction,
             pose_lr=exponential_lr(config.lr.pose, config.lr.pose_final, pose_fraction),
+            orbit_free=self.orbit_free(iteration),
         )

@@ -167,6 +167,7 @@ class Trainer:
             self.cameras.reset_moments()
         settings = self.schedule.at(self.iteration)
         self.cameras.set_learning_rate(settings.pose_lr)
+        self.cameras.set_orbit_free(settings.orbit_free)
         with self._divergence_reported():
             loss, terms = self.model.fit_step(self.cameras, settings)
         self.iteration += 1
@@ -181,6 +182,7 @@ class Trainer:
         settings = self.schedule.at(self.iteration)
         self.model.set_learning_rate(settings.gaussian_lr_fraction)
         self.cameras.set_learning_rate(settings.pose_lr)
+        self.cameras.set_orbit_free(settings.orbit_free)
         loss, terms, views = torch.zeros((), device=self.device), {"pseudo_ratio": ratio}, None
         if ratio < 1:
             views = self.model.sample_views()
@@ -229,7 +231,7 @@ class Trainer:
         return self.run_folder.save_checkpoint({
             "iteration": self.iteration, "config": self.config.to_dict(), **self.model.state_dict(),
             "cameras": self.cameras.state(), "generator": self.generator.get_state(),
-            "viewmats_init": self.viewmats_init.cpu(),
+            "viewmats_init": self.viewmats_init.cpu(), "viewmats_start": self.viewmats_start.cpu(),
             "repair": None if self.repair_stage is None else self.repair_stage.state_dict(),
         })
 
@@ -246,7 +248,7 @@ class Trainer:
         self.cameras.load_state(state["cameras"])
         self.generator.set_state(state["generator"])
         self.viewmats_init = state["viewmats_init"].to(self.device)
-        self.viewmats_start = self.cameras.viewmats_init
+        self.viewmats_start = state["viewmats_start"].to(self.device)
         self.repair_stage, self._repair_state = None, state.get("repair")
 
     def resume(self) -> bool:
