@@ -17,6 +17,7 @@ import torch
 from warpbags.data import SyntheticOptions, ensure_synthetic_scene, load_scene, open_scene
 from warpbags.data.noise import PoseNoise, noisy_viewmats
 from warpbags.init import visual_hull
+from warpbags.cli.common import clean_errors
 
 VARIANTS = {  # name: (dilation_px, missed_views)
     "GaussianObject (N-1 vote)": (0, 1),
@@ -68,4 +69,4 @@ def main() -> None:
 
 if __name__ == "__main__":
     torch.set_num_threads(1)
-    main()
+    clean_errors(main)()  # a bad scene name: one line and exit code 2, as the CLI

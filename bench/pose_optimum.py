@@ -38,6 +38,7 @@ from warpbags.configs.train import load_preset, parse_settings
 from warpbags.data import ORBIT_RADIUS
 from warpbags.data.noise import perturb_viewmats
 from warpbags.trainer import Trainer, training_scene
+from warpbags.cli.common import clean_errors
 
 
 def _errors(trainer: Trainer, viewmats: torch.Tensor) -> dict:
@@ -72,9 +73,8 @@ def pose_only_optimum(trainer: Trainer, steps: int, lr: float, start_noise: tupl
     return {"start_rotation_mean": start["rotation_mean"], **_errors(trainer, cameras.viewmats())}
 
 
-def run_scene(name: str, views: int, fit_iters: list[int], pose_iters: int, lr: float, preset: str,
+def run_scene(name: str, scene, views: int, fit_iters: list[int], pose_iters: int, lr: float, preset: str,
               overrides: dict, start_noises: list[tuple[float, float]]) -> list[dict]:
-    scene = _load(name)
     settings = dict(views=views, rot_noise_deg=0.0, trans_noise=0.0, rounds=1, iters=max(fit_iters) + 1,
                     pose_opt=True, pose_opt_start=10**9, repair={"iters": 0}, camera={"centroid_start": False})
     for key, value in overrides.items():
@@ -114,11 +114,12 @@ def main() -> None:
     overrides = parse_settings(args.set)
     if args.max_image_size is not None:
         overrides["max_image_size"] = args.max_image_size
+    scenes = {name: _load(name) for name in args.scenes}  # a bad name fails before the table's header
     print(f"{'scene':<22} {'views':>5} {'px':>5} {'fit its':>8} {'start noise':>11} {'rot start':>9} {'rot mean':>10}"
           f" {'rot max':>8} {'centre floor':>12} {'centres % orbit':>14} {'min':>8}")
     rows = []
-    for name in args.scenes:
-        rows += run_scene(name, args.views, _numbers(args.fit_iters, int), args.pose_iters, args.pose_lr,
+    for name, scene in scenes.items():
+        rows += run_scene(name, scene, args.views, _numbers(args.fit_iters, int), args.pose_iters, args.pose_lr,
                           args.preset, overrides, [tuple(float(v) for v in pair.split("/")) for pair in
                                                    args.start_noise.split(",") if pair])
     if args.json:
@@ -127,4 +128,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    clean_errors(main)()  # a bad scene name or setting: one line and exit code 2, as the CLI

@@ -40,6 +40,7 @@ from warpbags.configs.train import load_preset, parse_settings
 from warpbags.data import ORBIT_RADIUS, SyntheticOptions, ensure_synthetic_scene, load_scene, open_scene
 from warpbags.evaluation import evaluate_run
 from warpbags.trainer import Trainer, training_scene
+from warpbags.cli.common import clean_errors
 
 VARIANTS = {
     "bags": {},
@@ -143,6 +144,8 @@ def main() -> None:
     unknown = [name for name in variants if name not in VARIANTS]
     if unknown:
         parser.error(f"unknown variant {unknown[0]!r}; choose from {', '.join(VARIANTS)}")
+    load_preset(args.preset, **overrides)  # a bad preset or setting fails before the first line of the table
+    scenes = {name: _load(name) for name in args.scenes}
     results: dict = {"preset": args.preset, "overrides": overrides, "trans_noise": args.trans, "rows": []}
     header = (f"{'scene':<20} {'views':>5} {'noise':>9} {'variant':<18} {'rot init':>8} {'rot mean':>8} {'rot max':>8} "
               f"{'<1 deg':>6} {'floor':>13} {'t init %':>8} {'t %':>6} {'PSNR':>6} {'SSIM':>6} {'PSNR*':>6} {'true PSNR':>9} {'min':>5}")
@@ -150,8 +153,7 @@ def main() -> None:
           f"({100 * args.trans / ORBIT_RADIUS:.1f}% of the orbit radius per axis)")
     print(header + "\n" + "-" * len(header), flush=True)
     with tempfile.TemporaryDirectory() as root:
-        for scene_name in args.scenes:
-            scene = _load(scene_name)
+        for scene_name, scene in scenes.items():
             for views in _numbers(args.views, int):
                 true_pose = {}
                 if not args.no_true_pose:
@@ -189,4 +191,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    clean_errors(main)()  # a bad scene name or setting: one line and exit code 2, as the CLI

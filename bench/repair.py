@@ -36,6 +36,7 @@ from warpbags.data import SyntheticOptions, ensure_synthetic_scene, load_scene, 
 from warpbags.evaluation import evaluate_run, held_out_views, load_run
 from warpbags.gaussians import render_gaussians, sh_degree_of
 from warpbags.trainer import Trainer, training_scene
+from warpbags.cli.common import clean_errors
 
 
 def _scene(name: str):
@@ -116,13 +117,13 @@ def main() -> None:
     torch.set_num_threads(1)
     overrides = parse_settings(args.settings)
     repair = {"iters": args.repair_iters, **overrides.pop("repair", {})}
+    scenes = {name: _scene(name) for name in args.scenes}  # a bad name fails before the first line
     print(f"{args.views} views, noise {args.rot} deg / {args.trans}, preset {args.preset}, repair {repair} {overrides}")
     header = (f"{'scene':<16} {'model':<8} {'PSNR':>6} {'SSIM':>6} {'LPIPS':>6} {'PSNR*':>6} {'SSIM*':>6} "
               f"{'rot':>6}")
     with tempfile.TemporaryDirectory() as scratch:
         root = args.keep or Path(scratch)
-        for name in args.scenes:
-            scene = _scene(name)
+        for name, scene in scenes.items():
             config = load_preset(args.preset, views=args.views, rot_noise_deg=args.rot, trans_noise=args.trans,
                                  repair=repair, **overrides)
             out = root / f"{name}-{args.views}v-repair"
@@ -166,4 +167,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    clean_errors(main)()  # a bad scene name or setting: one line and exit code 2, as the CLI

@@ -1,0 +1,22 @@
+"""The benchmarks that take scene names answer a bad one as the CLI does: one line on stderr and exit code 2, before
+any table line is printed."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+BENCH = Path(__file__).resolve().parents[1] / "bench"
+
+
+@pytest.mark.parametrize("script", ["pose_recovery.py", "pose_optimum.py", "repair.py", "hull_noise.py"])
+def test_an_unknown_scene_is_one_error_line(script, tmp_path):
+    result = subprocess.run([sys.executable, str(BENCH / script), "nosuchscene"], capture_output=True, text=True,
+                            timeout=300, cwd=tmp_path)
+    assert result.returncode == 2, result.stderr
+    errors = [line for line in result.stderr.splitlines() if line.startswith("error:")]
+    assert len(errors) == 1 and "nosuchscene" in errors[0] and "Traceback" not in result.stderr
+    assert result.stdout == ""
