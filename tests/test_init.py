@@ -6,7 +6,7 @@ import torch
 from conftest import look_at
 
 from warpbags.cameras import project_points
-from warpbags.init import hull_or_random_points
+from warpbags.init import hull_or_random_points, mean_neighbour_distance
 
 WIDTH = HEIGHT = 32
 KS = torch.tensor([[40.0, 0.0, 16.0], [0.0, 40.0, 16.0], [0.0, 0.0, 1.0]]).expand(2, 3, 3)
@@ -37,3 +37,12 @@ def test_random_points_say_so_when_no_region_is_seen_by_every_camera():
     assert len(points) == 200
     assert note == ("random points (200); only 0 of 1600 drawn points are seen by every camera, so they come from "
                     "the whole cube")
+
+
+def test_mean_neighbour_distance_is_the_brute_force_mean():
+    points = torch.rand(300, 3, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
+    for k in (1, 17):
+        brute = torch.cdist(points, points).sort(dim=1).values[:, 1:k + 1].mean(1)
+        found = mean_neighbour_distance(points, k)
+        assert found.dtype == torch.float64
+        torch.testing.assert_close(found, brute, rtol=0, atol=1e-12)

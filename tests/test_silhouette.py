@@ -15,7 +15,7 @@ from warpbags.cameras import project_points
 from warpbags.data import SyntheticOptions, ensure_synthetic_scene, load_scene
 from warpbags.lie import so3_exp
 from warpbags.losses import mask_loss
-from warpbags.silhouette import SilhouetteTargets, centroid_start, rays_meeting_point
+from warpbags.silhouette import SilhouetteTargets, centroid_start, nearest_distances, rays_meeting_point
 
 
 @pytest.fixture(scope="module")
@@ -134,3 +134,17 @@ def test_chamfer_term_brings_a_missed_mask_into_view():
         case.cameras.step()
     assert loss(case.cameras.viewmats()).item() < 0.2 * start
     assert case.overlap(case.cameras.viewmats()) > 0.5  # the render now covers most of the mask
+
+
+def test_nearest_distances_are_the_brute_force_minimum_with_its_gradient():
+    generator = torch.Generator().manual_seed(0)
+    queries = (100 * torch.rand(40, 2, generator=generator, dtype=torch.float64)).requires_grad_()
+    points = (100 * torch.rand(5000, 2, generator=generator, dtype=torch.float64)).requires_grad_()
+    weights = torch.rand(40, generator=generator, dtype=torch.float64)
+    found = nearest_distances(queries, points)
+    brute = torch.cdist(queries, points, compute_mode="donot_use_mm_for_euclid_dist").min(dim=1).values
+    torch.testing.assert_close(found, brute, rtol=0, atol=1e-12)
+    gradients = torch.autograd.grad((found * weights).sum(), (queries, points))
+    expected = torch.autograd.grad((brute * weights).sum(), (queries, points))
+    for got, want in zip(gradients, expected):
+        torch.testing.assert_close(got, want, rtol=0, atol=1e-12)
