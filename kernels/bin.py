@@ -10,9 +10,12 @@ threshold), so the rasterized image is the one every tile of the bounding box wo
 Two orderings, same lists:
 - CUDA (gsplat): count each Gaussian's tiles, emit one key per (Gaussian, tile) after a prefix sum, key =
   tile << 32 | depth bits (the bit pattern of a positive float32 orders like its value), one 64-bit sort.
-- CPU: a counting sort. Per camera, count the Gaussians of every tile, prefix-sum the counts into tile offsets,
-  then walk the Gaussians front to back (argsort of the N depths) appending each to its tiles: linear in the
-  number of intersections instead of a sort of them. Each camera's walk is serial by design (one thread).
+- CPU: a counting sort, linear in the number of intersections instead of a sort of them. Each camera's Gaussians,
+  front to back (argsort of the N depths), are cut into consecutive chunks, one host-thread task each: a task
+  counts its Gaussians per tile in a histogram of its own; the prefix sum over tiles, and within a tile over the
+  camera's tasks in order, gives every task its own write cursors; then each task appends its Gaussians to their
+  tiles. A tile's list is thus the earlier chunks' entries before the later ones': front to back, the same lists
+  as one serial walk.
 
 Camera c's tiles are numbered c * tiles_per_camera + ty * tiles_x + tx (`TileGeometry`, shared with the
 rasterizer). Never differentiated.
@@ -146,13 +149,20 @@ def tile_histogram_kernel(
     conics: wp.array(dtype=Any),
     opacities: wp.array(dtype=Any),
     radii: wp.array(dtype=wp.int32),
+    depth_order: wp.array2d(dtype=wp.int32),
     tiles: TileGeometry,
-    first_camera: int,
-    tile_counts: wp.array(dtype=wp.int32),
+    chunk_cameras: wp.array(dtype=wp.int32),
+    chunk_starts: wp.array(dtype=wp.int32),
+    chunk_stops: wp.array(dtype=wp.int32),
+    first_chunk: int,
+    chunk_counts: wp.array2d(dtype=wp.int32),
 ):
-    """One thread per camera: tile_counts[tile] = how many Gaussians the tile lists (zeroed by the caller)."""
-    cam = first_camera + wp.tid()
-    for g in range(tiles.num_gaussians):
+    """One thread per chunk of a camera's depth order: chunk_counts[chunk, tile] = how many of the chunk's Gaussians
+    the camera's tile lists (zeroed by the caller)."""
+    chunk = first_chunk + wp.tid()
+    cam = chunk_cameras[chunk]
+    for k in range(chunk_starts[chunk], chunk_stops[chunk]):
+        g = depth_order[cam, k]
         gid = cam * tiles.num_gaussians + g
         if radii[gid] > 0:
             a, b, c, t = reach_quadric(conics[gid], opacities[g])
@@ -160,8 +170,8 @@ def tile_histogram_kernel(
             for ty in range(y0, y1):
                 tx0, tx1 = row_tile_span(means2d[gid], a, b, c, t, ty, x0, x1, tiles.tile_size, tiles.width, tiles.height)
                 for tx in range(tx0, tx1):
-                    tile = cam * tiles.tiles_x * tiles.tiles_y + ty * tiles.tiles_x + tx
-                    tile_counts[tile] = tile_counts[tile] + 1
+                    tile = ty * tiles.tiles_x + tx  # among the camera's tiles
+                    chunk_counts[chunk, tile] = chunk_counts[chunk, tile] + 1
 
 
 @wp.kernel(enable_backward=False)
@@ -172,14 +182,18 @@ def fill_tiles_front_to_back_kernel(
     radii: wp.array(dtype=wp.int32),
     depth_order: wp.array2d(dtype=wp.int32),
     tiles: TileGeometry,
-    first_camera: int,
-    tile_cursors: wp.array(dtype=wp.int32),
+    chunk_cameras: wp.array(dtype=wp.int32),
+    chunk_starts: wp.array(dtype=wp.int32),
+    chunk_stops: wp.array(dtype=wp.int32),
+    first_chunk: int,
+    chunk_cursors: wp.array2d(dtype=wp.int32),
     isect_ids: wp.array(dtype=wp.int32),
 ):
-    """One thread per camera: append the Gaussians to their tiles' lists in depth order (`depth_order[cam]`),
-    `tile_cursors` starting at the tiles' offsets."""
-    cam = first_camera + wp.tid()
-    for k in range(tiles.num_gaussians):
+    """One thread per chunk: append the chunk's Gaussians to their tiles' lists in depth order, each tile's cursor
+    (`chunk_cursors[chunk, tile]`) starting where the chunk's entries of that tile go."""
+    chunk = first_chunk + wp.tid()
+    cam = chunk_cameras[chunk]
+    for k in range(chunk_starts[chunk], chunk_stops[chunk]):
         g = depth_order[cam, k]
         gid = cam * tiles.num_gaussians + g
         if radii[gid] > 0:
@@ -188,6 +202,6 @@ def fill_tiles_front_to_back_kernel(
             for ty in range(y0, y1):
                 tx0, tx1 = row_tile_span(means2d[gid], a, b, c, t, ty, x0, x1, tiles.tile_size, tiles.width, tiles.height)
                 for tx in range(tx0, tx1):
-                    tile = cam * tiles.tiles_x * tiles.tiles_y + ty * tiles.tiles_x + tx
-                    isect_ids[tile_cursors[tile]] = gid
-                    tile_cursors[tile] = tile_cursors[tile] + 1
+                    tile = ty * tiles.tiles_x + tx  # among the camera's tiles
+                    isect_ids[chunk_cursors[chunk, tile]] = gid
+                    chunk_cursors[chunk, tile] = chunk_cursors[chunk, tile] + 1

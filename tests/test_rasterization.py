@@ -127,15 +127,18 @@ def test_cpu_threads_give_identical_results():
 
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
 @pytest.mark.parametrize("tile_size", [4, 8, 16])
-def test_counting_sort_binning_equals_key_sort(dtype, tile_size):
-    """The CPU binning (counting sort of depth-ordered Gaussians) lists exactly what the CUDA path's key sort does."""
+@pytest.mark.parametrize("cams,threads", [(3, 1), (3, 4), (1, 3)])
+def test_counting_sort_binning_equals_key_sort(dtype, tile_size, cams, threads):
+    """The CPU binning (counting sort of depth-ordered Gaussians, each camera's depth order in chunks on host
+    threads) lists exactly what the CUDA path's key sort does."""
     from warpbags.wrapper import _bin_by_sort, _tile_geometry, _to_warp, bin_gaussians, project_gaussians
 
-    cams, n, width, height = 3, 200, 37, 29
+    n, width, height = 200, 37, 29
     scene = random_scene(n=n, cams=cams, width=width, height=height, dtype=dtype, seed=1)
     means2d, conics, depths, radii = project_gaussians(scene["means"], scene["quats"], scene["scales"],
                                                        scene["opacities"], scene["viewmats"], scene["Ks"], width, height)
-    bins = bin_gaussians(means2d, conics, scene["opacities"], radii, depths, width, height, tile_size)
+    bins = bin_gaussians(means2d, conics, scene["opacities"], radii, depths, width, height, tile_size,
+                         cpu_threads=threads)
     tiles_x, tiles_y = math.ceil(width / tile_size), math.ceil(height / tile_size)
     splats = dict(means2d=_to_warp(means2d.reshape(-1, 2).contiguous(), "vec2"),
                   conics=_to_warp(conics.reshape(-1, 3).contiguous(), "vec3"),

@@ -400,35 +400,60 @@ def _bin_by_sort(splats: dict, tiles: TileGeometry, depths: torch.Tensor, num_ti
 
 def _bin_by_counting(splats: dict, tiles: TileGeometry, radii: torch.Tensor, depths: torch.Tensor, num_tiles: int,
                      threads: int):
-    """Counting sort by tile of the depth-ordered Gaussians (the CPU path): one serial pass per camera to count,
-    one to fill; cameras run in parallel host threads (Warp launches release the GIL)."""
-    cams = radii.shape[0]
+    """Counting sort by tile of the depth-ordered Gaussians (the CPU path, kernels/bin.py): every camera's depth
+    order in chunks, each a host-thread task with its own histogram and write cursors (Warp launches release the
+    GIL); the lists are those of one serial walk."""
+    cams, n = radii.shape
     launcher = _launcher(radii.device)
-    tile_counts = torch.zeros(num_tiles, dtype=torch.int32)
-    cameras = [(cam, cam + 1) for cam in range(cams)]
-    counts_wp = _to_warp(tile_counts, "int32")
-
-    def count(worker, first, stop):
-        launcher.launch(tile_histogram_kernel, stop - first, **splats, tiles=tiles, first_camera=first,
-                        tile_counts=counts_wp)
-
-    _for_each_worker(count, cameras, min(threads, cams))
-    tile_offsets = torch.zeros(num_tiles + 1, dtype=torch.int32)
-    torch.cumsum(tile_counts, 0, dtype=torch.int32, out=tile_offsets[1:])
-    isect_ids = torch.empty(int(tile_offsets[-1]), dtype=torch.int32)
+    tiles_per_camera = tiles.tiles_x * tiles.tiles_y
     # Culled Gaussians last; a stable sort keeps equal depths in index order (deterministic lists).
     depth_keys = torch.where(radii > 0, depths.detach(), torch.full_like(depths, math.inf))
     depth_order = torch.argsort(depth_keys, dim=1, stable=True).to(torch.int32)
-    tile_cursors = tile_offsets[:-1].clone()
-    order_wp, cursors_wp, ids_wp = _to_warp(depth_order, "int32"), _to_warp(tile_cursors, "int32"), _to_warp(isect_ids, "int32")
+    chunks = _depth_chunks((radii > 0).sum(dim=1).tolist(), max(1, math.ceil(2 * threads / cams)) if threads > 1 else 1)
+    cameras_of, starts, stops = (torch.tensor(column, dtype=torch.int32) for column in zip(*chunks))
+    chunk_args = dict(**splats, depth_order=_to_warp(depth_order, "int32"), tiles=tiles,
+                      chunk_cameras=_to_warp(cameras_of, "int32"), chunk_starts=_to_warp(starts, "int32"),
+                      chunk_stops=_to_warp(stops, "int32"))
+    one_each = [(chunk, chunk + 1) for chunk in range(len(chunks))]
+    counts = torch.zeros(len(chunks), tiles_per_camera, dtype=torch.int32)
+    counts_wp = _to_warp(counts, "int32")
+
+    def count(worker, first, stop):
+        launcher.launch(tile_histogram_kernel, stop - first, **chunk_args, first_chunk=first, chunk_counts=counts_wp)
+
+    _for_each_worker(count, one_each, threads)
+    # Tile offsets over every camera's tiles; within a tile, each chunk writes after the camera's earlier chunks.
+    camera_counts = torch.zeros(cams, tiles_per_camera, dtype=torch.int32).index_add_(0, cameras_of.long(), counts)
+    tile_offsets = torch.zeros(num_tiles + 1, dtype=torch.int32)
+    torch.cumsum(camera_counts.reshape(-1), 0, dtype=torch.int32, out=tile_offsets[1:])
+    before = torch.zeros_like(counts)
+    for cam in range(cams):
+        rows = (cameras_of == cam).nonzero()[:, 0]
+        before[rows] = torch.cumsum(counts[rows], 0, dtype=torch.int32) - counts[rows]
+    cursors = before + tile_offsets[:-1].reshape(cams, tiles_per_camera)[cameras_of.long()]
+    isect_ids = torch.empty(int(tile_offsets[-1]), dtype=torch.int32)
+    cursors_wp, ids_wp = _to_warp(cursors.contiguous(), "int32"), _to_warp(isect_ids, "int32")
 
     def fill(worker, first, stop):
-        launcher.launch(fill_tiles_front_to_back_kernel, stop - first, **splats, depth_order=order_wp, tiles=tiles,
-                        first_camera=first, tile_cursors=cursors_wp, isect_ids=ids_wp)
+        launcher.launch(fill_tiles_front_to_back_kernel, stop - first, **chunk_args, first_chunk=first,
+                        chunk_cursors=cursors_wp, isect_ids=ids_wp)
 
     if len(isect_ids):
-        _for_each_worker(fill, cameras, min(threads, cams))
+        _for_each_worker(fill, one_each, threads)
     return tile_offsets, isect_ids
+
+
+def _depth_chunks(visible: list[int], per_camera: int) -> list[tuple[int, int, int]]:
+    """(camera, start, stop) ranges of each camera's depth order over its `visible[camera]` unculled Gaussians: a
+    one-Gaussian chunk first (`_for_each_worker` runs the first range alone, for the kernels' first-use
+    compilation), then `per_camera` equal chunks of the rest; empty ranges left out, at least one per camera."""
+    chunks = []
+    for cam, count in enumerate(visible):
+        bounds = [0, min(1, count)] + [min(1, count) + round(i * max(count - 1, 0) / per_camera)
+                                       for i in range(1, per_camera + 1)]
+        ranges = [(cam, a, b) for a, b in zip(bounds[:-1], bounds[1:]) if b > a]
+        chunks += ranges or [(cam, 0, 0)]
+    return chunks
 
 
 def _default_cpu_threads() -> int:
