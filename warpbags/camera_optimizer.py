@@ -116,7 +116,8 @@ class CameraOptimizer(torch.nn.Module):
     """Per-camera pose corrections of C cameras, their gauge, preconditioner and Adam optimizer.
 
     Args:
-        viewmats_init: [C, 4, 4] starting world-to-camera poses (the corrections are relative to them).
+        viewmats_init: [C, 4, 4] starting world-to-camera poses (the corrections are relative to them; `rebase`
+            moves them to the current estimate).
         settings: parameterization, preconditioning, gauge and learning rate.
         object_center: [3] world point the object-centric parameterization turns about.
         Ks, width, height, points: cameras and [P, 3] object points for the preconditioner (needed only with
