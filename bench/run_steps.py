@@ -28,9 +28,10 @@ from pathlib import Path
 import torch
 
 from warpbags.cli.common import clean_errors
+from warpbags.data import load_scene
 from warpbags.errors import WarpbagsError
 from warpbags.run_folder import RunFolder
-from warpbags.trainer import Trainer, training_scene
+from warpbags.trainer import start_or_resume, training_scene
 
 
 def _serial_launch_timer() -> tuple[dict, collections.Counter]:
@@ -66,10 +67,12 @@ def main() -> None:
     with tempfile.TemporaryDirectory(prefix="run-steps-") as scratch:
         copy = Path(scratch) / "run"
         shutil.copytree(args.run, copy, ignore=shutil.ignore_patterns("eval", "*.png", "*.mp4"))
-        config = RunFolder(copy).saved_config()
-        trainer = Trainer(training_scene(RunFolder(copy).read_info()["scene_root"], config), config, copy,
-                          log=lambda message: None)
-        trainer.resume()
+        folder = RunFolder(copy)
+        info = folder.read_info()
+        config = folder.saved_config(info)
+        # The scene as the run loaded it (its image level and name), then its training views.
+        scene = load_scene(info["scene_root"], resolution=info["resolution"], name=info["scene"])
+        trainer = start_or_resume(training_scene(scene, config), config, copy, resume=True, log=lambda message: None)
         if args.iteration is not None:
             trainer.iteration = args.iteration
         if trainer.iteration + args.warmup + args.steps > config.total_iters:

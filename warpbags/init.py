@@ -129,7 +129,7 @@ def mean_neighbour_distance(points: torch.Tensor, k: int, chunk: int = 1024) -> 
     """[P] mean distance of each point to its k nearest other points (k < P).
 
     On the CPU a k-d tree on every core (the floater removal's k = sqrt(P) at 100k Gaussians: 4.6 s, against 78 s
-    for the pairwise distances); on CUDA the pairwise distances in chunks of `chunk` rows.
+    for the pairwise distances, both with another job on the cores); on CUDA the pairwise distances in chunks of `chunk` rows.
     """
     if points.is_cuda:
         return torch.cat([torch.cdist(rows, points).topk(k + 1, largest=False).values[:, 1:].mean(1)

@@ -57,6 +57,7 @@ class Schedule:
         # trained Gaussians away, so the baseline trains one round with the whole budget.
         rounds = config.rounds if config.pose_opt else 1
         self.round_length = math.ceil(config.iters / rounds)
+        self.rounds = math.ceil(config.iters / self.round_length)  # rounds actually run (the last may be shorter)
 
     def round_iteration(self, iteration: int) -> int:
         return iteration % self.round_length
@@ -73,8 +74,7 @@ class Schedule:
         full), so the last rounds are at full resolution; the repair stage is too."""
         if self.in_repair(iteration):
             return 0
-        rounds = math.ceil(self.config.iters / self.round_length)
-        return min(self.config.pyramid_levels - 1, rounds - 1 - self.round_index(iteration))
+        return min(self.config.pyramid_levels - 1, self.rounds - 1 - self.round_index(iteration))
 
     def sh_degree(self, iteration: int) -> int:
         if self.in_repair(iteration):
@@ -90,8 +90,7 @@ class Schedule:
 
     def round_index(self, iteration: int) -> int:
         """The 0-based coarse round of `iteration` (the repair stage counts as the last round)."""
-        rounds = math.ceil(self.config.iters / self.round_length)
-        return min(iteration // self.round_length, rounds - 1)
+        return min(iteration // self.round_length, self.rounds - 1)
 
     def orbit_free(self, iteration: int) -> bool:
         return self.round_index(iteration) >= self.config.camera.orbit_from_round

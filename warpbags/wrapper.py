@@ -403,7 +403,7 @@ def _bin_by_counting(splats: dict, tiles: TileGeometry, radii: torch.Tensor, dep
     """Counting sort by tile of the depth-ordered Gaussians (the CPU path, kernels/bin.py): every camera's depth
     order in chunks, each a host-thread task with its own histogram and write cursors (Warp launches release the
     GIL); the lists are those of one serial walk."""
-    cams, n = radii.shape
+    cams = radii.shape[0]
     launcher = _launcher(radii.device)
     tiles_per_camera = tiles.tiles_x * tiles.tiles_y
     # Culled Gaussians last; a stable sort keeps equal depths in index order (deterministic lists).
