@@ -271,6 +271,7 @@ class TrainConfig:
     pose_opt: bool = True
     pose_opt_start: int = 1000
     pose_round_window: tuple[float, float] = (0.0, 1.0)
+    pose_round_windows: tuple[tuple[float, float], ...] = ()
     depth_until: int = 1000
     rot_noise_deg: float = 0.0
     trans_noise: float = 0.0
@@ -327,6 +328,9 @@ class TrainConfig:
             (self.pose_opt_start >= 0, f"--pose-opt-start must be >= 0, got {self.pose_opt_start}"),
             (0 <= self.pose_round_window[0] < self.pose_round_window[1] <= 1,
              f"pose_round_window must be (start, end) with 0 <= start < end <= 1, got {self.pose_round_window}"),
+            (all(_is_window(window) for window in self.pose_round_windows),
+             "pose_round_windows must be a list of (start, end) with 0 <= start < end <= 1, got "
+             f"{self.pose_round_windows}"),
             (self.rot_noise_deg >= 0, f"--rot-noise-deg must be >= 0, got {self.rot_noise_deg}"),
             (self.rot_noise_deg <= 180, f"--rot-noise-deg must be <= 180, got {self.rot_noise_deg}"),
             (self.trans_noise >= 0, f"--trans-noise must be >= 0, got {self.trans_noise}"),
@@ -435,8 +439,17 @@ def quick() -> TrainConfig:
 PRESETS = {"paper": paper, "quick": quick}
 
 
+def _is_window(value: Any) -> bool:
+    """(start, end) shares of a round with 0 <= start < end <= 1."""
+    return (isinstance(value, tuple) and len(value) == 2
+            and all(isinstance(x, (int, float)) and not isinstance(x, bool) for x in value) and 0 <= value[0] < value[1] <= 1)
+
+
 def _typed(value: Any, default: Any, name: str) -> Any:
-    """`value` as the type of the field's `default` (ints pass for floats, lists for tuples)."""
+    """`value` as the type of the field's `default` (ints pass for floats, lists for tuples). An empty tuple default
+    is a list of any length (its nested lists become tuples; `TrainConfig.validate` checks the items)."""
+    if default == () and isinstance(value, (list, tuple)):
+        return tuple(tuple(item) if isinstance(item, list) else item for item in value)
     if default is None or value is None:
         return value
     if isinstance(default, bool) or not isinstance(default, (int, float, tuple)):

@@ -9,7 +9,7 @@ import pytest
 import torch
 from typer.testing import CliRunner
 from warpbags.cli.main import app
-from warpbags.configs.train import TrainConfig, load_preset
+from warpbags.configs.train import TrainConfig, load_preset, parse_settings
 
 from warpbags.data import SyntheticOptions, ensure_synthetic_scene, load_scene
 from warpbags.errors import WarpbagsError
@@ -356,6 +356,25 @@ def test_pyramid_levels_train_early_rounds_at_lower_resolution(scene_dir, tmp_pa
     assert trainer.render(torch.arange(2))[0].shape[1:3] == (full, full)
     trainer.write_run_files()
     assert np.load(tmp_path / "intrinsics.npy")[0, 0, 2] == pytest.approx(trainer.full_scene.Ks[0, 0, 2].item())
+
+
+def test_rounds_take_their_own_pose_windows():
+    config = load_preset("quick", iters=40, rounds=4, pose_round_window=(0.0, 1.0),
+                         pose_round_windows=[[0.25, 1.0], [0.25, 1], [0.5, 1]])
+    assert config.pose_round_windows == ((0.25, 1.0), (0.25, 1), (0.5, 1))
+    schedule = Schedule(config)
+    # rounds 0-1 from a quarter in, round 2 and the rounds after it (the last entry) from half-way
+    assert [i for i in range(40) if schedule.at(i).pose_active] == [
+        *range(3, 10), *range(13, 20), *range(25, 30), *range(35, 40)]
+    assert schedule.at(25).pose_lr == pytest.approx(config.lr.pose)  # the lr decays over each round's own window
+    # empty: pose_round_window in every round
+    assert [i for i in range(20) if Schedule(load_preset("quick", iters=40, rounds=4)).at(i).pose_active] == [
+        *range(3, 10), *range(13, 20)]
+    given = parse_settings(["pose_round_windows=[[0.25, 1], [0.5, 1]]"])  # `warpbags train --set ...`
+    assert load_preset("quick", **given).pose_round_windows == ((0.25, 1), (0.5, 1))
+    for bad in ([[0.5, 0.5]], [[0.2]], [3], [["a", "b"]], [[True, 1]]):
+        with pytest.raises(WarpbagsError, match="pose_round_windows must be"):
+            load_preset("quick", pose_round_windows=bad)
 
 
 def test_the_orbit_is_held_until_its_round():

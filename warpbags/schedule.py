@@ -96,11 +96,13 @@ class Schedule:
         return self.round_index(iteration) >= self.config.camera.orbit_from_round
 
     def pose_window(self, iteration: int) -> tuple[int, int]:
-        """[start, end) iterations of the current round in which poses are updated (`pose_round_window`, no earlier
-        than `pose_opt_start`)."""
+        """[start, end) iterations of the current round in which poses are updated (the round's entry of
+        `pose_round_windows`, else `pose_round_window`; no earlier than `pose_opt_start`)."""
         config = self.config
         round_start = iteration - self.round_iteration(iteration)
-        window_start, window_end = config.pose_round_window
+        windows = config.pose_round_windows
+        window = windows[min(self.round_index(iteration), len(windows) - 1)] if windows else config.pose_round_window
+        window_start, window_end = window
         start = max(round_start + math.ceil(window_start * self.round_length), config.pose_opt_start)
         return start, min(round_start + math.ceil(window_end * self.round_length), config.iters)
 
