@@ -6,7 +6,8 @@ true-pose model, plus an ablation of each part of the pose pipeline, in one run.
         [--json bench/results/pose_recovery.json]
 
 SCENE: a preset (maryrose, synthetic, synthetic-tele), a scene folder, `synthetic-small` (16 views, 96 px, cached) or
-`synthetic-tele-small` (16 views, 128 px, maryrose's 18.6 deg field of view and framing, cached). Every
+`synthetic-tele-small` (16 views, 128 px, maryrose's 18.6 deg field of view and framing, cached; `synthetic-tele-256`:
+the same at 256 px). Every
 training camera is perturbed (rotation angle ~ N(0, rot^2) deg about a random axis, each camera-centre coordinate
 ~ N(0, trans^2) in scene units, orbit radius 4) and optimized (free gauge); errors are measured after sim(3)
 Procrustes alignment. Variants:
@@ -110,6 +111,8 @@ SMALL_SCENES = {
     "synthetic-small": SyntheticOptions(views=16, width=96, height=96),
     # the same object with maryrose's optics and framing (configs/scenes.py: synthetic-tele)
     "synthetic-tele-small": SyntheticOptions(views=16, width=128, height=128, fov_deg=18.6, radius=5.6),
+    # the same cameras at 256 px, for schedules whose last rounds train above the quick preset's 128 px
+    "synthetic-tele-256": SyntheticOptions(views=16, width=256, height=256, fov_deg=18.6, radius=5.6),
 }
 
 
