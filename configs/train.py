@@ -441,8 +441,9 @@ PRESETS = {"paper": paper, "quick": quick}
 
 def _is_window(value: Any) -> bool:
     """(start, end) shares of a round with 0 <= start < end <= 1."""
-    return (isinstance(value, tuple) and len(value) == 2
-            and all(isinstance(x, (int, float)) and not isinstance(x, bool) for x in value) and 0 <= value[0] < value[1] <= 1)
+    numbers = isinstance(value, tuple) and len(value) == 2 and all(
+        isinstance(x, (int, float)) and not isinstance(x, bool) for x in value)
+    return numbers and 0 <= value[0] < value[1] <= 1
 
 
 def _typed(value: Any, default: Any, name: str) -> Any:
