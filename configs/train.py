@@ -326,7 +326,7 @@ class TrainConfig:
             (self.camera.orbit_from_round == 0 or self.camera.parameterization == "object",
              "camera.orbit_from_round needs the object parameterization (--camera-param object)"),
             (self.pose_opt_start >= 0, f"--pose-opt-start must be >= 0, got {self.pose_opt_start}"),
-            (0 <= self.pose_round_window[0] < self.pose_round_window[1] <= 1,
+            (_is_window(self.pose_round_window),
              f"pose_round_window must be (start, end) with 0 <= start < end <= 1, got {self.pose_round_window}"),
             (all(_is_window(window) for window in self.pose_round_windows),
              "pose_round_windows must be a list of (start, end) with 0 <= start < end <= 1, got "

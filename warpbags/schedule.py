@@ -101,8 +101,8 @@ class Schedule:
         config = self.config
         round_start = iteration - self.round_iteration(iteration)
         windows = config.pose_round_windows
-        window = windows[min(self.round_index(iteration), len(windows) - 1)] if windows else config.pose_round_window
-        window_start, window_end = window
+        window_start, window_end = (windows[min(self.round_index(iteration), len(windows) - 1)] if windows
+                                    else config.pose_round_window)
         start = max(round_start + math.ceil(window_start * self.round_length), config.pose_opt_start)
         return start, min(round_start + math.ceil(window_end * self.round_length), config.iters)
 
