@@ -19,8 +19,8 @@ bit for bit and the gradients differ only by float rounding of the per-block sum
 Blocks are visited tile-major (all blocks of a tile, then the next tile) so a launch over a range of tiles touches
 one Gaussian list at a time; `first_block` offsets the launch so host threads can take disjoint tile ranges. The
 image and its tiles come in one `TileGeometry` (shared with kernels/bin.py).
-Gradient buffers are written with atomic adds: on CUDA one buffer, on CPU one private buffer per host thread
-(CPU atomics are plain adds).
+Gradient buffers are written with atomic adds: on CUDA one buffer, on CPU one private buffer per range of tiles
+(CPU atomics are plain adds; see warpbags/wrapper.py).
 
 It stays one module because the forward and backward kernels are one stage: the backward replays the forward's
 block layout, termination rule and `@wp.func` helpers exactly, and splitting them would separate what must agree.

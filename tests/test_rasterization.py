@@ -329,3 +329,40 @@ def test_pixel_block_fits_the_tile():
     assert _pixel_block(cpu, 4, None) == (4, 1) and _pixel_block(cpu, 8, None) == (4, 2)  # the CPU defaults
     with pytest.raises(ValueError, match="pixel block"):
         _pixel_block(cpu, 16, (4, 4))  # 16 pixels per thread: not built
+
+
+def test_cost_balanced_ranges_cover_the_tiles_in_order():
+    """The first tile alone, then contiguous ranges of about equal cost that together cover every tile once."""
+    from warpbags.wrapper import _cost_balanced_ranges
+
+    costs = torch.tensor([5, 1, 1, 1, 100, 1, 1, 1, 1, 90, 1, 1])
+    ranges = _cost_balanced_ranges(costs, 4, 2)
+    assert ranges[0] == (0, 4)
+    assert all(a[1] == b[0] for a, b in zip(ranges[:-1], ranges[1:])) and ranges[-1][1] == 12 * 4
+    shares = [int(costs[a // 4:b // 4].sum()) for a, b in ranges[1:]]
+    assert shares == [103, 96]  # the cut falls after the costly tile 4, where the running cost is nearest half
+    assert _cost_balanced_ranges(torch.zeros(7), 2, 3) == [(0, 2), (2, 6), (6, 10), (10, 14)]  # no cost: even split
+    assert _cost_balanced_ranges(torch.zeros(0), 2, 3) == []
+
+
+def test_gradients_do_not_depend_on_the_thread_schedule(monkeypatch):
+    """Each range of tiles has its own gradient buffers, summed in range order: two threads taking the ranges in
+    any order give the same gradients bit for bit as one thread walking them in turn."""
+    import warpbags.wrapper as wrapper
+
+    scene = random_scene(n=300, cams=2, width=40, height=36, seed=21, dtype=torch.float32)
+    results = []
+    for schedule in ("in turn", "reversed"):
+        if schedule == "reversed":  # the threads' order made deterministic and as different as it gets
+            monkeypatch.setattr(wrapper, "_run_ranges", lambda work, ranges, workers: [
+                work(i, *ranges[i]) for i in [0, *reversed(range(1, len(ranges)))]])
+        inputs = {k: v.detach().clone().requires_grad_(k in DIFFERENTIABLE) if isinstance(v, torch.Tensor) else v
+                  for k, v in scene.items()}
+        tensors = {k: v for k, v in inputs.items() if k in DIFFERENTIABLE}
+        out, alpha, _ = warpbags.rasterization(**inputs, cpu_threads=2)
+        (out * torch.linspace(0, 1, 3)).sum().backward()
+        results.append((out.detach(), {k: v.grad for k, v in tensors.items()}))
+    (out_a, grads_a), (out_b, grads_b) = results
+    assert torch.equal(out_a, out_b)
+    for name in grads_a:
+        assert torch.equal(grads_a[name], grads_b[name]), name

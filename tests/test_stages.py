@@ -322,3 +322,35 @@ def test_compositing_gradcheck_float64():
         return rasterize_to_pixels(*args, bins, width, height)
 
     assert torch.autograd.gradcheck(composite, tuple(leaves.values()), eps=1e-6, atol=1e-6, rtol=1e-5, fast_mode=True)
+
+
+@pytest.mark.parametrize("cores", [2, 3])
+def test_projection_and_sh_over_gaussian_ranges_match_one_launch(cores, monkeypatch):
+    """On the CPU the projection and SH stages run forward and adjoint in ranges of Gaussians on the host threads:
+    outputs and per-Gaussian gradients bit for bit those of one launch over everything (each Gaussian's cameras
+    are summed in the same order), the per-camera gradients (viewmats, Ks) equal up to the rounding of their
+    per-range sums."""
+    import warpbags.wrapper as wrapper
+
+    scene = projection_scene(n=53, cams=3)
+    n = scene["means"].shape[0]
+    coeffs = 0.3 * torch.randn(n, 9, 3, generator=torch.Generator().manual_seed(4), dtype=F64)
+    results = {}
+    for threads in (1, cores):
+        monkeypatch.setattr(wrapper, "_default_cpu_threads", lambda: threads)
+        leaves = {k: scene[k].detach().clone().requires_grad_() for k in PROJECTION_INPUTS}
+        sh_coeffs = coeffs.clone().requires_grad_()
+        means2d, conics, depths, radii = project_gaussians(*(leaves[k] for k in PROJECTION_INPUTS), 29, 23)
+        colors = spherical_harmonics(leaves["means"], sh_coeffs, leaves["viewmats"], 2)
+        outputs = (means2d, conics, depths, colors)
+        g = torch.Generator().manual_seed(9)
+        sum((o * torch.randn(o.shape, generator=g, dtype=F64)).sum() for o in outputs).backward()
+        results[threads] = ([o.detach() for o in (*outputs, radii)],
+                            {**{k: v.grad for k, v in leaves.items()}, "coeffs": sh_coeffs.grad})
+    (one_out, one_grads), (cut_out, cut_grads) = results[1], results[cores]
+    assert all(torch.equal(a, b) for a, b in zip(one_out, cut_out))
+    for name in ("means", "quats", "scales", "opacities", "coeffs"):
+        assert torch.equal(one_grads[name], cut_grads[name]), name
+    for name in ("viewmats", "Ks"):
+        assert not torch.equal(cut_grads[name], torch.zeros_like(cut_grads[name]))
+        torch.testing.assert_close(cut_grads[name], one_grads[name], rtol=1e-12, atol=1e-12, msg=lambda m: f"{name}: {m}")

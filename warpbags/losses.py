@@ -16,7 +16,7 @@ from warpbags.kernels.loss import (
     ssim_grad_row_pass_kernel,
     ssim_row_pass_kernel,
 )
-from warpbags.wrapper import _default_cpu_threads, _for_each_worker, _launcher, _to_warp
+from warpbags.wrapper import _default_cpu_threads, _launcher, _run_ranges, _to_warp
 
 
 @functools.lru_cache(maxsize=8)
@@ -99,11 +99,11 @@ def _row_passes(kernel, before: list, after: list, batch_rows: int, width: int, 
 
     launcher = _launcher(device)  # every launch names its device and stream: no process-wide default
 
-    def work(worker, first, stop):
+    def work(_, first, stop):
         wp.launch(kernel, dim=(stop - first) * width, inputs=[*before, first * width, *after],
                   device=launcher.device, stream=launcher.stream)
 
-    _for_each_worker(work, rows, workers)
+    _run_ranges(work, rows, workers)
 
 
 class _FusedPhotometricLoss(torch.autograd.Function):

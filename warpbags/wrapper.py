@@ -18,7 +18,6 @@ launch over disjoint tile ranges; a stage read apart from its launcher or its th
 from __future__ import annotations
 
 import contextlib
-
 import math
 import os
 from concurrent.futures import ThreadPoolExecutor
@@ -114,17 +113,22 @@ class _Stage(NamedTuple):
     tensors, "float" for a Python number passed in the tensors' precision, None for any other plain value.
     `outputs` maps its output parameters to their kinds; they are allocated as zeros, all with one array shape, and
     integer outputs are not differentiable.
+    `gaussian_inputs`: for a kernel launched over (cameras, Gaussians) whose outputs are [C, N, ...], the inputs
+    indexed by the Gaussian alone. Such a stage runs on the CPU in ranges of Gaussians on the host threads (a CPU
+    launch is one serial loop): those inputs, their adjoints and the outputs sliced to the range, the other inputs'
+    adjoints (per camera: viewmats, Ks) in a private buffer per range, summed in range order.
     """
 
     kernel: object
     inputs: dict[str, str | None]
     outputs: dict[str, str]
+    gaussian_inputs: frozenset[str] = frozenset()
 
 
-def _stage(kernel, outputs: dict[str, str], **inputs: str | None) -> _Stage:
+def _stage(kernel, outputs: dict[str, str], gaussian_inputs: tuple[str, ...] = (), **inputs: str | None) -> _Stage:
     if (*inputs, *outputs) != _parameter_names(kernel):
         raise TypeError(f"kernel {kernel.key} takes {_parameter_names(kernel)}, declared {(*inputs, *outputs)}")
-    return _Stage(kernel, inputs, outputs)
+    return _Stage(kernel, inputs, outputs, frozenset(gaussian_inputs))
 
 
 _POSE_DELTAS = _stage(apply_pose_deltas_kernel, {"out_viewmats": "mat44"}, viewmats="mat44", pose_deltas="scalar")
@@ -132,11 +136,12 @@ _OBJECT_DELTAS = _stage(apply_object_deltas_kernel, {"out_viewmats": "mat44"}, v
                         object_params="scalar", object_centers="vec3")
 _PROJECTION = _stage(
     project_gaussians_kernel, {"means2d": "vec2", "conics": "vec3", "depths": "scalar", "radii": "int32"},
+    gaussian_inputs=("means", "quats", "scales", "opacities"),
     means="vec3", quats="vec4", scales="vec3", opacities="scalar", viewmats="mat44", Ks="mat33", width=None,
     height=None, near_plane="float", far_plane="float", eps2d="float",
 )
-_SH_COLORS = _stage(sh_to_colors_kernel, {"colors": "vec3"}, means="vec3", coeffs="vec3", viewmats="mat44",
-                    degree=None)
+_SH_COLORS = _stage(sh_to_colors_kernel, {"colors": "vec3"}, gaussian_inputs=("means", "coeffs"), means="vec3",
+                    coeffs="vec3", viewmats="mat44", degree=None)
 
 
 def _output_tensor(kind: str, shape: tuple, scalar: torch.dtype, device: torch.device, fill=torch.zeros):
@@ -166,23 +171,76 @@ def _tensor_device(args: Sequence) -> torch.device:
     return next(a.device for a in args if isinstance(a, torch.Tensor))
 
 
+class _GaussianRanges(NamedTuple):
+    """How a stage's launch is cut: `ranges` of the Gaussian index (None: one launch over the whole `dim`)."""
+
+    dim: object
+    ranges: list[tuple[int, int]] | None
+
+    @staticmethod
+    def of(stage: _Stage, dim, device: torch.device) -> _GaussianRanges:
+        """A single Gaussian first (it runs alone: first-use compilation happens once), then one range per host
+        thread; on CUDA, on one core, and for stages that are not over Gaussians, one launch."""
+        workers = _default_cpu_threads() if device.type == "cpu" else 1
+        if not stage.gaussian_inputs or workers == 1:
+            return _GaussianRanges(dim, None)
+        n = dim[1]
+        bounds = [min(1, n) + round(i * max(n - 1, 0) / workers) for i in range(workers + 1)]
+        return _GaussianRanges(dim, [(0, min(1, n))] + [(a, b) for a, b in zip(bounds[:-1], bounds[1:]) if b > a])
+
+    def launches(self) -> list[tuple[int, int] | None]:
+        return [None] if self.ranges is None else self.ranges
+
+    def launch_dim(self, cut: tuple[int, int] | None):
+        return self.dim if cut is None else (self.dim[0], cut[1] - cut[0])
+
+    def run(self, work) -> None:
+        """work(i, cut) for every launch i, cut = (start, stop) of the Gaussians or None for all."""
+        if self.ranges is None:
+            work(0, None)
+        else:
+            _run_ranges(lambda i, start, stop: work(i, (start, stop)), self.ranges, len(self.ranges) - 1)
+
+
+def _cut(tensor, cut: tuple[int, int] | None, axis: int):
+    """The tensor's slice `cut` along `axis` (a view), or the tensor itself for no cut or a non-tensor."""
+    if cut is None or not isinstance(tensor, torch.Tensor):
+        return tensor
+    return tensor.narrow(axis, cut[0], cut[1] - cut[0])
+
+
+def _stage_arguments(stage: _Stage, args: Sequence, outputs: Sequence, cut, scalar: torch.dtype,
+                     grads: Sequence | None = None) -> dict:
+    """Warp arguments of one launch over the Gaussians `cut`: per-Gaussian inputs and the outputs sliced; `grads`
+    (already cut), where given, the inputs' adjoint buffers."""
+    arguments = _warp_inputs(stage, [_cut(a, cut, 0) if name in stage.gaussian_inputs else a
+                                     for name, a in zip(stage.inputs, args)], scalar, grads)
+    arguments.update((name, _to_warp(_cut(out, cut, 1), kind)) for (name, kind), out in zip(stage.outputs.items(),
+                                                                                          outputs))
+    return arguments
+
+
 def _stage_forward(stage: _Stage, dim, shape: tuple, args: Sequence) -> tuple[torch.Tensor, ...]:
     """Run the stage on `args` (its inputs in order); returns its output tensors."""
     device = _tensor_device(args)
     scalar = _floating_dtype(args)
-    outputs = {name: _output_tensor(kind, shape, scalar, device) for name, kind in stage.outputs.items()}
-    arguments = _warp_inputs(stage, args, scalar)
-    arguments.update((name, _to_warp(outputs[name], kind)) for name, kind in stage.outputs.items())
-    _launcher(device).launch(stage.kernel, dim, **arguments)
-    return tuple(outputs.values())
+    outputs = [_output_tensor(kind, shape, scalar, device) for kind in stage.outputs.values()]
+    launcher = _launcher(device)
+    cuts = _GaussianRanges.of(stage, dim, device)
+
+    def work(_, cut):
+        launcher.launch(stage.kernel, cuts.launch_dim(cut), **_stage_arguments(stage, args, outputs, cut, scalar))
+
+    cuts.run(work)
+    return tuple(outputs)
 
 
 def _run_stage(stage: _Stage, dim, shape: tuple, **inputs) -> tuple[torch.Tensor, ...]:
     """Launch `stage` over `dim` threads with its inputs by parameter name; outputs are arrays of `shape`.
 
     Differentiable when torch records gradients and an input tensor requires one: the backward then records the
-    launch on a Warp Tape and runs the Tape's backward. Otherwise (torch.no_grad(), inference_mode(), or nothing to
-    differentiate) the kernel just runs: no autograd node, no adjoint buffers.
+    launch on a Warp Tape and runs the Tape's backward. Otherwise (torch.no_grad(), inference_mode(), or nothing to differentiate) the
+    kernel just runs: no autograd node, no adjoint buffers.
     """
     if inputs.keys() != stage.inputs.keys():
         raise TypeError(f"kernel {stage.kernel.key} takes inputs {list(stage.inputs)}, got {list(inputs)}")
@@ -197,13 +255,13 @@ _SAVED = object()  # stands for a tensor argument kept with save_for_backward
 
 class _DifferentiableStage(torch.autograd.Function):
     """A `_Stage` under autograd: backward records the stage's launch on a Warp Tape and runs the Tape's backward
-    (the kernel's Warp-generated adjoint) with torch's cotangents.
+    (the kernel's Warp-generated adjoint) with torch's cotangents, a Tape per Gaussian range of the forward.
 
     Inputs and outputs are kept only with `save_for_backward`: Warp views of the outputs held on `ctx` would keep
     the outputs alive, and through their autograd node the whole graph, in a cycle Python's collector cannot see
-    (it leaked every step's stage buffers). The recorded launch replays the forward exactly: the inputs pass
-    autograd's version check when read back, so an in-place change between forward and backward fails instead of
-    silently giving the gradient at the changed values.
+    (it leaked every step's stage buffers). The recorded launch replays the forward exactly: the inputs pass autograd's
+    version check when read back, so an in-place change between forward and backward fails instead of silently
+    giving the gradient at the changed values.
     """
 
     @staticmethod
@@ -226,20 +284,40 @@ class _DifferentiableStage(torch.autograd.Function):
         input_grads = [torch.zeros_like(a, memory_format=torch.contiguous_format)
                        if needs and isinstance(a, torch.Tensor) and a.is_floating_point() else None
                        for a, needs in zip(args, ctx.needs_input_grad[3:])]
-        arguments = _warp_inputs(stage, args, _floating_dtype(args), input_grads)
-        arguments.update((name, _to_warp(out, kind)) for (name, kind), out in zip(stage.outputs.items(), outputs))
-        # The adjoint of a store consumes and clears its output's adjoint, so the Tape gets copies of torch's.
-        cotangents = {arguments[name]: _to_warp(v_out.contiguous().clone(), kind)
-                      for (name, kind), v_out in zip(stage.outputs.items(), v_outputs)
+        # The adjoint of a store consumes and clears its output's adjoint, so the Tapes get copies of torch's.
+        cotangents = {name: v_out.contiguous().clone() for (name, kind), v_out in zip(stage.outputs.items(), v_outputs)
                       if kind in _KIND_SHAPES and v_out is not None}
-        if cotangents:
-            launcher = _launcher(_tensor_device(args))
+        if not cotangents:
+            return (None, None, None, *input_grads)
+        device, scalar = _tensor_device(args), _floating_dtype(args)
+        launcher = _launcher(device)
+        cuts = _GaussianRanges.of(stage, ctx.dim, device)
+        # Inputs not sliced by Gaussian (per camera) get a private adjoint per range when there are ranges; the
+        # first range, which runs alone before the others start, shares the second one's.
+        shared = [name not in stage.gaussian_inputs for name in stage.inputs]
+        private = [[torch.zeros_like(g) if g is not None and is_shared else None
+                    for g, is_shared in zip(input_grads, shared)]
+                   for _ in range(max(len(cuts.launches()) - 1, 1))] if cuts.ranges is not None else None
+
+        def work(i, cut):
+            grads = input_grads if private is None else [
+                own if is_shared else _cut(g, cut, 0) for g, own, is_shared in zip(input_grads, private[max(i - 1, 0)],
+                                                                                   shared)]
+            arguments = _stage_arguments(stage, args, outputs, cut, scalar, grads)
             tape = wp.Tape()
-            tape.record_launch(stage.kernel, ctx.dim, 0, [arguments[name] for name in _parameter_names(stage.kernel)],
-                               [], launcher.device)
+            tape.record_launch(stage.kernel, cuts.launch_dim(cut), 0,
+                               [arguments[name] for name in _parameter_names(stage.kernel)], [], launcher.device)
             # The Tape launches on its recorded device, on that device's current stream: torch's, on CUDA.
             with wp.ScopedStream(launcher.stream) if launcher.stream is not None else contextlib.nullcontext():
-                tape.backward(grads=cotangents)
+                tape.backward(grads={arguments[name]: _to_warp(_cut(v, cut, 1), stage.outputs[name])
+                                     for name, v in cotangents.items()})
+
+        cuts.run(work)
+        if private is not None:
+            for k, grad in enumerate(input_grads):
+                if grad is not None and shared[k]:
+                    for own in private:
+                        grad += own[k]
         return (None, None, None, *input_grads)
 
 
@@ -418,10 +496,10 @@ def _bin_by_counting(splats: dict, tiles: TileGeometry, radii: torch.Tensor, dep
     counts = torch.zeros(len(chunks), tiles_per_camera, dtype=torch.int32)
     counts_wp = _to_warp(counts, "int32")
 
-    def count(worker, first, stop):
+    def count(_, first, stop):
         launcher.launch(tile_histogram_kernel, stop - first, **chunk_args, first_chunk=first, chunk_counts=counts_wp)
 
-    _for_each_worker(count, one_each, threads)
+    _run_ranges(count, one_each, threads)
     # Tile offsets over every camera's tiles; within a tile, each chunk writes after the camera's earlier chunks.
     camera_counts = torch.zeros(cams, tiles_per_camera, dtype=torch.int32).index_add_(0, cameras_of.long(), counts)
     tile_offsets = torch.zeros(num_tiles + 1, dtype=torch.int32)
@@ -434,18 +512,18 @@ def _bin_by_counting(splats: dict, tiles: TileGeometry, radii: torch.Tensor, dep
     isect_ids = torch.empty(int(tile_offsets[-1]), dtype=torch.int32)
     cursors_wp, ids_wp = _to_warp(cursors.contiguous(), "int32"), _to_warp(isect_ids, "int32")
 
-    def fill(worker, first, stop):
+    def fill(_, first, stop):
         launcher.launch(fill_tiles_front_to_back_kernel, stop - first, **chunk_args, first_chunk=first,
                         chunk_cursors=cursors_wp, isect_ids=ids_wp)
 
     if len(isect_ids):
-        _for_each_worker(fill, one_each, threads)
+        _run_ranges(fill, one_each, threads)
     return tile_offsets, isect_ids
 
 
 def _depth_chunks(visible: list[int], per_camera: int) -> list[tuple[int, int, int]]:
     """(camera, start, stop) ranges of each camera's depth order over its `visible[camera]` unculled Gaussians: a
-    one-Gaussian chunk first (`_for_each_worker` runs the first range alone, for the kernels' first-use
+    one-Gaussian chunk first (`_run_ranges` runs the first range alone, for the kernels' first-use
     compilation), then `per_camera` equal chunks of the rest; empty ranges left out, at least one per camera."""
     chunks = []
     for cam, count in enumerate(visible):
@@ -460,37 +538,81 @@ def _default_cpu_threads() -> int:
     return max(1, len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1))
 
 
-def _pixel_ranges(num_tiles: int, items_per_tile: int, num_chunks: int) -> list[tuple[int, int]]:
+def _cost_balanced_ranges(tile_costs: torch.Tensor, items_per_tile: int, parts: int) -> list[tuple[int, int]]:
     """Split the tile-major index space (pixels or pixel blocks, `items_per_tile` per tile) into tile-aligned
-    [start, stop) ranges: the first tile alone (it runs before the threads start, see `_for_each_worker`), then
-    `num_chunks` ranges over the rest."""
+    [start, stop) ranges: the first tile alone (it runs before the threads start, see `_run_ranges`), then up to
+    `parts` contiguous ranges of about equal total cost over the rest (`tile_costs`: [tiles], e.g. list lengths)."""
+    num_tiles = tile_costs.numel()
     if num_tiles == 0:
         return []
-    bounds = torch.linspace(1, num_tiles, num_chunks + 1).round().long().tolist()
+    # cumulative[c]: the cost of the first c tiles after the first one
+    cumulative = torch.cat([torch.zeros(1, dtype=torch.float64), torch.cumsum(tile_costs[1:].double(), 0)])
+    total = float(cumulative[-1])
+    if total > 0:
+        # each cut after the tile count whose running cost is nearest to i / parts of the total
+        targets = torch.arange(1, parts, dtype=torch.float64) * (total / parts)
+        above = torch.searchsorted(cumulative, targets).clamp(max=len(cumulative) - 1)
+        below = (above - 1).clamp(min=0)
+        nearer_below = (targets - cumulative[below]) < (cumulative[above] - targets)
+        cuts = (1 + torch.where(nearer_below, below, above)).tolist()
+    else:
+        cuts = torch.linspace(1, num_tiles, parts + 1)[1:-1].round().long().tolist()
+    bounds = [1, *cuts, num_tiles]
     tiles = [(0, 1)] + [(a, b) for a, b in zip(bounds[:-1], bounds[1:]) if b > a]
     return [(a * items_per_tile, b * items_per_tile) for a, b in tiles]
 
 
-def _for_each_worker(work, ranges: list[tuple[int, int]], workers: int) -> None:
-    """Run work(worker, start, stop) over the ranges, each worker in its own thread on every workers-th range.
+def _raster_ranges(num_tiles: int, blocks_per_tile: int, workers: int, parts_per_worker: int,
+                   tile_costs) -> list[tuple[int, int]]:
+    """The rasterizer's block ranges: one over every tile for one worker (CUDA; no costs read back), else
+    `parts_per_worker` cost-balanced ranges per worker after the first tile (`tile_costs()`: [tiles] costs)."""
+    if workers == 1:
+        return [(0, num_tiles * blocks_per_tile)] if num_tiles else []
+    return _cost_balanced_ranges(tile_costs().cpu(), blocks_per_tile, parts_per_worker * workers)
 
-    Warp CPU launches release the GIL, so host threads over disjoint tiles run in parallel. The first range runs
-    alone so that a kernel's first-use compilation happens once, not in every thread at the same time.
+
+_POOLS: dict[tuple[int, int], ThreadPoolExecutor] = {}
+
+
+def _worker_pool(workers: int) -> ThreadPoolExecutor:
+    """This process's pool of `workers` host threads, made once: a pool per call cost 2-8 ms of thread start-up
+    and hand-over per rasterizer pass. Keyed by process id too, since a forked child inherits the pool object but
+    not its threads."""
+    key = (os.getpid(), workers)
+    if key not in _POOLS:
+        _POOLS[key] = ThreadPoolExecutor(max_workers=workers, thread_name_prefix="warpbags")
+    return _POOLS[key]
+
+
+def _run_ranges(work, ranges: list[tuple[int, int]], workers: int) -> None:
+    """Run work(i, start, stop) for every range i, on `workers` host threads that each take the next range when
+    they are free (dynamic scheduling: a static share left one thread idle while the other binned every camera).
+
+    Warp CPU launches release the GIL, so host threads over disjoint ranges run in parallel. The first range runs
+    alone on the calling thread, so that a kernel's first-use compilation happens once, not in every thread at the
+    same time. Whatever `work` writes must depend on its range i only, never on the thread that ran it (per-range
+    outputs or gradient buffers): then results are the same bit for bit for every schedule.
     """
     if not ranges:
         return
     work(0, *ranges[0])
-    rest = ranges[1:]
-
-    def run(worker: int) -> None:
-        for start, stop in rest[worker::workers]:
-            work(worker, start, stop)
-
-    if workers == 1:
-        run(0)
+    if workers <= 1 or len(ranges) <= 2:
+        for i in range(1, len(ranges)):
+            work(i, *ranges[i])
         return
-    with ThreadPoolExecutor(max_workers=workers) as pool:
-        list(pool.map(run, range(workers)))
+    list(_worker_pool(workers).map(lambda i: work(i, *ranges[i]), range(1, len(ranges))))
+
+
+def _visits_per_tile(tile_offsets: torch.Tensor, isect_end: torch.Tensor, tiles: TileGeometry) -> torch.Tensor:
+    """[tiles] the list entries the forward composited, summed over each tile's pixels (isect_end: [C, H, W]):
+    the work of the backward, which walks each pixel's contributing range back to front."""
+    cams, height, width = isect_end.shape
+    per_camera = tiles.tiles_x * tiles.tiles_y
+    tile = ((torch.arange(cams) * per_camera)[:, None, None] + (torch.arange(height) // tiles.tile_size)[None, :, None]
+            * tiles.tiles_x + (torch.arange(width) // tiles.tile_size)[None, None, :]).reshape(-1)
+    offsets = tile_offsets.to(device="cpu", dtype=torch.int64)
+    visits = isect_end.to(device="cpu", dtype=torch.int64).reshape(-1) - offsets[tile]
+    return torch.zeros(cams * per_camera, dtype=torch.int64).index_add_(0, tile, visits) + 1
 
 
 # Pixels one rasterizer thread composites, (width, height) within a tile. On CUDA one pixel per thread (gsplat's
@@ -572,16 +694,18 @@ class _RasterizeToPixels(torch.autograd.Function):
         ctx.geometry = dict(tiles=_tile_geometry(n, width, height, bins.tile_size), block_w=block_w, block_h=block_h)
         common = _splat_arguments(splats, bins.tile_offsets, bins.isect_ids, ctx.geometry)
         blocks_per_tile = bins.tile_size**2 // ctx.lanes
-        ranges = _pixel_ranges(cams * bins.tiles_x * bins.tiles_y, blocks_per_tile, 1 if workers == 1 else 8 * workers)
+        # a tile's cost: its list, walked once per block (less where its pixels saturate early)
+        ranges = _raster_ranges(cams * bins.tiles_x * bins.tiles_y, blocks_per_tile, workers, 4,
+                                lambda: torch.diff(bins.tile_offsets) + 1)
         kernel = FORWARD_KERNELS[ctx.lanes]
         launcher = _launcher(device)
 
-        def work(worker, start, stop):
+        def work(_, start, stop):
             launcher.launch(kernel, stop - start, **common, first_block=start, **outputs)
 
-        _for_each_worker(work, ranges, workers)
+        _run_ranges(work, ranges, workers)
 
-        ctx.workers, ctx.ranges = workers, ranges
+        ctx.workers, ctx.blocks_per_tile = workers, blocks_per_tile
         ctx.save_for_backward(means2d, conics, colors, opacities, depths, bins.tile_offsets, bins.isect_ids,
                               final_transmittance, isect_end)
         ctx.mark_non_differentiable(final_transmittance, isect_end)
@@ -608,17 +732,23 @@ class _RasterizeToPixels(torch.autograd.Function):
             v_out_depths=_to_warp(cotangent(v_out_depths, pixels), "scalar"),
             v_out_alphas=_to_warp(cotangent(v_out_alphas, pixels), "scalar"),
         )
-        # One private set of gradient buffers per worker: CPU atomics are plain adds.
-        buffers = [{name: torch.zeros_like(t) for name, t in splats.items()} for _ in range(workers)]
+        # One range per worker, balanced by the forward's exact visits (a buffer set per range costs a zero fill and
+        # a sum of every splat gradient, so not more ranges than workers).
+        ranges = _raster_ranges(tile_offsets.numel() - 1, ctx.blocks_per_tile, workers, 1,
+                                lambda: _visits_per_tile(tile_offsets, isect_end, ctx.geometry["tiles"]))
+        # One private set of gradient buffers per range (CPU atomics are plain adds), summed in range order: the
+        # gradients do not depend on which thread ran which range. The first range, which runs alone before the
+        # others start, shares the second one's set.
+        buffers = [{name: torch.zeros_like(t) for name, t in splats.items()} for _ in range(max(len(ranges) - 1, 1))]
         wp_buffers = [{"v_" + name: _to_warp(t, _SPLAT_KINDS[name]) for name, t in b.items()} for b in buffers]
 
         kernel = BACKWARD_KERNELS[ctx.lanes]
         launcher = _launcher(device)
 
-        def work(worker, start, stop):
-            launcher.launch(kernel, stop - start, **common, first_block=start, **saved, **wp_buffers[worker])
+        def work(i, start, stop):
+            launcher.launch(kernel, stop - start, **common, first_block=start, **saved, **wp_buffers[max(i - 1, 0)])
 
-        _for_each_worker(work, ctx.ranges, workers)
+        _run_ranges(work, ranges, workers)
 
         v_means2d, v_conics, v_colors, v_opacities, v_depths = (
             sum(parts[1:], parts[0]) for parts in zip(*(b.values() for b in buffers))
