@@ -135,7 +135,9 @@ def test_reference_cameras_are_aligned_as_eval_does(run_dir, tmp_path):
     final = torch.from_numpy(np.load(run / "poses_final.npy")).double()
     np.save(run / "poses_true.npy", align_viewmats(final, random_sim3(generator(2))).numpy())
     reference = load_viewer_content(run, log=lambda message: None).cameras.reference
-    np.testing.assert_allclose(reference, final.numpy(), atol=1e-6)
+    # exact up to the float32 the run stores its poses in (rotations orthonormal to ~2e-7, scaled by the sim(3)):
+    # 1.1e-6 measured on one run, while a wrong alignment is off by the sim(3) itself
+    np.testing.assert_allclose(reference, final.numpy(), atol=1e-5)
 
 
 def test_viewer_without_history_or_scene(run_dir, tmp_path):
