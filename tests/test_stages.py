@@ -353,4 +353,5 @@ def test_projection_and_sh_over_gaussian_ranges_match_one_launch(cores, monkeypa
         assert torch.equal(one_grads[name], cut_grads[name]), name
     for name in ("viewmats", "Ks"):
         assert not torch.equal(cut_grads[name], torch.zeros_like(cut_grads[name]))
-        torch.testing.assert_close(cut_grads[name], one_grads[name], rtol=1e-12, atol=1e-12, msg=lambda m: f"{name}: {m}")
+        torch.testing.assert_close(cut_grads[name], one_grads[name], rtol=1e-12, atol=1e-12,
+                                   msg=lambda m: f"{name}: {m}")

@@ -188,9 +188,6 @@ class _GaussianRanges(NamedTuple):
         bounds = [min(1, n) + round(i * max(n - 1, 0) / workers) for i in range(workers + 1)]
         return _GaussianRanges(dim, [(0, min(1, n))] + [(a, b) for a, b in zip(bounds[:-1], bounds[1:]) if b > a])
 
-    def launches(self) -> list[tuple[int, int] | None]:
-        return [None] if self.ranges is None else self.ranges
-
     def launch_dim(self, cut: tuple[int, int] | None):
         return self.dim if cut is None else (self.dim[0], cut[1] - cut[0])
 
@@ -239,8 +236,8 @@ def _run_stage(stage: _Stage, dim, shape: tuple, **inputs) -> tuple[torch.Tensor
     """Launch `stage` over `dim` threads with its inputs by parameter name; outputs are arrays of `shape`.
 
     Differentiable when torch records gradients and an input tensor requires one: the backward then records the
-    launch on a Warp Tape and runs the Tape's backward. Otherwise (torch.no_grad(), inference_mode(), or nothing to differentiate) the
-    kernel just runs: no autograd node, no adjoint buffers.
+    launch on a Warp Tape and runs the Tape's backward. Otherwise (torch.no_grad(), inference_mode(), or nothing to
+    differentiate) the kernel just runs: no autograd node, no adjoint buffers.
     """
     if inputs.keys() != stage.inputs.keys():
         raise TypeError(f"kernel {stage.kernel.key} takes inputs {list(stage.inputs)}, got {list(inputs)}")
@@ -259,9 +256,9 @@ class _DifferentiableStage(torch.autograd.Function):
 
     Inputs and outputs are kept only with `save_for_backward`: Warp views of the outputs held on `ctx` would keep
     the outputs alive, and through their autograd node the whole graph, in a cycle Python's collector cannot see
-    (it leaked every step's stage buffers). The recorded launch replays the forward exactly: the inputs pass autograd's
-    version check when read back, so an in-place change between forward and backward fails instead of silently
-    giving the gradient at the changed values.
+    (it leaked every step's stage buffers). The recorded launch replays the forward exactly: the inputs pass
+    autograd's version check when read back, so an in-place change between forward and backward fails instead of
+    silently giving the gradient at the changed values.
     """
 
     @staticmethod
@@ -295,9 +292,9 @@ class _DifferentiableStage(torch.autograd.Function):
         # Inputs not sliced by Gaussian (per camera) get a private adjoint per range when there are ranges; the
         # first range, which runs alone before the others start, shares the second one's.
         shared = [name not in stage.gaussian_inputs for name in stage.inputs]
-        private = [[torch.zeros_like(g) if g is not None and is_shared else None
-                    for g, is_shared in zip(input_grads, shared)]
-                   for _ in range(max(len(cuts.launches()) - 1, 1))] if cuts.ranges is not None else None
+        private = None if cuts.ranges is None else [
+            [torch.zeros_like(g) if g is not None and is_shared else None for g, is_shared in zip(input_grads, shared)]
+            for _ in range(max(len(cuts.ranges) - 1, 1))]
 
         def work(i, cut):
             grads = input_grads if private is None else [
