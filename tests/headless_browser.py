@@ -2,8 +2,8 @@
 
 Chromium's own `--screenshot` fires on virtual time, before a page that waits on a websocket (viser's viewer waits
 for rendered frames) has drawn anything, so the page is opened with `--remote-debugging-port` instead and the
-screenshot is taken when the caller says the page is ready. WebGL runs in software (SwiftShader) with
-`--disable-gpu`.
+screenshot is taken once the server says it has sent what the page should show and the page says it shows it.
+WebGL runs in software (SwiftShader) with `--disable-gpu`.
 
     python tests/headless_browser.py RUN_OR_PLY OUT.png    # the README's viewer screenshot
 """
@@ -22,11 +22,23 @@ import urllib.request
 from pathlib import Path
 from typing import Callable
 
+import numpy as np
 from websockets.sync.client import connect
 
 CHROMIUM_FLAGS = ("--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
                   "--disable-background-networking", "--disable-component-update", "--disable-sync",
                   "--remote-debugging-port=0")
+
+# Whether viser's page shows a background image as large as its canvas, read from the client state that viser
+# exposes for end-to-end tests. The canvas also has to be opaque: viser keeps it at 5% opacity until its environment
+# map is decoded, then fades it in over 5 frames, which in software WebGL on a busy machine ends seconds after the
+# frame has arrived.
+VISER_SHOWS_FULL_FRAME = """(() => {
+    const viewer = window.__viserMutable;
+    const image = viewer?.backgroundMaterial?.uniforms.colorMap.value?.image;
+    return image !== undefined && image.width === viewer.canvas.width && image.height === viewer.canvas.height
+        && getComputedStyle(viewer.canvas).opacity === "1";
+})()"""
 
 
 def find_chromium() -> str | None:
@@ -51,6 +63,13 @@ class DevTools:
                     raise RuntimeError(f"{method}: {message['error']}")
                 return message["result"]
 
+    def evaluate(self, expression: str):
+        """The value of a JavaScript expression in the page."""
+        result = self.call("Runtime.evaluate", expression=expression, returnByValue=True)
+        if "exceptionDetails" in result:
+            raise RuntimeError(f"{expression}: {result['exceptionDetails']}")
+        return result["result"].get("value")
+
     def close(self) -> None:
         self._socket.close()
 
@@ -65,13 +84,14 @@ def _devtools_port(profile: Path, process: subprocess.Popen, timeout: float) -> 
     return int(port_file.read_text().split()[0])
 
 
-def screenshot(url: str, out: Path, ready: Callable[[], bool], size: tuple[int, int] = (800, 600),
-               timeout: float = 60.0, settle: float = 1.0, script: str | None = None) -> Path:
-    """Open `url` at `size`, wait until `ready()` (polled), then `settle` seconds for the page to draw; run
-    `script` (JavaScript) if given and write a PNG screenshot to `out`.
+def screenshot(url: str, out: Path, ready: Callable[[], bool], shown: str, size: tuple[int, int] = (800, 600),
+               timeout: float = 60.0, script: str | None = None) -> Path:
+    """Open `url` at `size`, wait until both `ready()` (the server's side) and the JavaScript expression `shown`
+    (the page's side) are true, polled together; run `script` (JavaScript) if given and write a PNG screenshot to
+    `out`.
 
     Raises:
-        RuntimeError: no Chromium, or `ready()` still False after `timeout` seconds.
+        RuntimeError: no Chromium, or the two not both true after `timeout` seconds.
     """
     chromium = find_chromium()
     if chromium is None:
@@ -88,13 +108,12 @@ def screenshot(url: str, out: Path, ready: Callable[[], bool], size: tuple[int, 
                           deviceScaleFactor=1, mobile=False)
                 page.call("Page.navigate", url=url)
                 deadline = time.monotonic() + timeout
-                while not ready():
+                while not (ready() and page.evaluate(shown) is True):
                     if time.monotonic() > deadline:
                         raise RuntimeError(f"{url} was not ready after {timeout:.0f} s")
                     time.sleep(0.1)
-                time.sleep(settle)
                 if script is not None:
-                    page.call("Runtime.evaluate", expression=script)
+                    page.evaluate(script)
                     time.sleep(0.2)
                 data = page.call("Page.captureScreenshot", format="png")["data"]
             finally:
@@ -106,6 +125,19 @@ def screenshot(url: str, out: Path, ready: Callable[[], bool], size: tuple[int, 
     return out
 
 
+def initial_view_frame(viewer):
+    """The full-resolution frame a browser's renderer rests on, seen from the viewer's initial camera, or None.
+
+    A browser reports viser's default camera first and moves to the initial camera only once it has applied the
+    server's settings, so a full-resolution frame can come from the default camera."""
+    initial = viewer.server.initial_camera.position
+    for renderer in list(viewer.renderers.values()):
+        frame = renderer.frame_at_rest()
+        if frame is not None and np.allclose(np.linalg.inv(frame.viewmat)[:3, 3], initial):  # the camera centre
+            return frame
+    return None
+
+
 def _viewer_screenshot(path: str, out: str) -> None:
     """A screenshot of `warpbags view PATH`, with the browser's software-WebGL notice closed."""
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
@@ -114,7 +146,7 @@ def _viewer_screenshot(path: str, out: str) -> None:
     viewer = Viewer(load_viewer_content(path), port=0, device="cpu")
     try:
         close_notices = "document.querySelectorAll('.mantine-Notification-closeButton').forEach(b => b.click())"
-        screenshot(viewer.url, Path(out), lambda: any(r.last_frame.full_resolution for r in viewer.renderers.values()),
+        screenshot(viewer.url, Path(out), lambda: initial_view_frame(viewer) is not None, VISER_SHOWS_FULL_FRAME,
                    script=close_notices)
     finally:
         viewer.stop()

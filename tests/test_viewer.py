@@ -10,7 +10,7 @@ import shutil
 import numpy as np
 import pytest
 import torch
-from headless_browser import find_chromium, screenshot
+from headless_browser import VISER_SHOWS_FULL_FRAME, find_chromium, initial_view_frame, screenshot
 from random_poses import generator, random_sim3, random_viewmats
 from typer.testing import CliRunner
 
@@ -182,13 +182,16 @@ def test_page_shows_the_object_and_the_frustums(run_dir, tmp_path):
             for index in range(4):
                 node = viewer.server.scene.get_handle_by_name(f"/cameras/{name}/{index}")
                 assert node is not None and type(node).__name__ == "CameraFrustumHandle", (name, index)
-        frames = []  # the browser's full-resolution frame, kept: its renderer goes when the browser closes
+        frames = []  # the frame the browser rests on, kept: its renderer goes when the browser closes
 
-        def full_frame() -> bool:
-            frames.extend(r.last_frame for r in viewer.renderers.values() if r.last_frame.full_resolution)
-            return bool(frames)
+        def first_view_sent() -> bool:
+            frame = initial_view_frame(viewer)
+            if frame is not None:
+                frames.append(frame)
+            return frame is not None
 
-        shot = screenshot(viewer.url, tmp_path / "viewer.png", ready=full_frame, size=(800, 600), timeout=120)
+        shot = screenshot(viewer.url, tmp_path / "viewer.png", ready=first_view_sent, shown=VISER_SHOWS_FULL_FRAME,
+                          size=(800, 600), timeout=120)
     finally:
         viewer.stop()
     import cv2  # noqa: PLC0415
@@ -196,7 +199,7 @@ def test_page_shows_the_object_and_the_frustums(run_dir, tmp_path):
     pixels = cv2.cvtColor(cv2.imread(str(shot)), cv2.COLOR_BGR2RGB).astype(int)
     # The frame matches the canvas: 800 x 600, or 600 x 450 once viser's client lowers its pixel ratio to 0.75
     # for slow (software) WebGL.
-    assert pixels.shape == (600, 800, 3) and frames[0].width >= 600 and frames[0].width * 3 == frames[0].height * 4
+    assert pixels.shape == (600, 800, 3) and frames[-1].width >= 600 and frames[-1].width * 3 == frames[-1].height * 4
     # The first camera looks at the Gaussians' centre: the object fills the middle of the canvas, on the run's
     # white background, which shows in the corners left of the GUI panel.
     not_white = (np.abs(pixels - 255).max(axis=-1) > 40)

@@ -98,6 +98,8 @@ class FrameStats:
     height: int = 0
     seconds: float = 0.0
     full_resolution: bool = False
+    viewmat: np.ndarray | None = None  # [4,4] world-to-camera of the browser's camera it shows
+    camera_time: float = 0.0  # viser's update time of that camera: a later one means the camera has moved since
 
 
 class ClientRenderer:
@@ -128,6 +130,12 @@ class ClientRenderer:
     def stop(self) -> None:
         self._stopped.set()
 
+    def frame_at_rest(self) -> FrameStats | None:
+        """The last frame sent if it is full-resolution and shows the browser's current camera (no other follows
+        until the camera moves), else None."""
+        frame = self.last_frame
+        return frame if frame.full_resolution and frame.camera_time == self.client.camera.update_timestamp else None
+
     def _loop(self) -> None:
         while not self._stopped.is_set():
             if self._camera_moved.wait(timeout=STILL_AFTER):
@@ -140,6 +148,7 @@ class ClientRenderer:
     def _render(self, scale: float) -> float:
         """Render at `scale` of the canvas (1 = full resolution) and send the frame; returns the render seconds."""
         camera = self.client.camera
+        camera_time = camera.update_timestamp  # before the pose: a message meanwhile leaves the frame not at rest
         canvas_width, canvas_height = camera.image_width, camera.image_height
         capped = min(scale, MAX_SIDE / max(canvas_width, canvas_height, 1))
         width, height = max(1, round(canvas_width * capped)), max(1, round(canvas_height * capped))
@@ -153,6 +162,6 @@ class ClientRenderer:
             return seconds
         full = scale >= 1.0
         self.client.scene.set_background_image(rgb, format="jpeg", jpeg_quality=90 if full else 75, depth=depth)
-        self.last_frame = FrameStats(width, height, seconds, full)
+        self.last_frame = FrameStats(width, height, seconds, full, viewmat, camera_time)
         self.on_frame(self.last_frame)
         return seconds
