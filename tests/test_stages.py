@@ -336,6 +336,7 @@ def test_projection_and_sh_over_gaussian_ranges_match_one_launch(cores, monkeypa
     n = scene["means"].shape[0]
     coeffs = 0.3 * torch.randn(n, 9, 3, generator=torch.Generator().manual_seed(4), dtype=F64)
     results = {}
+    monkeypatch.setattr(wrapper, "MIN_PAIRS_PER_THREAD", 1)  # cut however small the scene
     for threads in (1, cores):
         monkeypatch.setattr(wrapper, "_default_cpu_threads", lambda: threads)
         leaves = {k: scene[k].detach().clone().requires_grad_() for k in PROJECTION_INPUTS}
@@ -347,6 +348,7 @@ def test_projection_and_sh_over_gaussian_ranges_match_one_launch(cores, monkeypa
         sum((o * torch.randn(o.shape, generator=g, dtype=F64)).sum() for o in outputs).backward()
         results[threads] = ([o.detach() for o in (*outputs, radii)],
                             {**{k: v.grad for k, v in leaves.items()}, "coeffs": sh_coeffs.grad})
+    assert len(wrapper._GaussianRanges.of(wrapper._PROJECTION, (3, n), torch.device("cpu")).ranges) == cores + 1
     (one_out, one_grads), (cut_out, cut_grads) = results[1], results[cores]
     assert all(torch.equal(a, b) for a, b in zip(one_out, cut_out))
     for name in ("means", "quats", "scales", "opacities", "coeffs"):

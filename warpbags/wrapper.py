@@ -171,6 +171,12 @@ def _tensor_device(args: Sequence) -> torch.device:
     return next(a.device for a in args if isinstance(a, torch.Tensor))
 
 
+# Fewest (camera, Gaussian) pairs per host thread for a stage to be cut into Gaussian ranges: every range costs a
+# Tape, its Warp views and a pool hand-over. Measured (bench/train_step.py, bench/rasterize.py): the projection's
+# adjoint at 1 x 10k pairs took 9-11 ms wall cut in two against 6-7 in one launch; at 4 x 10k, 8 ms against 16.
+MIN_PAIRS_PER_THREAD = 16384
+
+
 class _GaussianRanges(NamedTuple):
     """How a stage's launch is cut: `ranges` of the Gaussian index (None: one launch over the whole `dim`)."""
 
@@ -180,9 +186,10 @@ class _GaussianRanges(NamedTuple):
     @staticmethod
     def of(stage: _Stage, dim, device: torch.device) -> _GaussianRanges:
         """A single Gaussian first (it runs alone: first-use compilation happens once), then one range per host
-        thread; on CUDA, on one core, and for stages that are not over Gaussians, one launch."""
+        thread; one launch on CUDA, on one core, for stages that are not over Gaussians and below
+        `MIN_PAIRS_PER_THREAD` pairs per thread."""
         workers = _default_cpu_threads() if device.type == "cpu" else 1
-        if not stage.gaussian_inputs or workers == 1:
+        if not stage.gaussian_inputs or workers == 1 or dim[0] * dim[1] < MIN_PAIRS_PER_THREAD * workers:
             return _GaussianRanges(dim, None)
         n = dim[1]
         bounds = [min(1, n) + round(i * max(n - 1, 0) / workers) for i in range(workers + 1)]
