@@ -526,3 +526,26 @@ def test_synthetic_preset_generated_once_into_cache(tmp_path, monkeypatch):
     assert open_scene("synthetic").num_views == 5
     assert (scene.root / "synthetic.json").stat().st_mtime_ns == stamp
     assert [path.name for path in (tmp_path / "cache").iterdir()] == [scene.root.name]
+
+
+def test_synthetic_cache_keeps_the_scene_another_process_finished_first(tmp_path, monkeypatch):
+    """Two benchmarks asking for one uncached scene at once: the one that finishes second finds the folder taken
+    (its rename fails, as measured with two bench/pose_recovery.py processes) and keeps the other's copy."""
+    import os
+
+    from warpbags.data import synthetic
+    from warpbags.data.synthetic import ensure_synthetic_scene
+
+    options = SyntheticOptions(views=4, width=16, height=16, num_points=40)
+    others = generate_synthetic_scene(tmp_path / "other", options)
+    cache = tmp_path / "cache"
+    real_replace = os.replace
+
+    def the_other_lands_first(source, target):
+        shutil.copytree(others, target, dirs_exist_ok=True)
+        return real_replace(source, target)
+
+    monkeypatch.setattr(synthetic.os, "replace", the_other_lands_first)
+    folder = ensure_synthetic_scene(options, cache_dir=cache)
+    assert folder == cache / options.folder_name() and (folder / "synthetic.json").is_file()
+    assert [path.name for path in cache.iterdir()] == [folder.name]  # no staging folder left behind
