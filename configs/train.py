@@ -100,6 +100,12 @@ class CameraConfig:
             half-fitted model lets cameras slide along it: on the near-cylindrical maryrose the cameras drift ~6 deg
             from the reference poses that way. A value of `rounds` or more keeps the orbit fixed to the end.
             Object parameterization only.
+        round_anchor: from the second coarse round on (and in the repair stage), each rendered camera's corrections
+            since its round started cost round_anchor / 2 |delta|^2 (delta in the parameterization's units: radians,
+            focal lengths, log depth). A round's fresh, half-fitted Gaussians pull the poses where they explain
+            the images best, which on a real capture is partly along directions the images barely constrain; the
+            anchor lets a later round move a camera only as far as the images pull it firmly (a proximal step; the
+            first round, which starts far off, is free). 0 = off.
     """
 
     parameterization: Literal["object", "camera"] = "object"
@@ -108,6 +114,7 @@ class CameraConfig:
     centroid_start: bool = True
     fix_first_camera: bool = False
     orbit_from_round: int = 0
+    round_anchor: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -325,6 +332,7 @@ class TrainConfig:
              f"camera.orbit_from_round must be >= 0, got {self.camera.orbit_from_round}"),
             (self.camera.orbit_from_round == 0 or self.camera.parameterization == "object",
              "camera.orbit_from_round needs the object parameterization (--camera-param object)"),
+            (self.camera.round_anchor >= 0, f"camera.round_anchor must be >= 0, got {self.camera.round_anchor}"),
             (self.pose_opt_start >= 0, f"--pose-opt-start must be >= 0, got {self.pose_opt_start}"),
             (_is_window(self.pose_round_window),
              f"pose_round_window must be (start, end) with 0 <= start < end <= 1, got {self.pose_round_window}"),

@@ -138,15 +138,35 @@ def test_rounds_restart_gaussians_and_keep_poses(scene_dir, tmp_path):
     trainer.train(stop_at=10)
     means_round_one = trainer.params["means"]
     cameras = trainer.cameras
-    with torch.no_grad():  # latents well beyond one step, so that a reset to zero could not pass for a step
+    before = trainer.current_viewmats()
+    with torch.no_grad():  # corrections well beyond one step, so that losing them could not pass for a step
         cameras.rotations.add_(10 * trainer.config.lr.pose)
-    latent = torch.cat([cameras.rotations, cameras.translations], 1).detach().clone()
+    poses_round_one = trainer.current_viewmats()
+    added = (poses_round_one - before).abs().max().item()
     trainer.train(stop_at=11)
     assert trainer.params["means"] is not means_round_one  # fresh Gaussians from the re-carved hull
     assert trainer.cameras is cameras
-    # One more Adam step (at most the learning rate per coordinate) from where round one ended, not a restart.
-    step = (torch.cat([cameras.rotations, cameras.translations], 1).detach() - latent).abs().max().item()
-    assert 0 < step <= 1.001 * trainer.config.lr.pose
+    # The corrections were folded into the base poses: the latents restart at zero and took one Adam step (at most
+    # the learning rate per coordinate), and the poses went on from where round one ended.
+    latent = torch.cat([cameras.rotations, cameras.translations], 1).detach()
+    assert 0 < latent.abs().max().item() <= 1.001 * trainer.config.lr.pose
+    assert torch.allclose(cameras.viewmats_init, poses_round_one, atol=1e-6)
+    assert (trainer.current_viewmats() - poses_round_one).abs().max().item() < added / 3
+
+
+def test_round_anchor_holds_later_rounds_near_their_start(scene_dir, tmp_path):
+    """From the second round on, camera.round_anchor pulls the corrections back towards the round's start: a strong
+    anchor leaves the cameras much closer to where the round began than no anchor does."""
+    moved = {}
+    for anchor in (0.0, 1e4):
+        trainer = make_trainer(scene_dir, tmp_path / str(anchor), iters=40, rounds=2, pose_opt_start=0,
+                               rot_noise_deg=5.0, camera={"round_anchor": anchor})
+        trainer.train(stop_at=20)
+        start = trainer.current_viewmats()
+        trainer.train(stop_at=40)
+        moved[anchor] = (trainer.current_viewmats() - start).abs().max().item()
+    assert moved[0.0] > 0
+    assert moved[1e4] < 0.2 * moved[0.0]
 
 
 @pytest.mark.parametrize("init, note", [("sfm", "SfM points"), ("random", "random points"), ("hull", "visual hull")])

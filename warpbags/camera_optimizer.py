@@ -201,6 +201,11 @@ class CameraOptimizer(torch.nn.Module):
             self.translations.zero_()
         self.reset_moments()
 
+    def anchor_loss(self, views: torch.Tensor) -> torch.Tensor:
+        """Mean over cameras `views` ([B] long) of 1/2 |corrections|^2: after a `rebase`, a differentiable pull of
+        those cameras towards where they were then (`camera.round_anchor`)."""
+        return 0.5 * (self.params()[views] ** 2).sum(-1).mean()
+
     def set_learning_rate(self, lr: float) -> None:
         for group in self.optimizer.param_groups:
             group["lr"] = lr * (self.settings.translation_scale if group["name"] == "translation" else 1.0)

@@ -226,14 +226,15 @@ class GaussianModel:
         self.set_learning_rate(settings.gaussian_lr_fraction)
         views = self.sample_views()
         loss, terms, meta = self.loss(views, camera_viewmats(cameras, views, settings.pose_active), settings)
-        self.optimize(loss, cameras, views if settings.pose_active else None,
+        self.optimize(loss, cameras, views if settings.pose_active else None, settings.pose_anchor,
                       after_backward=lambda: self.strategy.accumulate(settings.round_iteration, meta))
         densified = self.strategy.step(settings.round_iteration + 1, self.params, self.optimizer, self.generator)
         return loss, {**terms, **densified}
 
     def optimize(self, loss: torch.Tensor, cameras: CameraOptimizer, pose_views: torch.Tensor | None,
-                 after_backward: Callable[[], None] | None = None) -> None:
-        """Backward, one Adam step of the Gaussians and of cameras `pose_views` (None: no camera steps).
+                 pose_anchor: float = 0.0, after_backward: Callable[[], None] | None = None) -> None:
+        """Backward, one Adam step of the Gaussians and of cameras `pose_views` (None: no camera steps), whose
+        corrections since the last rebase add `pose_anchor` x `CameraOptimizer.anchor_loss` to the loss.
 
         Only the rendered cameras step (the others keep their values and moments); the gauge camera's gradient is
         zero.
@@ -241,6 +242,8 @@ class GaussianModel:
         Raises:
             Diverged: the loss or a parameter is not finite (nothing was stepped).
         """
+        if pose_views is not None and pose_anchor > 0:
+            loss = loss + pose_anchor * cameras.anchor_loss(pose_views)
         self._check_finite(loss, cameras)
         loss.backward()
         if after_backward is not None:

@@ -33,6 +33,8 @@ class StepSettings:
             `lr.means_final`).
         pose_lr: the camera optimizer's rotation learning rate.
         orbit_free: the object-centric orbit rows are optimized (`camera.orbit_from_round`).
+        pose_anchor: weight of the pull of the rendered cameras' corrections towards where the round started
+            (`camera.round_anchor` from the second round on and in the repair stage, else 0).
     """
 
     iteration: int
@@ -46,6 +48,7 @@ class StepSettings:
     gaussian_lr_fraction: float
     pose_lr: float
     orbit_free: bool
+    pose_anchor: float
 
 
 class Schedule:
@@ -129,4 +132,5 @@ class Schedule:
             pose_active=self.pose_active(iteration), gaussian_lr_fraction=gaussian_fraction,
             pose_lr=exponential_lr(config.lr.pose, config.lr.pose_final, pose_fraction),
             orbit_free=self.orbit_free(iteration),
+            pose_anchor=config.camera.round_anchor if in_repair or self.round_index(iteration) > 0 else 0.0,
         )

@@ -162,9 +162,11 @@ class Trainer:
         started = time.perf_counter()
         if self.schedule.starts_round(self.iteration):
             self.model = self._fresh_model(self.current_viewmats())
-            # Same optimizer object, moments cleared on purpose: the pose lr restarts with the round, and Adam's
-            # second moments from the converged end of the last round would turn its first steps into jumps.
-            self.cameras.reset_moments()
+            # The corrections so far are folded into the base poses, so that the round's anchor
+            # (camera.round_anchor) pulls towards where it started; Adam's moments are cleared on purpose: the pose
+            # lr restarts with the round, and second moments from the converged end of the last round would turn
+            # its first steps into jumps.
+            self.cameras.rebase()
         settings = self.schedule.at(self.iteration)
         self.cameras.set_learning_rate(settings.pose_lr)
         self.cameras.set_orbit_free(settings.orbit_free)
@@ -193,7 +195,7 @@ class Trainer:
             pseudo, pseudo_terms = self.repair_stage.loss(self.model, self.current_viewmats(), self.iteration)
             loss, terms = loss + ratio * pseudo, {**terms, **pseudo_terms}
         with self._divergence_reported():
-            self.model.optimize(loss, self.cameras, views if settings.pose_active else None)
+            self.model.optimize(loss, self.cameras, views if settings.pose_active else None, settings.pose_anchor)
         self.iteration += 1
         return self._record("repair", loss, terms, started)
 
