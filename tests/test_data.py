@@ -6,6 +6,8 @@ import functools
 import json
 import math
 import shutil
+import subprocess
+import sys
 from pathlib import Path
 
 import cv2
@@ -105,6 +107,18 @@ def test_maryrose_loads_all_views_masks_and_splits(maryrose):
     focal = np.load(Path(maryrose.root) / "poses_bounds.npy")[0, 14] / 8  # full-res focal, images_8
     torch.testing.assert_close(maryrose.Ks[0], torch.tensor([[focal, 0, 216], [0, focal, 216], [0, 0, 1]]).float())
     assert maryrose.orbit_radius() == pytest.approx(ORBIT_RADIUS, rel=1e-5)
+
+
+def test_training_on_an_llff_scene_does_not_load_pycolmap():
+    """pycolmap costs every process ~57 MiB of resident memory (bench/train_step.py compares peak RSS with
+    OpenSplat's); only COLMAP models need it, and maryrose is LLFF."""
+    code = ("import sys, warpbags.trainer\n"
+            "from warpbags.data import open_scene\n"
+            "open_scene('maryrose')\n"
+            "print('pycolmap' in sys.modules)")
+    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert result.returncode == 0, result.stderr[-2000:]
+    assert result.stdout.strip().splitlines()[-1] == "False"
 
 
 def test_maryrose_poses_agree_with_masks(maryrose):
