@@ -100,9 +100,9 @@ class CameraConfig:
             half-fitted model lets cameras slide along it: on the near-cylindrical maryrose the cameras drift ~6 deg
             from the reference poses that way. A value of `rounds` or more keeps the orbit fixed to the end.
             Object parameterization only.
-        round_anchor: from the second coarse round on (and in the repair stage), each rendered camera's corrections
-            since its round started cost round_anchor / 2 |delta|^2 (delta in the parameterization's units: radians,
-            focal lengths, log depth). A round's fresh, half-fitted Gaussians pull the poses where they explain
+        round_anchor: from the second coarse round on, each rendered camera's corrections since its round started
+            cost round_anchor / 2 |delta|^2 (delta in the parameterization's units: radians, focal lengths, log
+            depth; in the repair stage, since the last coarse round started). A round's fresh, half-fitted Gaussians pull the poses where they explain
             the images best, which on a real capture is partly along directions the images barely constrain; the
             anchor lets a later round move a camera only as far as the images pull it firmly (a proximal step; the
             first round, which starts far off, is free). 0 = off.
