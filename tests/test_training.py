@@ -442,3 +442,12 @@ def test_configs_of_older_runs_still_load():
     # Runs written before the camera group held the gauge at the top level.
     assert TrainConfig.from_dict({"fix_first_camera": True, "iters": 7}).camera.fix_first_camera is True
     assert TrainConfig.from_dict({"iters": 7}).camera.fix_first_camera is False
+
+
+def test_the_round_anchor_leaves_the_first_round_free():
+    config = load_preset("quick", iters=30, rounds=3, camera={"round_anchor": 0.5}, repair={"iters": 5})
+    schedule = Schedule(config)
+    assert [schedule.at(i).pose_anchor for i in (0, 9, 10, 29, 30, 34)] == [0.0, 0.0, 0.5, 0.5, 0.5, 0.5]
+    assert all(Schedule(load_preset("quick")).at(i).pose_anchor == 0.0 for i in range(0, 600, 50))
+    with pytest.raises(WarpbagsError, match="round_anchor must be >= 0"):
+        load_preset("quick", camera={"round_anchor": -1.0})
