@@ -14,7 +14,12 @@ per lane count): it reads each Gaussian of the tile's list once for all its pixe
 block's gradients of a Gaussian before adding them to the buffers once. Each pixel keeps its own transmittance,
 colour, end of range and termination, with the same arithmetic as one pixel per thread, so the image is the same
 bit for bit and the gradients differ only by float rounding of the per-block sums. CUDA runs one pixel per thread
-(lanes = 1, gsplat's layout); the CPU a small block (see warpbags/wrapper.py).
+(lanes = 1, gsplat's layout); the CPU a block of 16 (see warpbags/wrapper.py).
+
+The lanes do not branch: a pixel that a Gaussian does not reach, that has terminated or that is past its range gets
+alpha = 0 (`splat_alpha`) and adds exact zeros, so the result is that of skipping it, and the compiler turns the
+lanes into vector instructions. For the same reason float32 takes exp(-sigma) from an inline polynomial
+(`gaussian_weight`, within 2.1e-6 relative) instead of a library call; float64 keeps the library exponential.
 
 Blocks are visited tile-major (all blocks of a tile, then the next tile) so a launch over a range of tiles touches
 one Gaussian list at a time; `first_block` offsets the launch so host threads can take disjoint tile ranges. The
@@ -60,22 +65,47 @@ def gaussian_falloff(mean2d: Any, conic: Any, px: Any, py: Any):
 
 
 @wp.func
-def out_of_reach(sigma: Any):
-    """True where no opacity can make the Gaussian count: sigma < 0 (a numerically indefinite conic) or
-    sigma > ln(255), where even opacity 1 gives alpha < 1/255. Most visits of a tile's list end here, before
-    the opacity is read or the exponential computed."""
-    return sigma < type(sigma)(0.0) or sigma > type(sigma)(SIGMA_CUTOFF)
+def gaussian_weight(sigma: wp.float32):
+    """exp(-sigma) for 0 <= sigma <= ln(255) in float32, as (Taylor polynomial of degree 7 of exp(-sigma/16))^16:
+    within 2.1e-6 relative (the library's expf: 1.9e-7). Inline arithmetic instead of a library call, so that the
+    lanes of a pixel block compile to branch-free, vectorized code (the CPU kernels' main cost was this call)."""
+    x = sigma * wp.float32(0.0625)
+    p = wp.float32(1.0 / 720.0) - x * wp.float32(1.0 / 5040.0)
+    p = wp.float32(1.0 / 120.0) - x * p
+    p = wp.float32(1.0 / 24.0) - x * p
+    p = wp.float32(1.0 / 6.0) - x * p
+    p = wp.float32(0.5) - x * p
+    p = wp.float32(1.0) - x * p
+    p = wp.float32(1.0) - x * p
+    p = p * p
+    p = p * p
+    p = p * p
+    return p * p
 
 
 @wp.func
-def splat_alpha(opacity: Any, sigma: Any):
-    """(alpha, exp(-sigma)) with alpha = min(0.99, opacity exp(-sigma)), or alpha = 0 below the 1/255 cut-off."""
+def gaussian_weight(sigma: wp.float64):
+    """exp(-sigma) in float64: the library exponential, at the precision the reference and gradient tests check."""
+    return wp.exp(-sigma)
+
+
+@wp.func
+def splat_alpha(opacity: Any, sigma: Any, active: Any):
+    """(alpha, opacity exp(-sigma), exp(-sigma)) of one pixel, branch-free.
+
+    alpha = min(0.99, opacity exp(-sigma)), or 0 where `active` is 0 (the pixel is outside the image, terminated or
+    past its contributing range), where no opacity can make the Gaussian count (sigma < 0, a numerically indefinite
+    conic, or sigma > ln(255), where even opacity 1 gives alpha < 1/255) or below the 1/255 cut-off. A pixel with
+    alpha 0 then adds exact zeros, so the result is that of skipping it.
+    """
     zero = type(sigma)(0.0)
-    falloff = wp.exp(-sigma)
-    alpha = wp.min(type(sigma)(MAX_ALPHA), opacity * falloff)
-    if alpha < type(sigma)(ALPHA_THRESHOLD):
-        alpha = zero
-    return alpha, falloff
+    cutoff = type(sigma)(SIGMA_CUTOFF)
+    in_reach = wp.where(sigma < zero, zero, wp.where(sigma > cutoff, zero, active))
+    falloff = gaussian_weight(wp.clamp(sigma, zero, cutoff))
+    raw_alpha = opacity * falloff
+    alpha = wp.min(type(sigma)(MAX_ALPHA), raw_alpha)
+    alpha = wp.where(alpha < type(sigma)(ALPHA_THRESHOLD), zero, alpha) * in_reach
+    return alpha, raw_alpha, falloff
 
 
 @wp.func
@@ -134,18 +164,17 @@ def _forward_kernel(lanes: int):
         cam, tile, x0, y0 = locate_block(first_block + wp.tid(), tiles, block_w, block_h)
         zero = out_depths.dtype(0.0)
         one = out_depths.dtype(1.0)
-        # per-lane state: pixel centre, output index, transmittance, colour, depth, end of the contributing range,
-        # and whether the lane still composites (inside the image, not terminated)
+        # per-lane state: pixel centre, output index, whether the lane still composites (1: inside the image and not
+        # terminated), transmittance, colour, depth and the end of the contributing range
         px = wp.vector(zero, length=wp.static(lanes))
         py = wp.vector(zero, length=wp.static(lanes))
         pix = wp.vector(wp.int32(-1), length=wp.static(lanes))
-        live = wp.vector(wp.int32(0), length=wp.static(lanes))
+        live = wp.vector(zero, length=wp.static(lanes))
         transmittance = wp.vector(one, length=wp.static(lanes))
         red = wp.vector(zero, length=wp.static(lanes))
         green = wp.vector(zero, length=wp.static(lanes))
         blue = wp.vector(zero, length=wp.static(lanes))
         depth = wp.vector(zero, length=wp.static(lanes))
-        sigma = wp.vector(zero, length=wp.static(lanes))
         start = tile_offsets[tile]
         end = tile_offsets[tile + 1]
         last = wp.vector(start, length=wp.static(lanes))
@@ -156,45 +185,38 @@ def _forward_kernel(lanes: int):
             py[k] = out_depths.dtype(y) + out_depths.dtype(0.5)
             if lane_pix >= 0:
                 pix[k] = lane_pix
-                live[k] = 1
+                live[k] = one
                 remaining += 1
         if remaining == 0:
             return
         # isect ids are flat (camera, Gaussian) indices and opacities per Gaussian: one subtraction per visit
         first_gaussian = cam * tiles.num_gaussians
+        t_min = out_depths.dtype(TRANSMITTANCE_MIN)
 
         for i in range(start, end):
             g = isect_ids[i]
             mean = means2d[g]
             conic = conics[g]
-            # one read of the Gaussian's geometry for every lane; the rest of it only if some lane is in reach
-            reached = int(0)
-            for k in range(wp.static(lanes)):
-                s, dx, dy = gaussian_falloff(mean, conic, px[k], py[k])
-                sigma[k] = s
-                if live[k] != 0 and not out_of_reach(s):
-                    reached = 1
-            if reached == 0:
-                continue
             opacity = opacities[g - first_gaussian]
             c = colors[g]
             z = depths[g]
+            # every lane does the same arithmetic (no branches, so the lanes vectorize); a lane the Gaussian does
+            # not reach has alpha 0 and adds exact zeros
             for k in range(wp.static(lanes)):
-                if live[k] != 0 and not out_of_reach(sigma[k]):
-                    alpha, falloff = splat_alpha(opacity, sigma[k])
-                    if alpha != zero:
-                        next_transmittance = transmittance[k] * (one - alpha)
-                        if next_transmittance <= out_depths.dtype(TRANSMITTANCE_MIN):
-                            live[k] = 0  # this pixel stops before this Gaussian
-                            remaining -= 1
-                        else:
-                            weight = alpha * transmittance[k]
-                            red[k] = red[k] + weight * c[0]
-                            green[k] = green[k] + weight * c[1]
-                            blue[k] = blue[k] + weight * c[2]
-                            depth[k] = depth[k] + weight * z
-                            transmittance[k] = next_transmittance
-                            last[k] = i + 1
+                sigma, dx, dy = gaussian_falloff(mean, conic, px[k], py[k])
+                alpha, raw_alpha, falloff = splat_alpha(opacity, sigma, live[k])
+                next_transmittance = transmittance[k] * (one - alpha)
+                # the pixel stops before a Gaussian that would bring its transmittance to 1e-4 or below
+                stops = wp.where(next_transmittance <= t_min, wp.where(alpha > zero, one, zero), zero)
+                weight = alpha * transmittance[k] * (one - stops)
+                red[k] = red[k] + weight * c[0]
+                green[k] = green[k] + weight * c[1]
+                blue[k] = blue[k] + weight * c[2]
+                depth[k] = depth[k] + weight * z
+                transmittance[k] = wp.where(stops > zero, transmittance[k], next_transmittance)
+                last[k] = wp.where(stops > zero, last[k], wp.where(alpha > zero, i + 1, last[k]))
+                live[k] = live[k] * (one - stops)
+                remaining -= int(stops)
             if remaining == 0:
                 break
 
@@ -256,7 +278,6 @@ def _backward_kernel(lanes: int):
         green_behind = wp.vector(zero, length=wp.static(lanes))
         blue_behind = wp.vector(zero, length=wp.static(lanes))
         depth_behind = wp.vector(zero, length=wp.static(lanes))
-        sigma = wp.vector(zero, length=wp.static(lanes))
         i = int(0)
         for k in range(wp.static(lanes)):
             x, y, pix = lane_pixel(x0, y0, k, block_w, cam, tiles.width, tiles.height)
@@ -281,14 +302,6 @@ def _backward_kernel(lanes: int):
             g = isect_ids[i]
             mean = means2d[g]
             conic = conics[g]
-            reached = int(0)
-            for k in range(wp.static(lanes)):
-                s, dx, dy = gaussian_falloff(mean, conic, px[k], py[k])
-                sigma[k] = s
-                if i < last[k] and not out_of_reach(s):
-                    reached = 1
-            if reached == 0:
-                continue
             opacity = opacities[g - first_gaussian]
             c = colors[g]
             z = depths[g]
@@ -297,45 +310,42 @@ def _backward_kernel(lanes: int):
             v_o = zero
             v_conic = wp.vector(zero, zero, zero)
             v_mean = wp.vector(zero, zero)
-            colored = int(0)
-            shaped = int(0)
+            colored = zero  # 1 once a lane composited this Gaussian
+            shaped = zero  # 1 once a lane's alpha depends on its opacity and shape (below the 0.99 clamp)
             for k in range(wp.static(lanes)):
-                if i < last[k] and not out_of_reach(sigma[k]):
-                    alpha, falloff = splat_alpha(opacity, sigma[k])
-                    if alpha != zero:
-                        raw_alpha = opacity * falloff
-                        one_minus_alpha_inv = one / (one - alpha)
-                        transmittance[k] = transmittance[k] * one_minus_alpha_inv
-                        weight = alpha * transmittance[k]
-                        v_color = wp.vector(v_red[k], v_green[k], v_blue[k])
-                        v_c = v_c + weight * v_color
-                        v_z = v_z + weight * v_depth[k]
-                        color_behind = wp.vector(red_behind[k], green_behind[k], blue_behind[k])
-                        v_alpha = (
-                            wp.dot(c * transmittance[k] - color_behind * one_minus_alpha_inv, v_color)
-                            + (z * transmittance[k] - depth_behind[k] * one_minus_alpha_inv) * v_depth[k]
-                            + t_final[k] * one_minus_alpha_inv * v_alpha_out[k]
-                        )
-                        red_behind[k] = red_behind[k] + weight * c[0]
-                        green_behind[k] = green_behind[k] + weight * c[1]
-                        blue_behind[k] = blue_behind[k] + weight * c[2]
-                        depth_behind[k] = depth_behind[k] + weight * z
-                        colored = 1
-                        if raw_alpha <= v_out_depths.dtype(MAX_ALPHA):  # the 0.99 clamp has zero gradient
-                            v_o = v_o + falloff * v_alpha
-                            v_sigma = -raw_alpha * v_alpha
-                            dx = px[k] - mean[0]
-                            dy = py[k] - mean[1]
-                            v_conic = v_conic + wp.vector(half * dx * dx * v_sigma, dx * dy * v_sigma,
-                                                          half * dy * dy * v_sigma)
-                            # d = pixel - mean, so d(sigma)/d(mean) = -(conic d)
-                            v_mean = v_mean + wp.vector(-(conic[0] * dx + conic[1] * dy) * v_sigma,
-                                                        -(conic[1] * dx + conic[2] * dy) * v_sigma)
-                            shaped = 1
-            if colored != 0:
+                sigma, dx, dy = gaussian_falloff(mean, conic, px[k], py[k])
+                alpha, raw_alpha, falloff = splat_alpha(opacity, sigma, wp.where(i < last[k], one, zero))
+                one_minus_alpha_inv = one / (one - alpha)
+                transmittance[k] = transmittance[k] * one_minus_alpha_inv
+                weight = alpha * transmittance[k]
+                v_c = v_c + weight * wp.vector(v_red[k], v_green[k], v_blue[k])
+                v_z = v_z + weight * v_depth[k]
+                v_alpha = (
+                    (c[0] * transmittance[k] - red_behind[k] * one_minus_alpha_inv) * v_red[k]
+                    + (c[1] * transmittance[k] - green_behind[k] * one_minus_alpha_inv) * v_green[k]
+                    + (c[2] * transmittance[k] - blue_behind[k] * one_minus_alpha_inv) * v_blue[k]
+                    + (z * transmittance[k] - depth_behind[k] * one_minus_alpha_inv) * v_depth[k]
+                    + t_final[k] * one_minus_alpha_inv * v_alpha_out[k]
+                )
+                red_behind[k] = red_behind[k] + weight * c[0]
+                green_behind[k] = green_behind[k] + weight * c[1]
+                blue_behind[k] = blue_behind[k] + weight * c[2]
+                depth_behind[k] = depth_behind[k] + weight * z
+                composited = wp.where(alpha > zero, one, zero)
+                colored = wp.max(colored, composited)
+                shape = wp.where(raw_alpha <= v_out_depths.dtype(MAX_ALPHA), composited, zero)  # the clamp's gradient is 0
+                shaped = wp.max(shaped, shape)
+                v_alpha = v_alpha * shape
+                v_o = v_o + falloff * v_alpha
+                v_sigma = -raw_alpha * v_alpha
+                v_conic = v_conic + wp.vector(half * dx * dx * v_sigma, dx * dy * v_sigma, half * dy * dy * v_sigma)
+                # d = pixel - mean, so d(sigma)/d(mean) = -(conic d)
+                v_mean = v_mean + wp.vector(-(conic[0] * dx + conic[1] * dy) * v_sigma,
+                                            -(conic[1] * dx + conic[2] * dy) * v_sigma)
+            if colored != zero:
                 wp.atomic_add(v_colors, g, v_c)
                 wp.atomic_add(v_depths, g, v_z)
-            if shaped != 0:
+            if shaped != zero:
                 wp.atomic_add(v_opacities, g - first_gaussian, v_o)
                 wp.atomic_add(v_conics, g, v_conic)
                 wp.atomic_add(v_means2d, g, v_mean)
@@ -345,7 +355,7 @@ def _backward_kernel(lanes: int):
 
 # Pixels per thread the kernels are built for. One pixel per thread is the CUDA layout (gsplat's); on the CPU a
 # thread composites a block of a tile so that each Gaussian read serves several pixels (warpbags/wrapper.py picks).
-LANES = (1, 2, 4, 8)
+LANES = (1, 2, 4, 8, 16)
 FORWARD_KERNELS = {lanes: _forward_kernel(lanes) for lanes in LANES}
 BACKWARD_KERNELS = {lanes: _backward_kernel(lanes) for lanes in LANES}
 

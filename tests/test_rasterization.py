@@ -239,7 +239,7 @@ def test_bad_arguments_are_named(override, message):
 
 # Pixel blocks: on the CPU one rasterizer thread composites a block of a tile (warpbags.wrapper.DEFAULT_PIXEL_BLOCK);
 # one pixel per thread is the CUDA layout. Every block must give the dense reference's image and gradients.
-PIXEL_BLOCKS = [(1, 1), (2, 1), (1, 2), (2, 2), (4, 1), (4, 2), (2, 4)]
+PIXEL_BLOCKS = [(1, 1), (2, 1), (1, 2), (2, 2), (4, 1), (4, 2), (2, 4), (4, 4)]
 
 
 @pytest.mark.parametrize("block", PIXEL_BLOCKS)
@@ -326,9 +326,10 @@ def test_pixel_block_fits_the_tile():
     assert _pixel_block(cpu, 2, (4, 4)) == (2, 2)  # a block never spans two tiles
     assert _pixel_block(cpu, 4, (3, 1)) == (2, 1)  # each side the largest divisor of the tile size
     assert _pixel_block(torch.device("cuda"), 16, None) == (1, 1)  # one pixel per thread on CUDA
-    assert _pixel_block(cpu, 4, None) == (4, 1) and _pixel_block(cpu, 8, None) == (4, 2)  # the CPU defaults
+    assert _pixel_block(cpu, 4, None) == (4, 4) and _pixel_block(cpu, 8, None) == (4, 4)  # the CPU default
+    assert _pixel_block(cpu, 2, None) == (2, 2)
     with pytest.raises(ValueError, match="pixel block"):
-        _pixel_block(cpu, 16, (4, 4))  # 16 pixels per thread: not built
+        _pixel_block(cpu, 16, (8, 4))  # 32 pixels per thread: not built
 
 
 def test_cost_balanced_ranges_cover_the_tiles_in_order():

@@ -622,12 +622,13 @@ def _visits_per_tile(tile_offsets: torch.Tensor, isect_end: torch.Tensor, tiles:
 # Pixels one rasterizer thread composites, (width, height) within a tile. On CUDA one pixel per thread (gsplat's
 # layout: threads are cheap, registers are not). On the CPU a thread walks its tile's list once for a block of
 # pixels, so each Gaussian's loads (and the gradient adds of the backward) serve every pixel of the block.
-# Measured on 2 cores loaded by other work (wall ms of the rasterizer stage, forward + backward, min of 6, blocks
-# in turn in one process), bench/rasterize.py's 128^2 / 10k / 4-camera scene and maryrose 432^2 after 50 steps
-# from the random init (127 Gaussians per pixel, 95% contributing): 4-pixel tiles, blocks 1x1 / 2x2 / 4x1:
-# 162 / 141 / 126 and 1843 / 1548 / 1499; 8-pixel tiles, 2x2 / 4x2 / 2x4: 152 / 131 / 148 and 1539 / 1370 / 1402.
-# Compare with bench/rasterize.py --blocks and bench/train_step.py --pixel-blocks.
-# None: 4x1 for tiles of 4 pixels or less, 4x2 for larger ones.
+# The lanes of a block run the same branch-free arithmetic, so the compiler vectorizes them: larger blocks pay.
+# Measured on a quiet machine (2026-12-02, `python bench/train_step.py --inits random --views 1 --warmup 30
+# --steps 20 --pixel-blocks 4x1,4x2,4x4`: maryrose 432^2, 10k random-init Gaussians, 174 visits per pixel; wall ms
+# of raster forward / backward / whole step): 4x1 173 / 316 / 478, 4x2 129 / 253 / 395, 4x4 92 / 224 / 335; and
+# `python bench/rasterize.py --sizes 128,432 --gaussians 10000 --cameras 4,1 --blocks 4x1,4x2,4x4` (forward +
+# backward, 128^2 / 4 cameras): 62.6 / 55.6 / 52.3.
+# None: 4x4, one block per tile at the CPU's 4-pixel tiles (a smaller block where the tile is smaller).
 DEFAULT_PIXEL_BLOCK: dict[str, tuple[int, int] | None] = {"cuda": (1, 1), "cpu": None}
 
 
@@ -635,7 +636,7 @@ def _pixel_block(device: torch.device, tile_size: int, block: tuple[int, int] | 
     """The block for this device and tile: each side the largest divisor of the tile size not above the asked one
     (a block never spans two tiles), and a pixel count the kernels are built for."""
     block = block or DEFAULT_PIXEL_BLOCK["cuda" if device.type == "cuda" else "cpu"]
-    block_w, block_h = block or ((4, 1) if tile_size <= 4 else (4, 2))
+    block_w, block_h = block or (4, 4)
     block_w = max(d for d in range(1, min(block_w, tile_size) + 1) if tile_size % d == 0)
     block_h = max(d for d in range(1, min(block_h, tile_size) + 1) if tile_size % d == 0)
     if block_w * block_h not in FORWARD_KERNELS:
