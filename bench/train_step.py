@@ -267,7 +267,7 @@ def run_configuration(init: str, views_per_step: int, points: int, steps: int, w
     scene = problem["scene"]
     return {
         "init": init, "views_per_step": views_per_step, "gaussians": len(problem["params"]["means"]),
-        "pixel_block": "x".join(map(str, DEFAULT_PIXEL_BLOCK["cpu"])) if DEFAULT_PIXEL_BLOCK["cpu"] else "default",
+        "pixel_block": "x".join(map(str, DEFAULT_PIXEL_BLOCK["cpu"])),
         "init_note": problem["init_note"], "width": scene.width, "height": scene.height,
         "phases_ms": {name: statistics.median(values) for name, values in per_phase.items()},
         "phases_cpu_ms": {name: statistics.median(values) for name, values in per_phase_cpu.items()},

@@ -628,15 +628,14 @@ def _visits_per_tile(tile_offsets: torch.Tensor, isect_end: torch.Tensor, tiles:
 # of raster forward / backward / whole step): 4x1 173 / 316 / 478, 4x2 129 / 253 / 395, 4x4 92 / 224 / 335; and
 # `python bench/rasterize.py --sizes 128,432 --gaussians 10000 --cameras 4,1 --blocks 4x1,4x2,4x4` (forward +
 # backward, 128^2 / 4 cameras): 62.6 / 55.6 / 52.3.
-# None: 4x4, one block per tile at the CPU's 4-pixel tiles (a smaller block where the tile is smaller).
-DEFAULT_PIXEL_BLOCK: dict[str, tuple[int, int] | None] = {"cuda": (1, 1), "cpu": None}
+# 4x4 is one block per tile at the CPU's 4-pixel tiles (`_pixel_block` shrinks it where the tile is smaller).
+DEFAULT_PIXEL_BLOCK: dict[str, tuple[int, int]] = {"cuda": (1, 1), "cpu": (4, 4)}
 
 
 def _pixel_block(device: torch.device, tile_size: int, block: tuple[int, int] | None) -> tuple[int, int]:
     """The block for this device and tile: each side the largest divisor of the tile size not above the asked one
     (a block never spans two tiles), and a pixel count the kernels are built for."""
-    block = block or DEFAULT_PIXEL_BLOCK["cuda" if device.type == "cuda" else "cpu"]
-    block_w, block_h = block or (4, 4)
+    block_w, block_h = block or DEFAULT_PIXEL_BLOCK["cuda" if device.type == "cuda" else "cpu"]
     block_w = max(d for d in range(1, min(block_w, tile_size) + 1) if tile_size % d == 0)
     block_h = max(d for d in range(1, min(block_h, tile_size) + 1) if tile_size % d == 0)
     if block_w * block_h not in FORWARD_KERNELS:
