@@ -8,7 +8,8 @@
 
 The step is built from the pieces `warpbags.trainer.Trainer` runs (as the speed comparison with OpenSplat
 configures it: SH degree 0 unless --sh-degree, no densification, the object on a white background, loss
-(1-0.2) L1 + 0.2 (1-SSIM) + 0.01 mask BCE on the rendered alpha, render mode RGB+ED, pose deltas optimized):
+(1-0.2) L1 + 0.2 (1-SSIM) + 0.01 mask BCE on the rendered alpha, no depth term (render mode RGB, as the trainer
+renders once the depth term is off), pose deltas optimized):
 `warpbags.init` points and `initial_gaussians`, `warpbags.gaussians.render_gaussians`, `warpbags.losses`, the
 Gaussians' Adam groups (`warpbags.model.gaussian_optimizer`), `DensifyStrategy.accumulate`. Every configuration runs in its own process, so
 each peak RSS is its own.
@@ -209,7 +210,7 @@ def training_step(problem: dict, views_per_step: int, clock: PhaseClock | None =
         deltas = torch.cat([problem["pose_rotations"], problem["pose_translations"]], dim=1)[views]
     renders, alphas, meta = render_gaussians(
         problem["params"], scene.viewmats[views], scene.Ks[views], scene.width, scene.height, sh_degree=config.sh_degree,
-        backgrounds=problem["backgrounds"][views], pose_deltas=deltas, render_mode="RGB+ED",
+        backgrounds=problem["backgrounds"][views], pose_deltas=deltas, render_mode="RGB",
     )
     meta["means2d"].retain_grad()
     with clock.phase("loss forward"):

@@ -298,6 +298,43 @@ def test_pixel_blocks_agree_with_one_pixel_per_thread():
             torch.testing.assert_close(a, b, rtol=1e-12, atol=1e-12 * b.abs().max().item(), msg=lambda m: f"{block}: {m}")
 
 
+@pytest.mark.parametrize("block", [(1, 1), (4, 4)])
+def test_loss_without_depth_takes_the_backward_without_depth_terms(block, monkeypatch):
+    """A loss that does not use the depth map gets the kernel without its terms, with the gradients of the full
+    kernel given a zero depth cotangent (the same arithmetic minus exact zeros)."""
+    from warpbags.wrapper import bin_gaussians, project_gaussians, rasterize_to_pixels
+
+    used = []
+
+    class Recording(dict):
+        def __getitem__(self, key):
+            used.append(key)
+            return super().__getitem__(key)
+
+    monkeypatch.setattr(warpbags.wrapper, "BACKWARD_KERNELS", Recording(warpbags.wrapper.BACKWARD_KERNELS))
+    scene = random_scene(n=120, cams=2, width=37, height=29, seed=13)
+    means2d, conics, depths, radii = project_gaussians(scene["means"], scene["quats"], scene["scales"],
+                                                       scene["opacities"], scene["viewmats"], scene["Ks"], 37, 29)
+    colors = scene["colors"].expand(2, -1, -1).contiguous()
+    bins = bin_gaussians(means2d, conics, scene["opacities"], radii, depths, 37, 29, 4)
+    v_colors, v_alphas = (torch.randn(2, 29, 37, *shape, generator=torch.Generator().manual_seed(s),
+                                      dtype=torch.float64) for s, shape in ((1, (3,)), (3, ())))
+    grads = []
+    for depth_weight in (None, 0.0):
+        leaves = [t.detach().clone().requires_grad_() for t in (means2d, conics, colors, scene["opacities"], depths)]
+        out_colors, out_depths, out_alphas = rasterize_to_pixels(*leaves, bins, 37, 29, pixel_block=block)
+        loss = (out_colors * v_colors).sum() + (out_alphas * v_alphas).sum()
+        if depth_weight is not None:
+            loss = loss + depth_weight * out_depths.sum()
+        loss.backward()
+        grads.append([leaf.grad for leaf in leaves])
+    lanes = block[0] * block[1]
+    assert used == [(lanes, False), (lanes, True)]
+    for without, full in zip(*grads):
+        torch.testing.assert_close(without, full, rtol=1e-12, atol=1e-12 * full.abs().max().item())
+    assert grads[0][0].abs().max() > 0
+
+
 @pytest.mark.parametrize("block", [(1, 1), (2, 2), (4, 2)])
 def test_float32_backward_matches_float64_reference(block, monkeypatch):
     """float32 image and gradients against the float64 dense reference: within 2e-4 of the image and 2e-3 of each

@@ -138,12 +138,13 @@ class GaussianModel:
         return len(self.params["means"])
 
     # ----------------------------------------------------------------------------------------------- render, loss
-    def render(self, views: torch.Tensor, viewmats: torch.Tensor, sh_degree: int):
-        """Render training views `views` ([B] long) from [B,4,4] `viewmats`: (colors+depth [B,H,W,4], alphas, meta)."""
+    def render(self, views: torch.Tensor, viewmats: torch.Tensor, sh_degree: int, depth: bool = True):
+        """Render training views `views` ([B] long) from [B,4,4] `viewmats`: (colors+depth [B,H,W,4], or colors
+        [B,H,W,3] without `depth`, alphas, meta)."""
         data = self.training_views
         return render_gaussians(self.params, viewmats, data.Ks[views], data.scene.width, data.scene.height,
-                                sh_degree=sh_degree, backgrounds=data.backgrounds[views], render_mode="RGB+ED",
-                                cpu_threads=self.config.render_threads or None)
+                                sh_degree=sh_degree, backgrounds=data.backgrounds[views],
+                                render_mode="RGB+ED" if depth else "RGB", cpu_threads=self.config.render_threads or None)
 
     def render_views(self, viewmats: torch.Tensor, Ks: torch.Tensor | None = None,
                      params: dict[str, torch.Tensor] | None = None, sh_degree: int | None = None) -> torch.Tensor:
@@ -164,9 +165,11 @@ class GaussianModel:
         """The training loss of views `views` ([B] long) rendered from [B,4,4] `viewmats`: (loss, its terms as
         floats, the render's meta with `means2d`'s gradient retained for densification)."""
         config, data = self.config, self.training_views
-        renders, alphas, meta = self.render(views, viewmats, settings.sh_degree)
+        # the depth map only while the depth term is on: without it the rasterizer's backward skips the depth terms
+        with_depth = data.depths is not None and settings.depth
+        renders, alphas, meta = self.render(views, viewmats, settings.sh_degree, depth=with_depth)
         meta["means2d"].retain_grad()
-        images, depths, alphas = renders[..., :3], renders[..., 3], alphas[..., 0]
+        images, alphas = renders[..., :3], alphas[..., 0]
         targets = data.targets[views]
         blur = settings.blur_sigma
         if blur > 0:
@@ -193,9 +196,9 @@ class GaussianModel:
                     views.to(data.device))
                 loss = loss + config.lambda_chamfer * chamfer_term
                 terms["chamfer"] = chamfer_term.item()
-        if data.depths is not None and settings.depth:
+        if with_depth:
             masks = None if data.masks is None else data.masks[views]
-            depth_term = depth_loss(depths, alphas, data.depths[views], masks, mode=config.depth_loss)
+            depth_term = depth_loss(renders[..., 3], alphas, data.depths[views], masks, mode=config.depth_loss)
             if depth_term is not None:  # the photometric weight is 1 - lambda_depth while the depth term is on
                 loss = loss + config.lambda_depth * depth_term - config.lambda_depth * photometric
                 terms["depth"] = depth_term.item()

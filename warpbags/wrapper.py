@@ -713,6 +713,8 @@ class _RasterizeToPixels(torch.autograd.Function):
         ctx.save_for_backward(means2d, conics, colors, opacities, depths, bins.tile_offsets, bins.isect_ids,
                               final_transmittance, isect_end)
         ctx.mark_non_differentiable(final_transmittance, isect_end)
+        # an output the loss does not use gets None, not zeros: without a depth loss the backward skips the depth terms
+        ctx.set_materialize_grads(False)
         return out_colors, out_depths, out_alphas, final_transmittance, isect_end
 
     @staticmethod
@@ -746,7 +748,7 @@ class _RasterizeToPixels(torch.autograd.Function):
         buffers = [{name: torch.zeros_like(t) for name, t in splats.items()} for _ in range(max(len(ranges) - 1, 1))]
         wp_buffers = [{"v_" + name: _to_warp(t, _SPLAT_KINDS[name]) for name, t in b.items()} for b in buffers]
 
-        kernel = BACKWARD_KERNELS[ctx.lanes]
+        kernel = BACKWARD_KERNELS[ctx.lanes, v_out_depths is not None]
         launcher = _launcher(device)
 
         def work(i, start, stop):
