@@ -40,7 +40,7 @@ from warpbags.kernels.sh import sh_to_colors_kernel
 _WP_SCALARS = {torch.float32: wp.float32, torch.float64: wp.float64}
 
 # Warp value type of each tensor "kind": the trailing tensor dimensions it consumes.
-_KIND_SHAPES = {"scalar": (), "vec2": (2,), "vec3": (3,), "vec4": (4,), "mat33": (3, 3), "mat44": (4, 4)}
+_KIND_SHAPES = {"scalar": (), "vec2": (2,), "vec3": (3,), "vec4": (4,), "vec8": (8,), "mat33": (3, 3), "mat44": (4, 4)}
 
 
 def _warp_dtype(kind: str, scalar: torch.dtype):
