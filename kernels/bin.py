@@ -10,12 +10,13 @@ threshold), so the rasterized image is the one every tile of the bounding box wo
 Two orderings, same lists:
 - CUDA (gsplat): count each Gaussian's tiles, emit one key per (Gaussian, tile) after a prefix sum, key =
   tile << 32 | depth bits (the bit pattern of a positive float32 orders like its value), one 64-bit sort.
-- CPU: a counting sort, linear in the number of intersections instead of a sort of them. Each camera's Gaussians,
-  front to back (argsort of the N depths), are cut into consecutive chunks, one host-thread task each: a task
-  counts its Gaussians per tile in a histogram of its own; the prefix sum over tiles, and within a tile over the
-  camera's tasks in order, gives every task its own write cursors; then each task appends its Gaussians to their
-  tiles. A tile's list is thus the earlier chunks' entries before the later ones': front to back, the same lists
-  as one serial walk.
+- CPU: a counting sort, linear in the number of intersections instead of a sort of them. Each camera's Gaussians
+  are put front to back (one sort of the N depths); every Gaussian's tile spans, row by row, are found once, in
+  parallel over ranges of Gaussians, and stored in that order. The depth order is then cut into consecutive
+  chunks, one host-thread task each: a task counts its Gaussians per tile from the spans in a histogram of its
+  own; the prefix sum over tiles, and within a tile over the camera's tasks in order, gives every task its own
+  write cursors; then each task appends its Gaussians to their tiles. A tile's list is thus the earlier chunks'
+  entries before the later ones': front to back, the same lists as one serial walk.
 
 Camera c's tiles are numbered c * tiles_per_camera + ty * tiles_x + tx (`TileGeometry`, shared with the
 rasterizer). Never differentiated.
@@ -46,16 +47,29 @@ def tile_bounds(mean2d: Any, radius: int, tile_size: int, tiles_x: int, tiles_y:
 
 
 @wp.func
-def reach_quadric(conic: Any, opacity: Any):
-    """(a, b, c, t) with the ellipse of reach {d : a dx^2 + 2 b dx dy + c dy^2 <= t}; t < 0 if nothing reaches."""
-    return (float(conic[0]), float(conic[1]), float(conic[2]),
-            2.0 * wp.log(float(opacity) / ALPHA_THRESHOLD) + REACH_MARGIN)
+def reach_ellipse(conic: Any, opacity: Any):
+    """The ellipse of reach {d : a dx^2 + 2 b dx dy + c dy^2 <= t} of a Gaussian, and what every tile row needs of
+    it, computed once: (a, b, c, t, proper, dy_reach, dy_right, inv_a). `proper` is 0 for a conic that is not
+    positive definite (then the whole bounding square is kept); dy_reach is the ellipse's half-height, dy_right the
+    dy of its rightmost point (the leftmost one is at -dy_right)."""
+    a = float(conic[0])
+    b = float(conic[1])
+    c = float(conic[2])
+    t = 2.0 * wp.log(float(opacity) / ALPHA_THRESHOLD) + REACH_MARGIN
+    det = a * c - b * b
+    proper = a > 0.0 and c > 0.0 and det > 0.0
+    det = wp.where(proper, det, 1.0)
+    c_safe = wp.where(proper, c, 1.0)
+    dy_reach = wp.sqrt(t * a / det)
+    dx_reach = wp.sqrt(t * c / det)
+    return a, b, c, t, proper, dy_reach, -b * dx_reach / c_safe, 1.0 / wp.where(proper, a, 1.0)
 
 
 @wp.func
-def row_tile_span(mean2d: Any, a: float, b: float, c: float, t: float, ty: int, x0: int, x1: int, tile_size: int,
-                  width: int, height: int):
-    """Half-open tile columns [tx0, tx1) of tile row `ty`, within [x0, x1), that the ellipse of reach meets.
+def row_tile_span(mean2d: Any, a: float, b: float, c: float, t: float, proper: bool, dy_reach: float,
+                  dy_right: float, inv_a: float, ty: int, x0: int, x1: int, tile_size: int, width: int, height: int):
+    """Half-open tile columns [tx0, tx1) of tile row `ty`, within [x0, x1), that the ellipse of reach meets
+    (`reach_ellipse`'s values).
 
     The row's band is its pixel centres' y-range; the ellipse's points in the band project onto an x-interval whose
     ends are the ellipse's own x-extremes where they fall inside the band, else the band edge nearest to them (the
@@ -63,32 +77,27 @@ def row_tile_span(mean2d: Any, a: float, b: float, c: float, t: float, ty: int, 
     cut last tile only beyond the image is not listed there. A conic that is not positive definite keeps the whole
     [x0, x1).
     """
-    det = a * c - b * b
-    if a <= 0.0 or c <= 0.0 or det <= 0.0:
+    if not proper:
         return x0, x1
     ts = float(tile_size)
+    inv_ts = 1.0 / ts
     mx = float(mean2d[0])
     my = float(mean2d[1])
-    band_lo = float(ty) * ts + 0.5 - my
-    band_hi = wp.min(float(ty) * ts + ts, float(height)) - 0.5 - my
-    dy_reach = wp.sqrt(t * a / det)
-    band_lo = wp.max(band_lo, -dy_reach)
-    band_hi = wp.min(band_hi, dy_reach)
+    band_lo = wp.max(float(ty) * ts + 0.5 - my, -dy_reach)
+    band_hi = wp.min(wp.min(float(ty) * ts + ts, float(height)) - 0.5 - my, dy_reach)
     if band_lo > band_hi:
         return x0, x0
-    dx_reach = wp.sqrt(t * c / det)
-    # right extreme at (dx_reach, -b dx_reach / c), left one mirrored through the centre
-    dy_right = wp.clamp(-b * dx_reach / c, band_lo, band_hi)
-    dy_left = wp.clamp(b * dx_reach / c, band_lo, band_hi)
-    root_right = wp.sqrt(wp.max(b * b * dy_right * dy_right - a * (c * dy_right * dy_right - t), 0.0))
-    root_left = wp.sqrt(wp.max(b * b * dy_left * dy_left - a * (c * dy_left * dy_left - t), 0.0))
-    x_hi = wp.min(mx + (-b * dy_right + root_right) / a, float(width) - 0.5)
-    x_lo = mx + (-b * dy_left - root_left) / a
+    dy_r = wp.clamp(dy_right, band_lo, band_hi)
+    dy_l = wp.clamp(-dy_right, band_lo, band_hi)
+    root_right = wp.sqrt(wp.max(b * b * dy_r * dy_r - a * (c * dy_r * dy_r - t), 0.0))
+    root_left = wp.sqrt(wp.max(b * b * dy_l * dy_l - a * (c * dy_l * dy_l - t), 0.0))
+    x_hi = wp.min(mx + (-b * dy_r + root_right) * inv_a, float(width) - 0.5)
+    x_lo = mx + (-b * dy_l - root_left) * inv_a
     if x_lo > x_hi:
         return x0, x0
     # tile tx holds pixel centres tx * ts + 0.5 ... tx * ts + ts - 0.5
-    tx0 = wp.max(int(wp.ceil((x_lo + 0.5) / ts - 1.0)), x0)
-    tx1 = wp.min(int(wp.floor((x_hi - 0.5) / ts)) + 1, x1)
+    tx0 = wp.max(int(wp.ceil((x_lo + 0.5) * inv_ts - 1.0)), x0)
+    tx1 = wp.min(int(wp.floor((x_hi - 0.5) * inv_ts)) + 1, x1)
     return tx0, wp.max(tx1, tx0)
 
 
@@ -105,11 +114,12 @@ def count_tiles_kernel(
     tile_counts[gid] = 0
     if radii[gid] <= 0:
         return
-    a, b, c, t = reach_quadric(conics[gid], opacities[gid % tiles.num_gaussians])
+    a, b, c, t, proper, dy_reach, dy_right, inv_a = reach_ellipse(conics[gid], opacities[gid % tiles.num_gaussians])
     x0, x1, y0, y1 = tile_bounds(means2d[gid], radii[gid], tiles.tile_size, tiles.tiles_x, tiles.tiles_y)
     count = int(0)
     for ty in range(y0, y1):
-        tx0, tx1 = row_tile_span(means2d[gid], a, b, c, t, ty, x0, x1, tiles.tile_size, tiles.width, tiles.height)
+        tx0, tx1 = row_tile_span(means2d[gid], a, b, c, t, proper, dy_reach, dy_right, inv_a, ty, x0, x1,
+                                 tiles.tile_size, tiles.width, tiles.height)
         count += tx1 - tx0
     tile_counts[gid] = count
 
@@ -130,12 +140,13 @@ def emit_intersections_kernel(
     if radii[gid] <= 0:
         return
     cam = gid / tiles.num_gaussians
-    a, b, c, t = reach_quadric(conics[gid], opacities[gid % tiles.num_gaussians])
+    a, b, c, t, proper, dy_reach, dy_right, inv_a = reach_ellipse(conics[gid], opacities[gid % tiles.num_gaussians])
     x0, x1, y0, y1 = tile_bounds(means2d[gid], radii[gid], tiles.tile_size, tiles.tiles_x, tiles.tiles_y)
     depth_key = wp.int64(depth_bits[gid])
     cursor = write_offsets[gid]
     for ty in range(y0, y1):
-        tx0, tx1 = row_tile_span(means2d[gid], a, b, c, t, ty, x0, x1, tiles.tile_size, tiles.width, tiles.height)
+        tx0, tx1 = row_tile_span(means2d[gid], a, b, c, t, proper, dy_reach, dy_right, inv_a, ty, x0, x1,
+                                 tiles.tile_size, tiles.width, tiles.height)
         for tx in range(tx0, tx1):
             tile = cam * tiles.tiles_x * tiles.tiles_y + ty * tiles.tiles_x + tx
             isect_keys[cursor] = (wp.int64(tile) << wp.int64(32)) | depth_key
@@ -143,46 +154,93 @@ def emit_intersections_kernel(
             cursor += 1
 
 
+@wp.func
+def ranked_gaussian(rank: int, depth_order: wp.array(dtype=wp.int32), tiles: TileGeometry):
+    """The flat (camera, Gaussian) index of depth rank `rank` (camera-major, depth_order[c * N + k]: camera c's k-th
+    Gaussian front to back)."""
+    return (rank / tiles.num_gaussians) * tiles.num_gaussians + depth_order[rank]
+
+
 @wp.kernel(enable_backward=False)
-def tile_histogram_kernel(
+def tile_rows_kernel(
+    means2d: wp.array(dtype=Any),
+    radii: wp.array(dtype=wp.int32),
+    depth_order: wp.array(dtype=wp.int32),
+    tiles: TileGeometry,
+    first_rows: wp.array(dtype=wp.int32),
+    row_counts: wp.array(dtype=wp.int32),
+):
+    """Per depth rank: the first tile row of the Gaussian's bounding square and how many rows it spans (0 if
+    culled)."""
+    rank = wp.tid()
+    gid = ranked_gaussian(rank, depth_order, tiles)
+    first_rows[rank] = 0
+    row_counts[rank] = 0
+    if radii[gid] > 0:
+        x0, x1, y0, y1 = tile_bounds(means2d[gid], radii[gid], tiles.tile_size, tiles.tiles_x, tiles.tiles_y)
+        first_rows[rank] = y0
+        row_counts[rank] = y1 - y0
+
+
+@wp.kernel(enable_backward=False)
+def tile_spans_kernel(
     means2d: wp.array(dtype=Any),
     conics: wp.array(dtype=Any),
     opacities: wp.array(dtype=Any),
     radii: wp.array(dtype=wp.int32),
-    depth_order: wp.array2d(dtype=wp.int32),
+    depth_order: wp.array(dtype=wp.int32),
     tiles: TileGeometry,
-    chunk_cameras: wp.array(dtype=wp.int32),
+    row_offsets: wp.array(dtype=wp.int32),
+    first_rank: int,
+    spans: wp.array(dtype=wp.vec2i),
+):
+    """Per depth rank from `first_rank` on: the tile columns [tx0, tx1) the Gaussian's ellipse of reach meets in
+    each of its rows, at spans[row_offsets[rank] + row - first row]. The ellipse work, done once and in parallel for
+    the counting and filling passes, which then read the spans in order."""
+    rank = first_rank + wp.tid()
+    gid = ranked_gaussian(rank, depth_order, tiles)
+    if radii[gid] <= 0:
+        return
+    a, b, c, t, proper, dy_reach, dy_right, inv_a = reach_ellipse(conics[gid], opacities[gid % tiles.num_gaussians])
+    x0, x1, y0, y1 = tile_bounds(means2d[gid], radii[gid], tiles.tile_size, tiles.tiles_x, tiles.tiles_y)
+    for ty in range(y0, y1):
+        tx0, tx1 = row_tile_span(means2d[gid], a, b, c, t, proper, dy_reach, dy_right, inv_a, ty, x0, x1,
+                                 tiles.tile_size, tiles.width, tiles.height)
+        spans[row_offsets[rank] + ty - y0] = wp.vec2i(tx0, tx1)
+
+
+@wp.kernel(enable_backward=False)
+def tile_histogram_kernel(
+    spans: wp.array(dtype=wp.vec2i),
+    row_offsets: wp.array(dtype=wp.int32),
+    first_rows: wp.array(dtype=wp.int32),
+    row_counts: wp.array(dtype=wp.int32),
+    depth_order: wp.array(dtype=wp.int32),
+    tiles: TileGeometry,
     chunk_starts: wp.array(dtype=wp.int32),
     chunk_stops: wp.array(dtype=wp.int32),
     first_chunk: int,
     chunk_counts: wp.array2d(dtype=wp.int32),
 ):
-    """One thread per chunk of a camera's depth order: chunk_counts[chunk, tile] = how many of the chunk's Gaussians
-    the camera's tile lists (zeroed by the caller)."""
+    """One thread per chunk [start, stop) of one camera's depth ranks: chunk_counts[chunk, tile] = how many of the
+    chunk's Gaussians the camera's tile lists (zeroed by the caller)."""
     chunk = first_chunk + wp.tid()
-    cam = chunk_cameras[chunk]
-    for k in range(chunk_starts[chunk], chunk_stops[chunk]):
-        g = depth_order[cam, k]
-        gid = cam * tiles.num_gaussians + g
-        if radii[gid] > 0:
-            a, b, c, t = reach_quadric(conics[gid], opacities[g])
-            x0, x1, y0, y1 = tile_bounds(means2d[gid], radii[gid], tiles.tile_size, tiles.tiles_x, tiles.tiles_y)
-            for ty in range(y0, y1):
-                tx0, tx1 = row_tile_span(means2d[gid], a, b, c, t, ty, x0, x1, tiles.tile_size, tiles.width, tiles.height)
-                for tx in range(tx0, tx1):
-                    tile = ty * tiles.tiles_x + tx  # among the camera's tiles
-                    chunk_counts[chunk, tile] = chunk_counts[chunk, tile] + 1
+    for rank in range(chunk_starts[chunk], chunk_stops[chunk]):
+        for row in range(row_counts[rank]):
+            span = spans[row_offsets[rank] + row]
+            first_tile = (first_rows[rank] + row) * tiles.tiles_x  # among the camera's tiles
+            for tx in range(span[0], span[1]):
+                chunk_counts[chunk, first_tile + tx] = chunk_counts[chunk, first_tile + tx] + 1
 
 
 @wp.kernel(enable_backward=False)
 def fill_tiles_front_to_back_kernel(
-    means2d: wp.array(dtype=Any),
-    conics: wp.array(dtype=Any),
-    opacities: wp.array(dtype=Any),
-    radii: wp.array(dtype=wp.int32),
-    depth_order: wp.array2d(dtype=wp.int32),
+    spans: wp.array(dtype=wp.vec2i),
+    row_offsets: wp.array(dtype=wp.int32),
+    first_rows: wp.array(dtype=wp.int32),
+    row_counts: wp.array(dtype=wp.int32),
+    depth_order: wp.array(dtype=wp.int32),
     tiles: TileGeometry,
-    chunk_cameras: wp.array(dtype=wp.int32),
     chunk_starts: wp.array(dtype=wp.int32),
     chunk_stops: wp.array(dtype=wp.int32),
     first_chunk: int,
@@ -192,16 +250,11 @@ def fill_tiles_front_to_back_kernel(
     """One thread per chunk: append the chunk's Gaussians to their tiles' lists in depth order, each tile's cursor
     (`chunk_cursors[chunk, tile]`) starting where the chunk's entries of that tile go."""
     chunk = first_chunk + wp.tid()
-    cam = chunk_cameras[chunk]
-    for k in range(chunk_starts[chunk], chunk_stops[chunk]):
-        g = depth_order[cam, k]
-        gid = cam * tiles.num_gaussians + g
-        if radii[gid] > 0:
-            a, b, c, t = reach_quadric(conics[gid], opacities[g])
-            x0, x1, y0, y1 = tile_bounds(means2d[gid], radii[gid], tiles.tile_size, tiles.tiles_x, tiles.tiles_y)
-            for ty in range(y0, y1):
-                tx0, tx1 = row_tile_span(means2d[gid], a, b, c, t, ty, x0, x1, tiles.tile_size, tiles.width, tiles.height)
-                for tx in range(tx0, tx1):
-                    tile = ty * tiles.tiles_x + tx  # among the camera's tiles
-                    isect_ids[chunk_cursors[chunk, tile]] = gid
-                    chunk_cursors[chunk, tile] = chunk_cursors[chunk, tile] + 1
+    for rank in range(chunk_starts[chunk], chunk_stops[chunk]):
+        gid = ranked_gaussian(rank, depth_order, tiles)
+        for row in range(row_counts[rank]):
+            span = spans[row_offsets[rank] + row]
+            first_tile = (first_rows[rank] + row) * tiles.tiles_x
+            for tx in range(span[0], span[1]):
+                isect_ids[chunk_cursors[chunk, first_tile + tx]] = gid
+                chunk_cursors[chunk, first_tile + tx] = chunk_cursors[chunk, first_tile + tx] + 1

@@ -23,6 +23,7 @@ import os
 from concurrent.futures import ThreadPoolExecutor
 from typing import NamedTuple, Sequence
 
+import numpy as np
 import torch
 import warp as wp
 
@@ -31,6 +32,8 @@ from warpbags.kernels.bin import (
     emit_intersections_kernel,
     fill_tiles_front_to_back_kernel,
     tile_histogram_kernel,
+    tile_rows_kernel,
+    tile_spans_kernel,
 )
 from warpbags.kernels.pose import apply_object_deltas_kernel, apply_pose_deltas_kernel
 from warpbags.kernels.project import project_gaussians_kernel
@@ -482,20 +485,38 @@ def _bin_by_sort(splats: dict, tiles: TileGeometry, depths: torch.Tensor, num_ti
 
 def _bin_by_counting(splats: dict, tiles: TileGeometry, radii: torch.Tensor, depths: torch.Tensor, num_tiles: int,
                      threads: int):
-    """Counting sort by tile of the depth-ordered Gaussians (the CPU path, kernels/bin.py): every camera's depth
-    order in chunks, each a host-thread task with its own histogram and write cursors (Warp launches release the
-    GIL); the lists are those of one serial walk."""
-    cams = radii.shape[0]
+    """Counting sort by tile of the depth-ordered Gaussians (the CPU path, kernels/bin.py). Every Gaussian's tile
+    spans are found once, in parallel, and stored in depth order; then every camera's depth order, in chunks that
+    are each a host-thread task with its own histogram and write cursors (Warp launches release the GIL), counts
+    and fills the tiles from the spans. The lists are those of one serial walk."""
+    cams, n = radii.shape
     launcher = _launcher(radii.device)
     tiles_per_camera = tiles.tiles_x * tiles.tiles_y
-    # Culled Gaussians last; a stable sort keeps equal depths in index order (deterministic lists).
-    depth_keys = torch.where(radii > 0, depths.detach(), torch.full_like(depths, math.inf))
-    depth_order = torch.argsort(depth_keys, dim=1, stable=True).to(torch.int32)
+    depth_order = _to_warp(_depth_order(depths, radii).reshape(-1), "int32")
+    first_rows = torch.empty(cams * n, dtype=torch.int32)
+    row_counts = torch.empty(cams * n, dtype=torch.int32)
+    launcher.launch(tile_rows_kernel, cams * n, means2d=splats["means2d"], radii=splats["radii"],
+                    depth_order=depth_order, tiles=tiles, first_rows=_to_warp(first_rows, "int32"),
+                    row_counts=_to_warp(row_counts, "int32"))
+    row_ends = torch.cumsum(row_counts, 0, dtype=torch.int32)
+    spans = torch.empty(int(row_ends[-1]) if len(row_ends) else 0, 2, dtype=torch.int32)
+    rows = dict(spans=wp.from_torch(spans, dtype=wp.vec2i), row_offsets=_to_warp(row_ends - row_counts, "int32"),
+                first_rows=_to_warp(first_rows, "int32"), row_counts=_to_warp(row_counts, "int32"),
+                depth_order=depth_order, tiles=tiles)
+
+    def find_spans(_, first, stop):
+        launcher.launch(tile_spans_kernel, stop - first, **splats, depth_order=depth_order, tiles=tiles,
+                        row_offsets=rows["row_offsets"], first_rank=first, spans=rows["spans"])
+
+    parts = 4 * threads  # equal rank ranges; the work per Gaussian varies, so more ranges than threads
+    bounds = [min(1, cams * n) + round(i * max(cams * n - 1, 0) / parts) for i in range(parts + 1)]
+    _run_ranges(find_spans, [(0, min(1, cams * n))] + [(a, b) for a, b in zip(bounds[:-1], bounds[1:]) if b > a],
+                threads)
+
     chunks = _depth_chunks((radii > 0).sum(dim=1).tolist(), max(1, math.ceil(2 * threads / cams)) if threads > 1 else 1)
     cameras_of, starts, stops = (torch.tensor(column, dtype=torch.int32) for column in zip(*chunks))
-    chunk_args = dict(**splats, depth_order=_to_warp(depth_order, "int32"), tiles=tiles,
-                      chunk_cameras=_to_warp(cameras_of, "int32"), chunk_starts=_to_warp(starts, "int32"),
-                      chunk_stops=_to_warp(stops, "int32"))
+    chunk_args = dict(**rows, chunk_starts=_to_warp(starts + cameras_of * n, "int32"),
+                      chunk_stops=_to_warp(stops + cameras_of * n, "int32"))
     one_each = [(chunk, chunk + 1) for chunk in range(len(chunks))]
     counts = torch.zeros(len(chunks), tiles_per_camera, dtype=torch.int32)
     counts_wp = _to_warp(counts, "int32")
@@ -510,8 +531,8 @@ def _bin_by_counting(splats: dict, tiles: TileGeometry, radii: torch.Tensor, dep
     torch.cumsum(camera_counts.reshape(-1), 0, dtype=torch.int32, out=tile_offsets[1:])
     before = torch.zeros_like(counts)
     for cam in range(cams):
-        rows = (cameras_of == cam).nonzero()[:, 0]
-        before[rows] = torch.cumsum(counts[rows], 0, dtype=torch.int32) - counts[rows]
+        of_camera = (cameras_of == cam).nonzero()[:, 0]
+        before[of_camera] = torch.cumsum(counts[of_camera], 0, dtype=torch.int32) - counts[of_camera]
     cursors = before + tile_offsets[:-1].reshape(cams, tiles_per_camera)[cameras_of.long()]
     isect_ids = torch.empty(int(tile_offsets[-1]), dtype=torch.int32)
     cursors_wp, ids_wp = _to_warp(cursors.contiguous(), "int32"), _to_warp(isect_ids, "int32")
@@ -523,6 +544,19 @@ def _bin_by_counting(splats: dict, tiles: TileGeometry, radii: torch.Tensor, dep
     if len(isect_ids):
         _run_ranges(fill, one_each, threads)
     return tile_offsets, isect_ids
+
+
+def _depth_order(depths: torch.Tensor, radii: torch.Tensor) -> torch.Tensor:
+    """[C, N] int32: each camera's Gaussians front to back, culled ones last, equal depths in index order (so the
+    lists are deterministic). float32 depths sort as one int64 key per Gaussian, depth bits over index (a positive
+    float's bits order like its value), with numpy's vectorized sort: 1.1 ms for 100k keys against 10 ms for
+    torch's stable argsort on one thread; float64 (the reference tests) keeps torch's stable argsort."""
+    keys = torch.where(radii > 0, depths.detach(), torch.full_like(depths, math.inf))
+    if keys.dtype != torch.float32:
+        return torch.argsort(keys, dim=1, stable=True).to(torch.int32)
+    index = torch.arange(keys.shape[1], dtype=torch.int64)
+    packed = (keys.contiguous().view(torch.int32).to(torch.int64) << 32) | index
+    return torch.from_numpy(np.sort(packed.numpy(), axis=1) & 0xFFFFFFFF).to(torch.int32)
 
 
 def _depth_chunks(visible: list[int], per_camera: int) -> list[tuple[int, int, int]]:
