@@ -46,8 +46,8 @@ def tap_line(line_in_image: int, tap: int, lines: int, window: wp.array(dtype=An
 
 
 @wp.func
-def filled(like: Any, value: Any):
-    """A run of `like`'s type with every lane `value` (a scalar of its type: a `float` parameter would be float32)."""
+def filled(value: Any):
+    """A run with every lane `value` (typed by the caller: a `float` parameter would make it float32)."""
     return wp.vector(value, length=wp.static(RUN))
 
 
@@ -65,9 +65,9 @@ def signum(v: Any):
 @wp.func
 def ssim_terms(mu_x: Any, mu_y: Any, e_xx: Any, e_yy: Any, e_xy: Any):
     """(S, dS/dmu_x, dS/dE[x^2], dS/dE[xy]) of one channel, lanewise over a run."""
-    c1 = filled(mu_x, type(mu_x[0])(SSIM_C1))
-    c2 = filled(mu_x, type(mu_x[0])(SSIM_C2))
-    one = filled(mu_x, type(mu_x[0])(1.0))
+    c1 = filled(type(mu_x[0])(SSIM_C1))
+    c2 = filled(type(mu_x[0])(SSIM_C2))
+    one = filled(type(mu_x[0])(1.0))
     two = type(mu_x[0])(2.0)
     mu_xy = wp.cw_mul(mu_x, mu_y)
     mu_xx = wp.cw_mul(mu_x, mu_x)
@@ -203,7 +203,7 @@ def ssim_column_pass_kernel(
         partials[(3 * ch + 2) * padded_plane + padded] = wp.cw_mul(d_e_xy, inside)
         # past the last column x and y are both 0
         l1_sum = l1_sum + wp.dot(wp.abs(planes[ch * padded_plane + padded] - planes[(3 + ch) * padded_plane + padded]),
-                                 filled(inside, window.dtype(1.0)))
+                                 filled(window.dtype(1.0)))
     ssim_sums[line * runs + run] = ssim_sum
     l1_sums[line * runs + run] = l1_sum
 
