@@ -20,7 +20,8 @@ lanes and compiles to vector instructions. A column blur reads the run of each o
 outside the image has weight 0). A row blur reads the run and its two neighbours and takes each tap as a shifted
 window of them; the planes it reads carry a zero run before and after every row (and zeros past the image's last
 column), which is the zero padding. Each pixel sums its taps in the same order as a plain per-pixel loop, and a
-pixel past the image's last column is computed but never kept.
+pixel past the image's last column is computed but never kept. The column blurs of a kernel's maps share one loop
+over the taps (one clamped row and weight per tap for all of them): a helper called per map measured 25-30% slower.
 
 A launch is [runs per row, rows] from the batch's row `first_line` on, so host threads can take disjoint row ranges
 (a pass finishes before the next starts). Never differentiated by Warp.
