@@ -47,29 +47,16 @@ def tile_bounds(mean2d: Any, radius: int, tile_size: int, tiles_x: int, tiles_y:
 
 
 @wp.func
-def reach_ellipse(conic: Any, opacity: Any):
-    """The ellipse of reach {d : a dx^2 + 2 b dx dy + c dy^2 <= t} of a Gaussian, and what every tile row needs of
-    it, computed once: (a, b, c, t, proper, dy_reach, dy_right, inv_a). `proper` is 0 for a conic that is not
-    positive definite (then the whole bounding square is kept); dy_reach is the ellipse's half-height, dy_right the
-    dy of its rightmost point (the leftmost one is at -dy_right)."""
-    a = float(conic[0])
-    b = float(conic[1])
-    c = float(conic[2])
-    t = 2.0 * wp.log(float(opacity) / ALPHA_THRESHOLD) + REACH_MARGIN
-    det = a * c - b * b
-    proper = a > 0.0 and c > 0.0 and det > 0.0
-    det = wp.where(proper, det, 1.0)
-    c_safe = wp.where(proper, c, 1.0)
-    dy_reach = wp.sqrt(t * a / det)
-    dx_reach = wp.sqrt(t * c / det)
-    return a, b, c, t, proper, dy_reach, -b * dx_reach / c_safe, 1.0 / wp.where(proper, a, 1.0)
+def reach_quadric(conic: Any, opacity: Any):
+    """(a, b, c, t) with the ellipse of reach {d : a dx^2 + 2 b dx dy + c dy^2 <= t}; t < 0 if nothing reaches."""
+    return (float(conic[0]), float(conic[1]), float(conic[2]),
+            2.0 * wp.log(float(opacity) / ALPHA_THRESHOLD) + REACH_MARGIN)
 
 
 @wp.func
-def row_tile_span(mean2d: Any, a: float, b: float, c: float, t: float, proper: bool, dy_reach: float,
-                  dy_right: float, inv_a: float, ty: int, x0: int, x1: int, tile_size: int, width: int, height: int):
-    """Half-open tile columns [tx0, tx1) of tile row `ty`, within [x0, x1), that the ellipse of reach meets
-    (`reach_ellipse`'s values).
+def row_tile_span(mean2d: Any, a: float, b: float, c: float, t: float, ty: int, x0: int, x1: int, tile_size: int,
+                  width: int, height: int):
+    """Half-open tile columns [tx0, tx1) of tile row `ty`, within [x0, x1), that the ellipse of reach meets.
 
     The row's band is its pixel centres' y-range; the ellipse's points in the band project onto an x-interval whose
     ends are the ellipse's own x-extremes where they fall inside the band, else the band edge nearest to them (the
@@ -77,27 +64,32 @@ def row_tile_span(mean2d: Any, a: float, b: float, c: float, t: float, proper: b
     cut last tile only beyond the image is not listed there. A conic that is not positive definite keeps the whole
     [x0, x1).
     """
-    if not proper:
+    det = a * c - b * b
+    if a <= 0.0 or c <= 0.0 or det <= 0.0:
         return x0, x1
     ts = float(tile_size)
-    inv_ts = 1.0 / ts
     mx = float(mean2d[0])
     my = float(mean2d[1])
-    band_lo = wp.max(float(ty) * ts + 0.5 - my, -dy_reach)
-    band_hi = wp.min(wp.min(float(ty) * ts + ts, float(height)) - 0.5 - my, dy_reach)
+    band_lo = float(ty) * ts + 0.5 - my
+    band_hi = wp.min(float(ty) * ts + ts, float(height)) - 0.5 - my
+    dy_reach = wp.sqrt(t * a / det)
+    band_lo = wp.max(band_lo, -dy_reach)
+    band_hi = wp.min(band_hi, dy_reach)
     if band_lo > band_hi:
         return x0, x0
-    dy_r = wp.clamp(dy_right, band_lo, band_hi)
-    dy_l = wp.clamp(-dy_right, band_lo, band_hi)
-    root_right = wp.sqrt(wp.max(b * b * dy_r * dy_r - a * (c * dy_r * dy_r - t), 0.0))
-    root_left = wp.sqrt(wp.max(b * b * dy_l * dy_l - a * (c * dy_l * dy_l - t), 0.0))
-    x_hi = wp.min(mx + (-b * dy_r + root_right) * inv_a, float(width) - 0.5)
-    x_lo = mx + (-b * dy_l - root_left) * inv_a
+    dx_reach = wp.sqrt(t * c / det)
+    # right extreme at (dx_reach, -b dx_reach / c), left one mirrored through the centre
+    dy_right = wp.clamp(-b * dx_reach / c, band_lo, band_hi)
+    dy_left = wp.clamp(b * dx_reach / c, band_lo, band_hi)
+    root_right = wp.sqrt(wp.max(b * b * dy_right * dy_right - a * (c * dy_right * dy_right - t), 0.0))
+    root_left = wp.sqrt(wp.max(b * b * dy_left * dy_left - a * (c * dy_left * dy_left - t), 0.0))
+    x_hi = wp.min(mx + (-b * dy_right + root_right) / a, float(width) - 0.5)
+    x_lo = mx + (-b * dy_left - root_left) / a
     if x_lo > x_hi:
         return x0, x0
     # tile tx holds pixel centres tx * ts + 0.5 ... tx * ts + ts - 0.5
-    tx0 = wp.max(int(wp.ceil((x_lo + 0.5) * inv_ts - 1.0)), x0)
-    tx1 = wp.min(int(wp.floor((x_hi - 0.5) * inv_ts)) + 1, x1)
+    tx0 = wp.max(int(wp.ceil((x_lo + 0.5) / ts - 1.0)), x0)
+    tx1 = wp.min(int(wp.floor((x_hi - 0.5) / ts)) + 1, x1)
     return tx0, wp.max(tx1, tx0)
 
 
@@ -114,12 +106,11 @@ def count_tiles_kernel(
     tile_counts[gid] = 0
     if radii[gid] <= 0:
         return
-    a, b, c, t, proper, dy_reach, dy_right, inv_a = reach_ellipse(conics[gid], opacities[gid % tiles.num_gaussians])
+    a, b, c, t = reach_quadric(conics[gid], opacities[gid % tiles.num_gaussians])
     x0, x1, y0, y1 = tile_bounds(means2d[gid], radii[gid], tiles.tile_size, tiles.tiles_x, tiles.tiles_y)
     count = int(0)
     for ty in range(y0, y1):
-        tx0, tx1 = row_tile_span(means2d[gid], a, b, c, t, proper, dy_reach, dy_right, inv_a, ty, x0, x1,
-                                 tiles.tile_size, tiles.width, tiles.height)
+        tx0, tx1 = row_tile_span(means2d[gid], a, b, c, t, ty, x0, x1, tiles.tile_size, tiles.width, tiles.height)
         count += tx1 - tx0
     tile_counts[gid] = count
 
@@ -140,13 +131,12 @@ def emit_intersections_kernel(
     if radii[gid] <= 0:
         return
     cam = gid / tiles.num_gaussians
-    a, b, c, t, proper, dy_reach, dy_right, inv_a = reach_ellipse(conics[gid], opacities[gid % tiles.num_gaussians])
+    a, b, c, t = reach_quadric(conics[gid], opacities[gid % tiles.num_gaussians])
     x0, x1, y0, y1 = tile_bounds(means2d[gid], radii[gid], tiles.tile_size, tiles.tiles_x, tiles.tiles_y)
     depth_key = wp.int64(depth_bits[gid])
     cursor = write_offsets[gid]
     for ty in range(y0, y1):
-        tx0, tx1 = row_tile_span(means2d[gid], a, b, c, t, proper, dy_reach, dy_right, inv_a, ty, x0, x1,
-                                 tiles.tile_size, tiles.width, tiles.height)
+        tx0, tx1 = row_tile_span(means2d[gid], a, b, c, t, ty, x0, x1, tiles.tile_size, tiles.width, tiles.height)
         for tx in range(tx0, tx1):
             tile = cam * tiles.tiles_x * tiles.tiles_y + ty * tiles.tiles_x + tx
             isect_keys[cursor] = (wp.int64(tile) << wp.int64(32)) | depth_key
@@ -201,11 +191,10 @@ def tile_spans_kernel(
     gid = ranked_gaussian(rank, depth_order, tiles)
     if radii[gid] <= 0:
         return
-    a, b, c, t, proper, dy_reach, dy_right, inv_a = reach_ellipse(conics[gid], opacities[gid % tiles.num_gaussians])
+    a, b, c, t = reach_quadric(conics[gid], opacities[gid % tiles.num_gaussians])
     x0, x1, y0, y1 = tile_bounds(means2d[gid], radii[gid], tiles.tile_size, tiles.tiles_x, tiles.tiles_y)
     for ty in range(y0, y1):
-        tx0, tx1 = row_tile_span(means2d[gid], a, b, c, t, proper, dy_reach, dy_right, inv_a, ty, x0, x1,
-                                 tiles.tile_size, tiles.width, tiles.height)
+        tx0, tx1 = row_tile_span(means2d[gid], a, b, c, t, ty, x0, x1, tiles.tile_size, tiles.width, tiles.height)
         spans[row_offsets[rank] + ty - y0] = wp.vec2i(tx0, tx1)
 
 
@@ -215,7 +204,6 @@ def tile_histogram_kernel(
     row_offsets: wp.array(dtype=wp.int32),
     first_rows: wp.array(dtype=wp.int32),
     row_counts: wp.array(dtype=wp.int32),
-    depth_order: wp.array(dtype=wp.int32),
     tiles: TileGeometry,
     chunk_starts: wp.array(dtype=wp.int32),
     chunk_stops: wp.array(dtype=wp.int32),

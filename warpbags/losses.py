@@ -136,7 +136,7 @@ class _FusedPhotometricLoss(torch.autograd.Function):
         _row_passes(ssim_column_pass_kernel, [_runs(planes), window, width, height, rows, runs],
                     [_runs(row_means), _to_warp(ssim_sums, "scalar"), _to_warp(l1_sums, "scalar"), _runs(partials)],
                     rows, runs, images.device)
-        values = 3 * images[..., 0].numel()
+        values = 3 * batch * height * width
         l1, ssim_value = l1_sums.sum() / values, ssim_sums.sum() / values
         loss = (1 - lambda_dssim) * l1 + lambda_dssim * (1 - ssim_value)
         ctx.save_for_backward(planes, partials)

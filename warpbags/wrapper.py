@@ -180,6 +180,13 @@ def _tensor_device(args: Sequence) -> torch.device:
 MIN_PAIRS_PER_THREAD = 16384
 
 
+def _first_alone_then_equal(count: int, parts: int) -> list[tuple[int, int]]:
+    """[start, stop) ranges of range(count): the first item alone (`_run_ranges` runs the first range alone, so a
+    kernel's first-use compilation happens once), then `parts` about equal ranges of the rest; empty ones left out."""
+    bounds = [min(1, count) + round(i * max(count - 1, 0) / parts) for i in range(parts + 1)]
+    return [(a, b) for a, b in zip([0, *bounds], bounds) if b > a]
+
+
 class _GaussianRanges(NamedTuple):
     """How a stage's launch is cut: `ranges` of the Gaussian index (None: one launch over the whole `dim`)."""
 
@@ -194,9 +201,7 @@ class _GaussianRanges(NamedTuple):
         workers = _default_cpu_threads() if device.type == "cpu" else 1
         if not stage.gaussian_inputs or workers == 1 or dim[0] * dim[1] < MIN_PAIRS_PER_THREAD * workers:
             return _GaussianRanges(dim, None)
-        n = dim[1]
-        bounds = [min(1, n) + round(i * max(n - 1, 0) / workers) for i in range(workers + 1)]
-        return _GaussianRanges(dim, [(0, min(1, n))] + [(a, b) for a, b in zip(bounds[:-1], bounds[1:]) if b > a])
+        return _GaussianRanges(dim, _first_alone_then_equal(dim[1], workers))
 
     def launch_dim(self, cut: tuple[int, int] | None):
         return self.dim if cut is None else (self.dim[0], cut[1] - cut[0])
@@ -501,17 +506,14 @@ def _bin_by_counting(splats: dict, tiles: TileGeometry, radii: torch.Tensor, dep
     row_ends = torch.cumsum(row_counts, 0, dtype=torch.int32)
     spans = torch.empty(int(row_ends[-1]) if len(row_ends) else 0, 2, dtype=torch.int32)
     rows = dict(spans=wp.from_torch(spans, dtype=wp.vec2i), row_offsets=_to_warp(row_ends - row_counts, "int32"),
-                first_rows=_to_warp(first_rows, "int32"), row_counts=_to_warp(row_counts, "int32"),
-                depth_order=depth_order, tiles=tiles)
+                first_rows=_to_warp(first_rows, "int32"), row_counts=_to_warp(row_counts, "int32"), tiles=tiles)
 
     def find_spans(_, first, stop):
         launcher.launch(tile_spans_kernel, stop - first, **splats, depth_order=depth_order, tiles=tiles,
                         row_offsets=rows["row_offsets"], first_rank=first, spans=rows["spans"])
 
-    parts = 4 * threads  # equal rank ranges; the work per Gaussian varies, so more ranges than threads
-    bounds = [min(1, cams * n) + round(i * max(cams * n - 1, 0) / parts) for i in range(parts + 1)]
-    _run_ranges(find_spans, [(0, min(1, cams * n))] + [(a, b) for a, b in zip(bounds[:-1], bounds[1:]) if b > a],
-                threads)
+    # more ranges than threads: the work per Gaussian varies
+    _run_ranges(find_spans, _first_alone_then_equal(cams * n, 4 * threads), threads)
 
     chunks = _depth_chunks((radii > 0).sum(dim=1).tolist(), max(1, math.ceil(2 * threads / cams)) if threads > 1 else 1)
     cameras_of, starts, stops = (torch.tensor(column, dtype=torch.int32) for column in zip(*chunks))
@@ -538,8 +540,8 @@ def _bin_by_counting(splats: dict, tiles: TileGeometry, radii: torch.Tensor, dep
     cursors_wp, ids_wp = _to_warp(cursors.contiguous(), "int32"), _to_warp(isect_ids, "int32")
 
     def fill(_, first, stop):
-        launcher.launch(fill_tiles_front_to_back_kernel, stop - first, **chunk_args, first_chunk=first,
-                        chunk_cursors=cursors_wp, isect_ids=ids_wp)
+        launcher.launch(fill_tiles_front_to_back_kernel, stop - first, **chunk_args, depth_order=depth_order,
+                        first_chunk=first, chunk_cursors=cursors_wp, isect_ids=ids_wp)
 
     if len(isect_ids):
         _run_ranges(fill, one_each, threads)
@@ -565,10 +567,7 @@ def _depth_chunks(visible: list[int], per_camera: int) -> list[tuple[int, int, i
     compilation), then `per_camera` equal chunks of the rest; empty ranges left out, at least one per camera."""
     chunks = []
     for cam, count in enumerate(visible):
-        bounds = [0, min(1, count)] + [min(1, count) + round(i * max(count - 1, 0) / per_camera)
-                                       for i in range(1, per_camera + 1)]
-        ranges = [(cam, a, b) for a, b in zip(bounds[:-1], bounds[1:]) if b > a]
-        chunks += ranges or [(cam, 0, 0)]
+        chunks += [(cam, a, b) for a, b in _first_alone_then_equal(count, per_camera)] or [(cam, 0, 0)]
     return chunks
 
 
