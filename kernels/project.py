@@ -8,7 +8,8 @@ The radius is opacity aware: a pixel at Mahalanobis distance d receives alpha = 
 below the rasterizer's 1/255 cut-off beyond d^2 = 2 ln(255 opacity). Binning with that radius therefore drops
 nothing the rasterizer would have blended (a plain 3-sigma cut changes the image).
 
-No dynamic loops: Warp's automatic adjoint is exact for this kernel. Culled Gaussians get radius 0.
+No dynamic loops: Warp's automatic adjoint is exact for this kernel. Culled Gaussians get radius 0, and a radius of
+0 always means culled.
 """
 
 from typing import Any
@@ -128,6 +129,10 @@ def project_gaussians_kernel(
     lambda_max = mid + wp.sqrt(wp.max(opacities.dtype(0.01), mid * mid - det))
     extent_sq = opacities.dtype(2.0) * wp.log(opacity / opacities.dtype(ALPHA_THRESHOLD))
     radius = wp.ceil(wp.sqrt(extent_sq * lambda_max))
+    # Radius 0 (an opacity of exactly 1/255, whose extent is 0) is culled as well: a radius of 0 then always means
+    # that nothing was written.
+    if radius <= opacities.dtype(0.0):
+        return
 
     mean2d = wp.vector(fx * p_cam[0] / depth + cx, fy * p_cam[1] / depth + cy)
     if mean2d[0] + radius <= opacities.dtype(0.0) or mean2d[0] - radius >= opacities.dtype(width):

@@ -100,9 +100,10 @@ def projection_reference(means, quats, scales, opacities, viewmats, Ks, width, h
         means2d [C, N, 2], conics [C, N, 3] (inverse 2D covariance: [0,0], [0,1], [1,1]), depths [C, N], radii
         [C, N] int32 and extents [C, N] (the radius before rounding up). A Gaussian is culled (radius 0, every
         float output 0) when its depth is outside [near_plane, far_plane], its opacity is below 1/255, its 2D
-        covariance is not positive definite, or its footprint square misses the image. The footprint reaches where
-        alpha = opacity exp(-d^T conic d / 2) >= 1/255, i.e. d^T conic d <= 2 ln(255 opacity): along the major
-        axis sqrt(2 ln(255 opacity) lambda_max), with lambda_max = mid + sqrt(max(0.01, mid^2 - det)) (gsplat).
+        covariance is not positive definite, its radius is 0 (an opacity of exactly 1/255) or its footprint square
+        misses the image. The footprint reaches where alpha = opacity exp(-d^T conic d / 2) >= 1/255, i.e.
+        d^T conic d <= 2 ln(255 opacity): along the major axis sqrt(2 ln(255 opacity) lambda_max), with
+        lambda_max = mid + sqrt(max(0.01, mid^2 - det)) (gsplat).
     """
     outputs = []
     for viewmat, K in zip(viewmats, Ks):
@@ -113,7 +114,7 @@ def projection_reference(means, quats, scales, opacities, viewmats, Ks, width, h
         lambda_max = mid + torch.sqrt(torch.clamp_min(mid * mid - det, 0.01))
         extent = torch.sqrt(2 * torch.log(opacities / ALPHA_THRESHOLD).clamp_min(0) * lambda_max).detach()
         radius = torch.ceil(extent)
-        valid = (z >= near_plane) & (z <= far_plane) & (opacities >= ALPHA_THRESHOLD) & (det > 0)
+        valid = (z >= near_plane) & (z <= far_plane) & (opacities >= ALPHA_THRESHOLD) & (det > 0) & (radius > 0)
         valid &= (mean2d[:, 0] + radius > 0) & (mean2d[:, 0] - radius < width)
         valid &= (mean2d[:, 1] + radius > 0) & (mean2d[:, 1] - radius < height)
         conic = torch.stack([c / det, -b / det, a / det], -1)

@@ -128,6 +128,18 @@ def test_projection_gradcheck_float64():
     assert torch.autograd.gradcheck(project, tuple(inputs.values()), eps=1e-6, atol=1e-7, rtol=1e-6)
 
 
+def test_projection_culls_an_opacity_of_exactly_the_cut_off():
+    """At an opacity of exactly 1/255 the footprint's extent is 0: radius 0, and culled as every radius 0 is (float
+    outputs zero)."""
+    scene = projection_scene()
+    width, height = scene["width"], scene["height"]
+    assert (project_gaussians(*(scene[k] for k in PROJECTION_INPUTS), width, height)[3][:, :4] > 0).all()
+    scene["opacities"][:4] = ALPHA_THRESHOLD
+    outputs = project_gaussians(*(scene[k] for k in PROJECTION_INPUTS), width, height)
+    assert torch.equal(outputs[3], projection_reference(*(scene[k] for k in PROJECTION_INPUTS), width, height)[3])
+    assert (outputs[3][:, :4] == 0).all() and all((o[:, :4] == 0).all() for o in outputs[:3])
+
+
 def test_projection_float32_against_float64_reference():
     """float32 means2d within 5e-5 px, depths within 1e-6 relative, conics within 3e-6 of the largest; radii equal
     except where the reference's extent is within 1e-3 of an integer (rounding up may then differ by one); gradients
