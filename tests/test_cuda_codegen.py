@@ -8,6 +8,7 @@ sm_80. Same source as the CPU path: what passes here is what a CUDA machine runs
 from __future__ import annotations
 
 import importlib
+import re
 
 import pytest
 import torch
@@ -18,6 +19,9 @@ import warpbags
 from warpbags.losses import photometric_loss
 
 KERNEL_MODULES = ["pose", "project", "sh", "bin", "rasterize", "loss"]
+# Kernels checked by name to be in their module's CUDA code in both precisions: the render instantiates them (a
+# kernel it does not launch is not compiled here).
+NAMED_KERNELS = {"project": ("project_gaussians_kernel", "project_gaussians_backward_kernel")}
 
 
 @pytest.mark.parametrize("module_name", KERNEL_MODULES)
@@ -42,3 +46,7 @@ def test_kernel_module_compiles_for_sm80(module_name, tmp_path):
         assert path.exists() and path.stat().st_size > 1000, path
     sources = list(tmp_path.rglob("*.cu"))
     assert sources and any("float64" in p.read_text() or "double" in p.read_text() for p in sources)
+    code = "".join(p.read_text() for p in sources)
+    for key in NAMED_KERNELS.get(module_name, ()):
+        overloads = set(re.findall(rf"void ({key}_[0-9a-f]+)_cuda_kernel_forward\(", code))
+        assert len(overloads) == 2, f"{key}: CUDA code of {sorted(overloads)}, not one per precision"

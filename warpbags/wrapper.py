@@ -1,10 +1,11 @@
 """Thin torch wrappers around the Warp kernels, one per stage (gsplat's layout).
 
-Projection, spherical harmonics and the pose transform have no dynamic loops, so their gradients come from Warp's
-Tape: a stage that torch differentiates records its launch on a Tape of its own (explicitly, never as the current
-Tape, so other threads' launches cannot land on it), and torch's backward runs that Tape's backward, the adjoint
-kernels Warp generates. Nothing is recorded when torch records no gradients. The rasterizer has a hand-written backward kernel (see
-kernels/rasterize.py). Binning is not differentiable.
+Spherical harmonics and the pose transform have no dynamic loops, so their gradients come from Warp's Tape: a
+stage that torch differentiates records its launch on a Tape of its own (explicitly, never as the current Tape, so
+other threads' launches cannot land on it), and torch's backward runs that Tape's backward, the adjoint kernels Warp
+generates. Nothing is recorded when torch records no gradients. The projection (kernels/project.py: Warp's adjoint
+took three times the forward) and the rasterizer (kernels/rasterize.py) have hand-written backward kernels. Binning
+is not differentiable.
 
 Tensors stay where they are: CPU tensors run on Warp's "cpu" device, CUDA tensors on the matching CUDA device and
 the current torch stream, without host copies; every launch names its device and stream. Kernel arguments are
@@ -36,7 +37,7 @@ from warpbags.kernels.bin import (
     tile_spans_kernel,
 )
 from warpbags.kernels.pose import apply_object_deltas_kernel, apply_pose_deltas_kernel
-from warpbags.kernels.project import project_gaussians_kernel
+from warpbags.kernels.project import project_gaussians_backward_kernel, project_gaussians_kernel
 from warpbags.kernels.rasterize import BACKWARD_KERNELS, FORWARD_KERNELS, TileGeometry
 from warpbags.kernels.sh import sh_to_colors_kernel
 
@@ -137,6 +138,7 @@ def _stage(kernel, outputs: dict[str, str], gaussian_inputs: tuple[str, ...] = (
 _POSE_DELTAS = _stage(apply_pose_deltas_kernel, {"out_viewmats": "mat44"}, viewmats="mat44", pose_deltas="scalar")
 _OBJECT_DELTAS = _stage(apply_object_deltas_kernel, {"out_viewmats": "mat44"}, viewmats="mat44",
                         object_params="scalar", object_centers="vec3")
+# The projection's forward launch; its gradient comes from its hand-written backward kernel (`_ProjectGaussians`).
 _PROJECTION = _stage(
     project_gaussians_kernel, {"means2d": "vec2", "conics": "vec3", "depths": "scalar", "radii": "int32"},
     gaussian_inputs=("means", "quats", "scales", "opacities"),
@@ -174,9 +176,10 @@ def _tensor_device(args: Sequence) -> torch.device:
     return next(a.device for a in args if isinstance(a, torch.Tensor))
 
 
-# Fewest (camera, Gaussian) pairs per host thread for a stage to be cut into Gaussian ranges: every range costs a
-# Tape, its Warp views and a pool hand-over. Measured (bench/train_step.py, bench/rasterize.py): the projection's
-# adjoint at 1 x 10k pairs took 9-11 ms wall cut in two against 6-7 in one launch; at 4 x 10k, 8 ms against 16.
+# Fewest (camera, Gaussian) pairs per host thread for a stage to be cut into Gaussian ranges: every range costs its
+# Warp views, a pool hand-over and, for a stage differentiated by a Tape, a Tape. Measured (bench/train_step.py,
+# bench/rasterize.py) with the projection's Tape adjoint, before its hand-written backward: at 1 x 10k pairs 9-11 ms
+# wall cut in two against 6-7 in one launch; at 4 x 10k, 8 ms against 16.
 MIN_PAIRS_PER_THREAD = 16384
 
 
@@ -367,6 +370,66 @@ def apply_object_deltas(viewmats: torch.Tensor, params: torch.Tensor, object_cen
     return out
 
 
+class _ProjectGaussians(torch.autograd.Function):
+    """`project_gaussians` under autograd: the forward kernel as `_stage_forward` runs it, and the hand-written
+    backward kernel (kernels/project.py) over the same Gaussian ranges.
+
+    On the CPU a range's per-Gaussian gradients are slices of one buffer (the ranges are disjoint), and its
+    per-camera gradients (viewmats, Ks) go to a private buffer (CPU atomics are plain adds, so two host threads must
+    not share one), summed in range order: the gradients do not depend on which thread ran which range. The inputs
+    and the radii (which tell the culled pairs) are kept with `save_for_backward`, so an in-place change to an input
+    between forward and backward fails autograd's version check. The opacity only culls: it gets no gradient.
+    """
+
+    @staticmethod
+    def forward(ctx, means, quats, scales, opacities, viewmats, Ks, width, height, near_plane, far_plane, eps2d):
+        cams, n = viewmats.shape[0], means.shape[0]
+        outputs = _stage_forward(_PROJECTION, (cams, n), (cams, n), (means, quats, scales, opacities, viewmats, Ks,
+                                                                       width, height, near_plane, far_plane, eps2d))
+        radii = outputs[3]
+        ctx.save_for_backward(means, quats, scales, viewmats, Ks, radii)
+        ctx.width, ctx.height, ctx.eps2d = width, height, eps2d
+        ctx.mark_non_differentiable(radii)
+        return outputs
+
+    @staticmethod
+    def backward(ctx, v_means2d, v_conics, v_depths, _v_radii):
+        means, quats, scales, viewmats, Ks, radii = ctx.saved_tensors
+        cams, n = radii.shape
+        kinds = {**_PROJECTION.inputs, **_PROJECTION.outputs}
+
+        def views(tensors: dict, cut, axis: int, prefix: str = "") -> dict:
+            return {prefix + name: _to_warp(_cut(t, cut, axis), kinds[name]) for name, t in tensors.items()}
+
+        gaussians = {name: t.detach().contiguous() for name, t in (("means", means), ("quats", quats),
+                                                                    ("scales", scales))}
+        # [C, N, ...] like the radii: cut along the Gaussians' axis 1
+        cotangents = {"means2d": v_means2d.contiguous(), "conics": v_conics.contiguous(),
+                      "depths": v_depths.contiguous()}
+        # Fresh buffers every backward: torch may keep a returned gradient as a parameter's .grad.
+        v_gaussians = {name: torch.zeros_like(t) for name, t in gaussians.items()}
+        cuts = _GaussianRanges.of(_PROJECTION, (cams, n), radii.device)
+        # The first range, which runs alone before the others start, shares the second one's camera gradients.
+        v_cameras = [{"viewmats": torch.zeros(viewmats.shape, dtype=viewmats.dtype, device=viewmats.device),
+                      "Ks": torch.zeros(Ks.shape, dtype=Ks.dtype, device=Ks.device)}
+                     for _ in range(1 if cuts.ranges is None else max(len(cuts.ranges) - 1, 1))]
+        wp_cameras = [views(buffers, None, 0, "v_") for buffers in v_cameras]
+        common = dict(**views({"viewmats": viewmats.detach().contiguous(), "Ks": Ks.detach().contiguous()}, None, 0),
+                      width=ctx.width, height=ctx.height, eps2d=_WP_SCALARS[means.dtype](ctx.eps2d))
+        launcher = _launcher(radii.device)
+
+        def work(i, cut):
+            launcher.launch(project_gaussians_backward_kernel, cuts.launch_dim(cut), **common,
+                            **views(gaussians, cut, 0), **views({"radii": radii}, cut, 1),
+                            **views(cotangents, cut, 1, "v_"), **views(v_gaussians, cut, 0, "v_"),
+                            **wp_cameras[max(i - 1, 0)])
+
+        cuts.run(work)
+        v_viewmats, v_Ks = (sum(parts[1:], parts[0]) for parts in zip(*(b.values() for b in v_cameras)))
+        grads = (v_gaussians["means"], v_gaussians["quats"], v_gaussians["scales"], None, v_viewmats, v_Ks)
+        return (*(g if needed else None for g, needed in zip(grads, ctx.needs_input_grad)), *[None] * 5)
+
+
 def project_gaussians(
     means: torch.Tensor,
     quats: torch.Tensor,
@@ -392,11 +455,11 @@ def project_gaussians(
         means2d [C, N, 2] pixels, conics [C, N, 3] (upper triangle of the inverse 2D covariance), depths [C, N]
         camera z, radii [C, N] int32 (0 = culled). Culled entries of the float outputs are zero.
     """
+    args = (means, quats, scales, opacities, viewmats, Ks, width, height, near_plane, far_plane, eps2d)
+    if torch.is_grad_enabled() and any(t.requires_grad for t in (means, quats, scales, viewmats, Ks)):
+        return _ProjectGaussians.apply(*args)
     cams, n = viewmats.shape[0], means.shape[0]
-    return _run_stage(
-        _PROJECTION, (cams, n), (cams, n), means=means, quats=quats, scales=scales, opacities=opacities,
-        viewmats=viewmats, Ks=Ks, width=width, height=height, near_plane=near_plane, far_plane=far_plane, eps2d=eps2d,
-    )
+    return _stage_forward(_PROJECTION, (cams, n), (cams, n), args)
 
 
 def spherical_harmonics(means: torch.Tensor, coeffs: torch.Tensor, viewmats: torch.Tensor, degree: int) -> torch.Tensor:
