@@ -370,15 +370,57 @@ def apply_object_deltas(viewmats: torch.Tensor, params: torch.Tensor, object_cen
     return out
 
 
+def _backward_over_ranges(stage: _Stage, kernel, *, gaussians: dict, cameras: dict, pairs: dict, cotangents: dict,
+                          **plain) -> dict[str, torch.Tensor]:
+    """Launch `kernel`, the hand-written backward of `stage` (a kernel over (cameras, Gaussians)), over the Gaussian
+    ranges its forward ran in (`_GaussianRanges`), and return the gradients of `gaussians` and `cameras` by name.
+
+    Arguments by the backward kernel's parameter names: `gaussians` the stage's per-Gaussian inputs [N, ...] (cut
+    with the range), `cameras` its per-camera inputs (whole), `pairs` saved outputs [C, N, ...] (cut along the
+    Gaussians' axis 1), `cotangents` torch's gradients of outputs (passed as v_<output>, cut as `pairs`), `plain`
+    the other arguments. The kernel accumulates the gradient of each of `gaussians` and `cameras` into v_<name>.
+
+    A range's per-Gaussian gradients are slices of one buffer (the ranges are disjoint); its per-camera gradients
+    go to a private buffer (CPU atomics are plain adds, so two host threads must not share one), summed in range
+    order: the gradients do not depend on which thread ran which range. Fresh buffers every backward: torch may
+    keep a returned gradient as a parameter's .grad.
+    """
+    kinds = {**stage.inputs, **stage.outputs}
+
+    def views(tensors: dict, cut, axis: int, prefix: str = "") -> dict:
+        return {prefix + name: _to_warp(_cut(t, cut, axis), kinds[name]) for name, t in tensors.items()}
+
+    gaussians = {name: t.detach().contiguous() for name, t in gaussians.items()}
+    cameras = {name: t.detach().contiguous() for name, t in cameras.items()}
+    pairs = {**{name: t.detach().contiguous() for name, t in pairs.items()},
+             **{"v_" + name: t.contiguous() for name, t in cotangents.items()}}
+    kinds.update(("v_" + name, kinds[name]) for name in cotangents)
+    v_gaussians = {name: torch.zeros_like(t) for name, t in gaussians.items()}
+    some = next(iter(pairs.values()))
+    cuts = _GaussianRanges.of(stage, tuple(some.shape[:2]), some.device)
+    # The first range, which runs alone before the others start, shares the second one's camera gradients.
+    v_cameras = [{name: torch.zeros_like(t) for name, t in cameras.items()}
+                 for _ in range(1 if cuts.ranges is None else max(len(cuts.ranges) - 1, 1))]
+    wp_cameras = [views(buffers, None, 0, "v_") for buffers in v_cameras]
+    common = {**views(cameras, None, 0), **plain}
+    launcher = _launcher(some.device)
+
+    def work(i, cut):
+        launcher.launch(kernel, cuts.launch_dim(cut), **common, **views(gaussians, cut, 0), **views(pairs, cut, 1),
+                        **views(v_gaussians, cut, 0, "v_"), **wp_cameras[max(i - 1, 0)])
+
+    cuts.run(work)
+    return {**v_gaussians, **{name: sum(parts[1:], parts[0])
+                              for name, parts in zip(cameras, zip(*(b.values() for b in v_cameras)))}}
+
+
 class _ProjectGaussians(torch.autograd.Function):
     """`project_gaussians` under autograd: the forward kernel as `_stage_forward` runs it, and the hand-written
-    backward kernel (kernels/project.py) over the same Gaussian ranges.
+    backward kernel (kernels/project.py) over the same Gaussian ranges (`_backward_over_ranges`).
 
-    On the CPU a range's per-Gaussian gradients are slices of one buffer (the ranges are disjoint), and its
-    per-camera gradients (viewmats, Ks) go to a private buffer (CPU atomics are plain adds, so two host threads must
-    not share one), summed in range order: the gradients do not depend on which thread ran which range. The inputs
-    and the radii (which tell the culled pairs) are kept with `save_for_backward`, so an in-place change to an input
-    between forward and backward fails autograd's version check. The opacity only culls: it gets no gradient.
+    The inputs and the radii (which tell the culled pairs) are kept with `save_for_backward`, so an in-place change
+    to an input between forward and backward fails autograd's version check. The opacity only culls: it gets no
+    gradient.
     """
 
     @staticmethod
@@ -395,38 +437,12 @@ class _ProjectGaussians(torch.autograd.Function):
     @staticmethod
     def backward(ctx, v_means2d, v_conics, v_depths, _v_radii):
         means, quats, scales, viewmats, Ks, radii = ctx.saved_tensors
-        cams, n = radii.shape
-        kinds = {**_PROJECTION.inputs, **_PROJECTION.outputs}
-
-        def views(tensors: dict, cut, axis: int, prefix: str = "") -> dict:
-            return {prefix + name: _to_warp(_cut(t, cut, axis), kinds[name]) for name, t in tensors.items()}
-
-        gaussians = {name: t.detach().contiguous() for name, t in (("means", means), ("quats", quats),
-                                                                    ("scales", scales))}
-        # [C, N, ...] like the radii: cut along the Gaussians' axis 1
-        cotangents = {"means2d": v_means2d.contiguous(), "conics": v_conics.contiguous(),
-                      "depths": v_depths.contiguous()}
-        # Fresh buffers every backward: torch may keep a returned gradient as a parameter's .grad.
-        v_gaussians = {name: torch.zeros_like(t) for name, t in gaussians.items()}
-        cuts = _GaussianRanges.of(_PROJECTION, (cams, n), radii.device)
-        # The first range, which runs alone before the others start, shares the second one's camera gradients.
-        v_cameras = [{"viewmats": torch.zeros(viewmats.shape, dtype=viewmats.dtype, device=viewmats.device),
-                      "Ks": torch.zeros(Ks.shape, dtype=Ks.dtype, device=Ks.device)}
-                     for _ in range(1 if cuts.ranges is None else max(len(cuts.ranges) - 1, 1))]
-        wp_cameras = [views(buffers, None, 0, "v_") for buffers in v_cameras]
-        common = dict(**views({"viewmats": viewmats.detach().contiguous(), "Ks": Ks.detach().contiguous()}, None, 0),
-                      width=ctx.width, height=ctx.height, eps2d=_WP_SCALARS[means.dtype](ctx.eps2d))
-        launcher = _launcher(radii.device)
-
-        def work(i, cut):
-            launcher.launch(project_gaussians_backward_kernel, cuts.launch_dim(cut), **common,
-                            **views(gaussians, cut, 0), **views({"radii": radii}, cut, 1),
-                            **views(cotangents, cut, 1, "v_"), **views(v_gaussians, cut, 0, "v_"),
-                            **wp_cameras[max(i - 1, 0)])
-
-        cuts.run(work)
-        v_viewmats, v_Ks = (sum(parts[1:], parts[0]) for parts in zip(*(b.values() for b in v_cameras)))
-        grads = (v_gaussians["means"], v_gaussians["quats"], v_gaussians["scales"], None, v_viewmats, v_Ks)
+        grads = _backward_over_ranges(
+            _PROJECTION, project_gaussians_backward_kernel, gaussians=dict(means=means, quats=quats, scales=scales),
+            cameras=dict(viewmats=viewmats, Ks=Ks), pairs=dict(radii=radii),
+            cotangents=dict(means2d=v_means2d, conics=v_conics, depths=v_depths), width=ctx.width,
+            height=ctx.height, eps2d=_WP_SCALARS[means.dtype](ctx.eps2d))
+        grads = (grads["means"], grads["quats"], grads["scales"], None, grads["viewmats"], grads["Ks"])
         return (*(g if needed else None for g, needed in zip(grads, ctx.needs_input_grad)), *[None] * 5)
 
 
