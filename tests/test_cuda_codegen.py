@@ -21,7 +21,8 @@ from warpbags.losses import photometric_loss
 KERNEL_MODULES = ["pose", "project", "sh", "bin", "rasterize", "loss"]
 # Kernels checked by name to be in their module's CUDA code in both precisions: the render instantiates them (a
 # kernel it does not launch is not compiled here).
-NAMED_KERNELS = {"project": ("project_gaussians_kernel", "project_gaussians_backward_kernel")}
+NAMED_KERNELS = {"project": ("project_gaussians_kernel", "project_gaussians_backward_kernel"),
+                 "sh": ("sh_to_colors_kernel", "sh_to_colors_backward_kernel")}
 
 
 @pytest.mark.parametrize("module_name", KERNEL_MODULES)

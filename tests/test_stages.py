@@ -14,6 +14,7 @@ import torch
 from conftest import DEVICES, random_scene
 from reference import (
     ALPHA_THRESHOLD,
+    SH_C0,
     composite_reference,
     pixel_centers,
     projection_reference,
@@ -273,14 +274,107 @@ def test_sh_matches_reference_float64(degree, device):
 
 
 def test_sh_gradcheck_float64():
+    """Finite differences through every input, of the hand-written backward kernel."""
     inputs = _sh_inputs(3, n=5, cams=2)
+    assert type(spherical_harmonics(*inputs.values(), 3).grad_fn).__name__ == "_SHColorsBackward"
     assert torch.autograd.gradcheck(lambda *args: spherical_harmonics(*args, 3), tuple(inputs.values()), eps=1e-6,
                                     atol=1e-7, rtol=1e-6)
+
+
+def test_sh_builds_an_autograd_node_only_for_gradients():
+    """No node (nor backward) without torch gradients or with no input requiring one; with the coefficients alone
+    requiring one, only they get a gradient."""
+    inputs = {name: t.detach() for name, t in _sh_inputs(2).items()}
+    with torch.no_grad():
+        assert spherical_harmonics(*(t.clone().requires_grad_() for t in inputs.values()), 2).grad_fn is None
+    assert spherical_harmonics(*inputs.values(), 2).grad_fn is None
+    coeffs = inputs["colors"].clone().requires_grad_()
+    colors = spherical_harmonics(inputs["means"], coeffs, inputs["viewmats"], 2)
+    assert type(colors.grad_fn).__name__ == "_SHColorsBackward"
+    colors.sum().backward()
+    assert coeffs.grad is not None and (coeffs.grad[:, 9:] == 0).all() and (coeffs.grad[:, :9] != 0).any()
 
 
 def test_sh_float32_against_float64_reference():
     """float32 colours within 2e-6 and gradients within 4e-6 of each input's largest (measured: 1.7e-7, 4e-7)."""
     _sh_against_reference(3, torch.float32, "cpu", 2e-6, 4e-6)
+
+
+SH_INPUTS = ("means", "coeffs", "viewmats")
+
+
+def _sh_tie(dtype):
+    """A DC coefficient c with C0 c + 0.5 == 0 exactly in `dtype` (each step rounded, as the kernel computes it): at
+    degree 0 the clamp max(rgb + 0.5, 0) is at its tie."""
+    c0 = torch.tensor(SH_C0, dtype=dtype)
+    value = torch.tensor(-0.5, dtype=dtype) / c0
+    for _ in range(16):
+        if c0 * value + 0.5 == 0:
+            return value.item()
+        value = torch.nextafter(value, torch.tensor(0.0, dtype=dtype))
+    raise AssertionError(f"no tie near -0.5 / C0 in {dtype}")
+
+
+def _clamped_sh_inputs(dtype):
+    """`_sh_inputs` (3 cameras, 30 Gaussians, 16 coefficients) with colours clamped at 0: Gaussian 0 in every channel
+    and camera, Gaussian 1 in its green channel, Gaussian 2 at the clamp's tie at degree 0 (and on either side of it
+    by camera at higher degrees)."""
+    scene = random_scene(n=30, cams=3, sh_degree=3, seed=2)
+    scene["colors"][0, 0] = -6.0
+    scene["colors"][1, 0, 1] = -6.0
+    scene["colors"][2, 0] = _sh_tie(dtype)
+    return {name: scene[key].to(dtype).detach().clone().requires_grad_()
+            for name, key in zip(SH_INPUTS, ("means", "colors", "viewmats"))}
+
+
+def _warp_adjoint_of_sh(inputs, degree, cotangent):
+    """The inputs' gradients by Warp's generated adjoint of the forward kernel (what the SH stage ran before its
+    hand-written backward), one launch over every pair."""
+    import warpbags.wrapper as wrapper
+
+    stage, cpu = wrapper._SH_COLORS, torch.device("cpu")
+    cams, n = inputs["viewmats"].shape[0], inputs["means"].shape[0]
+    dtype = inputs["means"].dtype
+    grads = {name: torch.zeros_like(inputs[name]) for name in SH_INPUTS}
+    outputs = [wrapper._output_tensor("vec3", (cams, n), dtype, cpu)]
+    arguments = wrapper._stage_arguments(stage, [*inputs.values(), degree], outputs, None, dtype,
+                                         [*grads.values(), None])
+    # the adjoint of a store clears its output's adjoint: Warp gets a copy of the cotangent
+    adjoints = {name: arguments[name].grad for name in SH_INPUTS}
+    adjoints["colors"] = wrapper._to_warp(cotangent.clone(), "vec3")
+    wrapper._launcher(cpu).launch(stage.kernel, (cams, n), adjoints=adjoints, **arguments)
+    return grads
+
+
+# Measured largest differences, of each input's largest gradient: float64 5.8e-16, float32 2.1e-7 (the coefficients
+# bit for bit).
+@pytest.mark.parametrize("dtype,tol", [(F64, 1e-12), (torch.float32, 2e-6)])
+@pytest.mark.parametrize("degree", [0, 1, 2, 3])
+def test_sh_backward_kernel_equals_warp_adjoint(degree, dtype, tol):
+    """The hand-written backward kernel against Warp's generated adjoint of the forward kernel, with random
+    cotangents on every pair: gradients within `tol` of each input's largest. Clamped channels pass no gradient, at
+    the clamp's tie neither (Warp's adjoint of max(rgb + 0.5, 0) gives a tie to the 0); coefficients above the
+    degree get exactly none, and at degree 0 neither do the means and view matrices."""
+    inputs = _clamped_sh_inputs(dtype)
+    colors = spherical_harmonics(*inputs.values(), degree)
+    assert (colors[:, 0] == 0).all() and (colors[:, 1, 1] == 0).all() and (colors[:, 1] > 0).sum() == 6
+    if degree == 0:
+        assert (colors[:, 2] == 0).all(), "at the tie"
+    else:
+        assert 0 < (colors[:, 2] == 0).sum() < 9, "clamped by some cameras, not all"
+    cotangent = torch.randn(colors.shape, generator=torch.Generator().manual_seed(7), dtype=F64).to(dtype)
+    colors.backward(cotangent)
+    expected = _warp_adjoint_of_sh({k: v.detach() for k, v in inputs.items()}, degree, cotangent)
+    for name in SH_INPUTS:
+        torch.testing.assert_close(inputs[name].grad, expected[name], rtol=0,
+                                   atol=tol * expected[name].abs().max().item(), msg=lambda m: f"{name}: {m}")
+    for grads in (inputs["coeffs"].grad, expected["coeffs"]):
+        assert (grads[0] == 0).all() and (grads[1, :, 1] == 0).all() and (grads[1, :, 0] != 0).any()
+        assert (grads[:, (degree + 1) ** 2:] == 0).all() and (grads[:, : (degree + 1) ** 2] != 0).any()
+        if degree == 0:
+            assert (grads[2] == 0).all()
+    if degree == 0:
+        assert all((inputs[name].grad == 0).all() and (expected[name] == 0).all() for name in ("means", "viewmats"))
 
 
 def _listed(bins, cams, n):

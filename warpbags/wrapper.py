@@ -1,11 +1,11 @@
 """Thin torch wrappers around the Warp kernels, one per stage (gsplat's layout).
 
-Spherical harmonics and the pose transform have no dynamic loops, so their gradients come from Warp's Tape: a
-stage that torch differentiates records its launch on a Tape of its own (explicitly, never as the current Tape, so
-other threads' launches cannot land on it), and torch's backward runs that Tape's backward, the adjoint kernels Warp
-generates. Nothing is recorded when torch records no gradients. The projection (kernels/project.py: Warp's adjoint
-took three times the forward) and the rasterizer (kernels/rasterize.py) have hand-written backward kernels. Binning
-is not differentiable.
+The pose transforms' gradients come from Warp's Tape: a stage that torch differentiates records its launch on a
+Tape of its own (explicitly, never as the current Tape, so other threads' launches cannot land on it), and torch's
+backward runs that Tape's backward, the adjoint kernel Warp generates. Nothing is recorded when torch records no
+gradients. The projection (kernels/project.py: Warp's adjoint took three times the forward), spherical harmonics
+(kernels/sh.py: Warp's adjoint 1.7 times the hand-written one) and the rasterizer (kernels/rasterize.py) have
+hand-written backward kernels. Binning is not differentiable.
 
 Tensors stay where they are: CPU tensors run on Warp's "cpu" device, CUDA tensors on the matching CUDA device and
 the current torch stream, without host copies; every launch names its device and stream. Kernel arguments are
@@ -39,7 +39,7 @@ from warpbags.kernels.bin import (
 from warpbags.kernels.pose import apply_object_deltas_kernel, apply_pose_deltas_kernel
 from warpbags.kernels.project import project_gaussians_backward_kernel, project_gaussians_kernel
 from warpbags.kernels.rasterize import BACKWARD_KERNELS, FORWARD_KERNELS, TileGeometry
-from warpbags.kernels.sh import sh_to_colors_kernel
+from warpbags.kernels.sh import sh_to_colors_backward_kernel, sh_to_colors_kernel
 
 _WP_SCALARS = {torch.float32: wp.float32, torch.float64: wp.float64}
 
@@ -478,6 +478,33 @@ def project_gaussians(
     return _stage_forward(_PROJECTION, (cams, n), (cams, n), args)
 
 
+class _SHColors(torch.autograd.Function):
+    """`spherical_harmonics` under autograd: the forward kernel as `_stage_forward` runs it, and the hand-written
+    backward kernel (kernels/sh.py) over the same Gaussian ranges (`_backward_over_ranges`).
+
+    The inputs and the colours (which tell the clamped channels) are kept with `save_for_backward`, so an in-place
+    change to an input between forward and backward fails autograd's version check.
+    """
+
+    @staticmethod
+    def forward(ctx, means, coeffs, viewmats, degree):
+        cams, n = viewmats.shape[0], means.shape[0]
+        (colors,) = _stage_forward(_SH_COLORS, (cams, n), (cams, n), (means, coeffs, viewmats, degree))
+        ctx.save_for_backward(means, coeffs, viewmats, colors)
+        ctx.degree = degree
+        return colors
+
+    @staticmethod
+    def backward(ctx, v_colors):
+        means, coeffs, viewmats, colors = ctx.saved_tensors
+        grads = _backward_over_ranges(
+            _SH_COLORS, sh_to_colors_backward_kernel, gaussians=dict(means=means, coeffs=coeffs),
+            cameras=dict(viewmats=viewmats), pairs=dict(colors=colors), cotangents=dict(colors=v_colors),
+            degree=ctx.degree)
+        grads = (grads["means"], grads["coeffs"], grads["viewmats"])
+        return (*(g if needed else None for g, needed in zip(grads, ctx.needs_input_grad)), None)
+
+
 def spherical_harmonics(means: torch.Tensor, coeffs: torch.Tensor, viewmats: torch.Tensor, degree: int) -> torch.Tensor:
     """View-dependent colour max(SH(dir) + 0.5, 0) with dir from each camera centre to each Gaussian.
 
@@ -486,11 +513,13 @@ def spherical_harmonics(means: torch.Tensor, coeffs: torch.Tensor, viewmats: tor
         degree: active SH degree, 0-3.
 
     Returns:
-        [C, N, 3] colours; differentiable in means, coeffs and viewmats.
+        [C, N, 3] colours; differentiable in means, coeffs and viewmats (the coefficients above the degree get a
+        zero gradient, and so do means and viewmats at degree 0).
     """
+    if torch.is_grad_enabled() and any(t.requires_grad for t in (means, coeffs, viewmats)):
+        return _SHColors.apply(means, coeffs, viewmats, degree)
     cams, n = viewmats.shape[0], means.shape[0]
-    (colors,) = _run_stage(_SH_COLORS, (cams, n), (cams, n), means=means, coeffs=coeffs, viewmats=viewmats,
-                           degree=degree)
+    (colors,) = _stage_forward(_SH_COLORS, (cams, n), (cams, n), (means, coeffs, viewmats, degree))
     return colors
 
 
