@@ -111,16 +111,16 @@ def _launcher(device: torch.device) -> _Launcher:
 
 
 class _Stage(NamedTuple):
-    """A kernel without dynamic loops, whose adjoint Warp generates, and the kind of each of its parameters.
+    """A kernel without dynamic loops and the kind of each of its parameters: how `_stage_forward` launches it, and
+    for the pose transforms how `_DifferentiableStage` records it on a Tape.
 
     `inputs` maps the kernel's input parameters, by name and in order, to their kinds: "vec3", "mat44", ... for
     tensors, "float" for a Python number passed in the tensors' precision, None for any other plain value.
-    `outputs` maps its output parameters to their kinds; they are allocated as zeros, all with one array shape, and
-    integer outputs are not differentiable.
+    `outputs` maps its output parameters to their kinds; they are allocated as zeros, all with one array shape.
     `gaussian_inputs`: for a kernel launched over (cameras, Gaussians) whose outputs are [C, N, ...], the inputs
     indexed by the Gaussian alone. Such a stage runs on the CPU in ranges of Gaussians on the host threads (a CPU
-    launch is one serial loop): those inputs, their adjoints and the outputs sliced to the range, the other inputs'
-    adjoints (per camera: viewmats, Ks) in a private buffer per range, summed in range order.
+    launch is one serial loop), those inputs and the outputs sliced to the range; so does its hand-written backward
+    kernel (`_backward_over_ranges`).
     """
 
     kernel: object
@@ -177,7 +177,7 @@ def _tensor_device(args: Sequence) -> torch.device:
 
 
 # Fewest (camera, Gaussian) pairs per host thread for a stage to be cut into Gaussian ranges: every range costs its
-# Warp views, a pool hand-over and, for a stage differentiated by a Tape, a Tape. Measured (bench/train_step.py,
+# Warp views, a pool hand-over and, in the backward, a private buffer of per-camera gradients. Measured (bench/train_step.py,
 # bench/rasterize.py) with the projection's Tape adjoint, before its hand-written backward: at 1 x 10k pairs 9-11 ms
 # wall cut in two against 6-7 in one launch; at 4 x 10k, 8 ms against 16.
 MIN_PAIRS_PER_THREAD = 16384
@@ -269,8 +269,9 @@ _SAVED = object()  # stands for a tensor argument kept with save_for_backward
 
 
 class _DifferentiableStage(torch.autograd.Function):
-    """A `_Stage` under autograd: backward records the stage's launch on a Warp Tape and runs the Tape's backward
-    (the kernel's Warp-generated adjoint) with torch's cotangents, a Tape per Gaussian range of the forward.
+    """A `_Stage` under autograd, for the pose transforms (per camera, float outputs, one launch): backward records
+    the stage's launch on a Warp Tape and runs the Tape's backward (the kernel's Warp-generated adjoint) with torch's
+    cotangents.
 
     Inputs and outputs are kept only with `save_for_backward`: Warp views of the outputs held on `ctx` would keep
     the outputs alive, and through their autograd node the whole graph, in a cycle Python's collector cannot see
@@ -285,7 +286,6 @@ class _DifferentiableStage(torch.autograd.Function):
         ctx.stage, ctx.dim = stage, dim
         ctx.plain_args = [_SAVED if isinstance(a, torch.Tensor) else a for a in args]
         ctx.save_for_backward(*[a for a in args if isinstance(a, torch.Tensor)], *outputs)
-        ctx.mark_non_differentiable(*[o for o in outputs if not o.is_floating_point()])
         return outputs
 
     @staticmethod
@@ -299,40 +299,16 @@ class _DifferentiableStage(torch.autograd.Function):
         input_grads = [torch.zeros_like(a, memory_format=torch.contiguous_format)
                        if needs and isinstance(a, torch.Tensor) and a.is_floating_point() else None
                        for a, needs in zip(args, ctx.needs_input_grad[3:])]
-        # The adjoint of a store consumes and clears its output's adjoint, so the Tapes get copies of torch's.
-        cotangents = {name: v_out.contiguous().clone() for (name, kind), v_out in zip(stage.outputs.items(), v_outputs)
-                      if kind in _KIND_SHAPES and v_out is not None}
-        if not cotangents:
-            return (None, None, None, *input_grads)
-        device, scalar = _tensor_device(args), _floating_dtype(args)
-        launcher = _launcher(device)
-        cuts = _GaussianRanges.of(stage, ctx.dim, device)
-        # Inputs not sliced by Gaussian (per camera) get a private adjoint per range when there are ranges; the
-        # first range, which runs alone before the others start, shares the second one's.
-        shared = [name not in stage.gaussian_inputs for name in stage.inputs]
-        private = None if cuts.ranges is None else [
-            [torch.zeros_like(g) if g is not None and is_shared else None for g, is_shared in zip(input_grads, shared)]
-            for _ in range(max(len(cuts.ranges) - 1, 1))]
-
-        def work(i, cut):
-            grads = input_grads if private is None else [
-                own if is_shared else _cut(g, cut, 0) for g, own, is_shared in zip(input_grads, private[max(i - 1, 0)],
-                                                                                   shared)]
-            arguments = _stage_arguments(stage, args, outputs, cut, scalar, grads)
-            tape = wp.Tape()
-            tape.record_launch(stage.kernel, cuts.launch_dim(cut), 0,
-                               [arguments[name] for name in _parameter_names(stage.kernel)], [], launcher.device)
-            # The Tape launches on its recorded device, on that device's current stream: torch's, on CUDA.
-            with wp.ScopedStream(launcher.stream) if launcher.stream is not None else contextlib.nullcontext():
-                tape.backward(grads={arguments[name]: _to_warp(_cut(v, cut, 1), stage.outputs[name])
-                                     for name, v in cotangents.items()})
-
-        cuts.run(work)
-        if private is not None:
-            for k, grad in enumerate(input_grads):
-                if grad is not None and shared[k]:
-                    for own in private:
-                        grad += own[k]
+        launcher = _launcher(_tensor_device(args))
+        arguments = _stage_arguments(stage, args, outputs, None, _floating_dtype(args), input_grads)
+        tape = wp.Tape()
+        tape.record_launch(stage.kernel, ctx.dim, 0, [arguments[name] for name in _parameter_names(stage.kernel)], [],
+                           launcher.device)
+        # The Tape launches on its recorded device, on that device's current stream: torch's, on CUDA. The adjoint of
+        # a store consumes and clears its output's adjoint, so the Tape gets copies of torch's cotangents.
+        with wp.ScopedStream(launcher.stream) if launcher.stream is not None else contextlib.nullcontext():
+            tape.backward(grads={arguments[name]: _to_warp(v.contiguous().clone(), kind)
+                                 for (name, kind), v in zip(stage.outputs.items(), v_outputs)})
         return (None, None, None, *input_grads)
 
 
