@@ -3,7 +3,7 @@ true-pose model, plus an ablation of each part of the pose pipeline, in one run.
 
     python bench/pose_recovery.py SCENE [SCENE ...] [--rot 5,10,15,20,30] [--trans 0.3] [--views 4,6,9]
         [--seeds 0,1,2] [--variants bags,fixed-noisy] [--ablations] [--preset quick] [--set NAME=VALUE ...]
-        [--json bench/results/pose_recovery.json]
+        [--depth true|monocular|none] [--json bench/results/pose_recovery.json]
 
 SCENE: a preset (maryrose, synthetic, synthetic-tele), a scene folder, `synthetic-small` (16 views, 96 px, cached) or
 `synthetic-tele-small` (16 views, 128 px, maryrose's 18.6 deg field of view and framing, cached; `synthetic-tele-256`:
@@ -19,6 +19,10 @@ Procrustes alignment. Variants:
                   chamfer terms), no-precondition, camera-param (se(3) about the camera centre, no preconditioner),
                   poses-whole-round and poses-first-half (the pose window of each round, instead of from a quarter
                   of the round to its end)
+--depth: the depth maps training sees. `true`: the scene's own (a synthetic scene's are exact, which no capture
+has); `monocular`: those degraded once per scene as a monocular network's would be (relative, smooth shape errors of
+20% of the object's relief, soft edges: `warpbags.data.noise.monocular_like_depths`); `none`: no depth maps, as a
+capture without them (maryrose ships none). The depth term is GaussianObject's, invariant to scale and shift.
 A true-pose model (poses frozen at the truth) is trained once per scene, view count and seed, for the PSNR/SSIM it
 reaches. Per row, means over the seeds: mean and max rotation error (deg), mean translation error (% of the orbit
 radius), the share of cameras ending under 1 deg, the rotation error the camera centres alone force (the centre
@@ -29,6 +33,7 @@ PSNR* after 50 iterations of test-pose refinement, and minutes per run.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import tempfile
 import time
@@ -39,6 +44,8 @@ import torch
 
 from warpbags.configs.train import load_preset, parse_settings
 from warpbags.data import ORBIT_RADIUS, SyntheticOptions, ensure_synthetic_scene, load_scene, open_scene
+from warpbags.data.noise import monocular_like_depths
+from warpbags.errors import WarpbagsError
 from warpbags.evaluation import evaluate_run
 from warpbags.trainer import Trainer, training_scene
 from warpbags.cli.common import clean_errors
@@ -122,6 +129,17 @@ def _load(name: str):
     return open_scene(name)
 
 
+def _with_depth(scene, depth: str):
+    """The scene with the depth maps of `--depth`: its own ("true"), degraded ("monocular", seed 0) or none."""
+    if depth == "true":
+        return scene
+    if depth == "none":
+        return dataclasses.replace(scene, depths=None)
+    if scene.depths is None:
+        raise WarpbagsError(f"--depth monocular: scene {scene.name} has no depth maps to degrade")
+    return dataclasses.replace(scene, depths=monocular_like_depths(scene.depths, seed=0))
+
+
 def _numbers(text: str, kind=float) -> list:
     return [kind(item) for item in text.split(",") if item]
 
@@ -139,6 +157,8 @@ def main() -> None:
     parser.add_argument("--preset", default="quick")
     parser.add_argument("--set", dest="settings", action="append", default=[], metavar="NAME=VALUE",
                         help="a TrainConfig field for every run (repeatable), as `warpbags train --set`")
+    parser.add_argument("--depth", choices=("true", "monocular", "none"), default="true",
+                        help="depth maps seen in training: the scene's, degraded as a monocular network's, or none")
     parser.add_argument("--json", type=Path, help="also write every run's numbers here")
     args = parser.parse_args()
     torch.set_num_threads(1)
@@ -148,12 +168,13 @@ def main() -> None:
     if unknown:
         parser.error(f"unknown variant {unknown[0]!r}; choose from {', '.join(VARIANTS)}")
     load_preset(args.preset, **overrides)  # a bad preset or setting fails before the first line of the table
-    scenes = {name: _load(name) for name in args.scenes}
-    results: dict = {"preset": args.preset, "overrides": overrides, "trans_noise": args.trans, "rows": []}
+    scenes = {name: _with_depth(_load(name), args.depth) for name in args.scenes}
+    results: dict = {"preset": args.preset, "overrides": overrides, "trans_noise": args.trans, "depth": args.depth,
+                     "rows": []}
     header = (f"{'scene':<20} {'views':>5} {'noise':>9} {'variant':<18} {'rot init':>8} {'rot mean':>8} {'rot max':>8} "
               f"{'<1 deg':>6} {'floor':>13} {'t init %':>8} {'t %':>6} {'PSNR':>6} {'SSIM':>6} {'PSNR*':>6} {'true PSNR':>9} {'min':>5}")
     print(f"preset {args.preset}, overrides {overrides}, seeds {args.seeds}, translation noise {args.trans} "
-          f"({100 * args.trans / ORBIT_RADIUS:.1f}% of the orbit radius per axis)")
+          f"({100 * args.trans / ORBIT_RADIUS:.1f}% of the orbit radius per axis), depth maps: {args.depth}")
     print(header + "\n" + "-" * len(header), flush=True)
     with tempfile.TemporaryDirectory() as root:
         for scene_name, scene in scenes.items():

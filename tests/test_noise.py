@@ -1,4 +1,5 @@
-"""warpbags.data.noise: pose noise of the stated size, in the camera frame, reproducible (CPU, float64)."""
+"""warpbags.data.noise: pose noise of the stated size, in the camera frame, reproducible (CPU, float64); depth maps
+degraded like a monocular network's."""
 
 from __future__ import annotations
 
@@ -10,7 +11,7 @@ from random_poses import F64, generator, random_viewmats
 
 from warpbags.alignment import pose_errors
 from warpbags.cameras import camera_centers
-from warpbags.data.noise import perturb_viewmats
+from warpbags.data.noise import monocular_like_depths, perturb_viewmats
 from warpbags.lie import so3_log
 
 # ----------------------------------------------------------------------------------------------- pose noise
@@ -98,3 +99,28 @@ def test_perturb_rejects_bad_arguments():
         perturb_viewmats(reference, rot_std_deg=-1.0, trans_std=0.0, seed=0)
     with pytest.raises(ValueError, match=r"\[C, 4, 4\]"):
         perturb_viewmats(reference[0], rot_std_deg=1.0, trans_std=0.0, seed=0)
+
+
+# ----------------------------------------------------------------------------------------------- depth maps
+
+
+def _dome_depths(views: int = 3, size: int = 48) -> torch.Tensor:
+    """A hemisphere of radius 1 in front of a camera at distance 5, in `views` copies: depth 4 at its centre."""
+    coords = (torch.arange(size, dtype=torch.float64) + 0.5) / size * 2.4 - 1.2
+    y, x = torch.meshgrid(coords, coords, indexing="ij")
+    height = (1 - x**2 - y**2).clamp_min(0).sqrt()
+    return torch.where(x**2 + y**2 < 1, 5 - height, torch.zeros_like(height)).expand(views, size, size).clone()
+
+
+def test_monocular_like_depths_keep_the_support_and_the_shape_roughly():
+    exact = _dome_depths()
+    degraded = monocular_like_depths(exact, seed=3)
+    assert torch.equal(degraded > 0, exact > 0)  # the object's pixels, no more, no fewer
+    torch.testing.assert_close(degraded, monocular_like_depths(exact, seed=3), rtol=0, atol=0)  # reproducible
+    for view in range(exact.shape[0]):
+        valid = exact[view] > 0
+        a, b = 1 / exact[view][valid], 1 / degraded[view][valid]
+        correlation = float(torch.corrcoef(torch.stack([a, b]))[0, 1])
+        # relief kept (a network sees the shape), but neither exact nor an affine map of the truth
+        assert 0.6 < correlation < 0.99, correlation
+    assert not torch.equal(degraded[0], degraded[1])  # each view its own errors

@@ -1,16 +1,19 @@
-"""Pose noise: perturbed copies of world-to-camera poses (the true ones stay put), for a scene or any poses."""
+"""Injected noise for benchmarks: perturbed copies of world-to-camera poses (the true ones stay put), and exact depth
+maps degraded to what a monocular depth network gives (relative, smooth shape errors, soft edges)."""
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 
 import torch
+import torch.nn.functional as F
 
 from warpbags.cameras import camera_centers, viewmats_from_centers
 from warpbags.data.scene import Scene
 from warpbags.lie import so3_exp
+from warpbags.losses import gaussian_blur
 
-__all__ = ["PoseNoise", "noisy_viewmats", "perturb_viewmats"]
+__all__ = ["PoseNoise", "monocular_like_depths", "noisy_viewmats", "perturb_viewmats"]
 
 
 @dataclass(frozen=True)
@@ -100,3 +103,52 @@ def perturb_viewmats(
     rotations = rotation_noise @ viewmats[:, :3, :3]
     centers = camera_centers(viewmats) + center_offsets.to(viewmats)
     return viewmats_from_centers(rotations, centers)
+
+
+def monocular_like_depths(depths: torch.Tensor, seed: int, shape_error: float = 0.2, blur_px: float = 1.0,
+                          pixel_noise: float = 0.02) -> torch.Tensor:
+    """Exact depth maps made into what a monocular depth network gives, reproducibly from ``seed``.
+
+    A synthetic scene renders exact depth; GaussianObject's captures come with ZoeDepth maps, and a capture without
+    depth maps gets none at all. This is a model of the middle case, not a measurement of any network. Per view, in
+    disparity (1 / depth) over the valid pixels (depth > 0):
+
+    * a smooth shape error: a random field (a 4 x 4 grid of N(0, 1) values, bicubically upsampled) times
+      ``shape_error`` times the view's disparity range, so the object's depth profile is off by about that share of
+      its own relief, at low frequency;
+    * soft edges: a normalized Gaussian blur of ``blur_px`` pixels within the valid pixels;
+    * per-pixel noise: N(0, ``pixel_noise``^2) relative;
+    * unknown scale and shift: disparity times U(0.5, 2) plus U(0, 1) times its median (the loss is invariant to
+      both, as it must be for a network's relative output).
+
+    Args:
+        depths: [C, H, W] exact depths, 0 = no value.
+        seed: seeds a local generator (the global RNG is untouched).
+
+    Returns:
+        [C, H, W] degraded depths, 0 where the input is 0.
+    """
+    generator = torch.Generator().manual_seed(seed)
+    valid = depths > 0
+    out = torch.zeros_like(depths)
+    height, width = depths.shape[1:]
+    for view in range(depths.shape[0]):
+        mask = valid[view]
+        if not mask.any():
+            continue
+        disparity = torch.where(mask, 1.0 / depths[view].clamp_min(1e-12), torch.zeros_like(depths[view]))
+        values = disparity[mask]
+        relief = float(values.max() - values.min())
+        field = F.interpolate(torch.randn(1, 1, 4, 4, generator=generator, dtype=torch.float64), size=(height, width),
+                              mode="bicubic", align_corners=True)[0, 0].to(depths)
+        disparity = disparity + shape_error * relief * field
+        # normalized blur: the valid pixels' weighted mean, so the background's zeros do not bleed in
+        blurred = gaussian_blur(torch.stack([disparity * mask, mask.to(depths)], dim=-1)[None], blur_px)[0]
+        disparity = blurred[..., 0] / blurred[..., 1].clamp_min(1e-12)
+        disparity = disparity * (1 + pixel_noise * torch.randn(height, width, generator=generator,
+                                                                dtype=torch.float64).to(depths))
+        scale = 0.5 + 1.5 * float(torch.rand(1, generator=generator, dtype=torch.float64))
+        shift = float(torch.rand(1, generator=generator, dtype=torch.float64)) * float(values.median())
+        disparity = scale * disparity + shift
+        out[view] = torch.where(mask & (disparity > 0), 1.0 / disparity.clamp_min(1e-12), torch.zeros_like(disparity))
+    return out
