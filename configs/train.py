@@ -417,6 +417,11 @@ def quick() -> TrainConfig:
       for 200 iterations. Measured windows (synthetic / maryrose): the first half 0.81 / 17.0 deg, the second
       half 12.2 / 3.47, from a quarter on 1.39 / 7.75 (kept: the only one that helps both; the BAGS report too
       starts its poses a fifth into training);
+    - the depth term (where the scene has depth maps) for the first half of each round, half of it while the poses
+      move (depth_until 100; 60 before): synthetic 1.33 -> 0.65 deg with its exact depth maps, 1.74 -> 1.17 with them
+      degraded as a monocular network's (`bench/pose_recovery.py --depth monocular`; the whole round: 0.60 and 1.56,
+      the centres 2.3% off). Per-view depth maps tie each camera to the shape, which a fresh model fitting four
+      images does not: without them the synthetic scene ends at 5.6 deg (`--depth none`), and maryrose has none;
     - three rounds of 200 iterations, each re-carving the hull with the improved poses and starting fresh
       Gaussians; rotation lr 1e-2 -> 1e-3 with a 10x slower translation (equal rates: no better, 1.55 vs 1.51).
     Not kept: NeRS's alpha x distance-transform term (0.81 -> 0.88 deg; normalized by the rendered mass it
@@ -429,7 +434,7 @@ def quick() -> TrainConfig:
         rounds=3,
         pose_opt_start=0,
         pose_round_window=(0.25, 1.0),
-        depth_until=60,
+        depth_until=100,
         checkpoint_every=100,
         max_image_size=128,
         views_per_step=0,

@@ -34,7 +34,7 @@ PAPER = {
 
 QUICK = {
     "preset": "quick", "views": 4, "iters": 600, "rounds": 3, "pose_opt": True, "pose_opt_start": 0,
-    "pose_round_window": (0.25, 1.0), "pose_round_windows": (), "depth_until": 60,
+    "pose_round_window": (0.25, 1.0), "pose_round_windows": (), "depth_until": 100,
     "rot_noise_deg": 0.0, "trans_noise": 0.0, "noise_seed": 0,
     "seed": 0, "resolution": None, "max_image_size": 128, "pyramid_levels": 1, "views_per_step": 0,
     "background": "white", "sh_degree": 0, "sh_degree_every": 1000, "init": "hull", "init_points": 3000,

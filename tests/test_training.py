@@ -283,19 +283,20 @@ def pose_run(scene_dir, tmp_path_factory):
     return before, trainer.pose_error()
 
 
-def test_fifteen_degree_noise_on_every_camera_is_cut_to_a_third(pose_run):
+def test_fifteen_degree_noise_on_every_camera_is_cut_to_a_quarter(pose_run):
     before, after = pose_run
     assert before["rot_err_deg"] > 12.0
-    # Measured 14.17 -> 3.56 deg and 0.357 -> 0.109 with the rasterizer's CPU pixel blocks, and 14.17 -> 1.39 /
-    # 0.043 before them: a rounding-level change moves a single seed's result that much (README, pose recovery),
-    # so this bounds what the method must always do (frozen noisy poses stay at 14.17), not how well it does.
-    assert after["rot_err_deg"] <= before["rot_err_deg"] / 3, (before, after)
-    assert after["trans_err"] <= 0.5 * before["trans_err"], (before, after)
+    # Measured 14.17 -> 1.06 deg and 0.357 -> 0.022 with the depth term in the first half of each round (60
+    # iterations: 3.56 / 0.109; rounding-level changes have moved a single seed's result by 2 deg, README, pose
+    # recovery). Without the scene's depth maps the same run ends at 12.95 deg: the depth prior is what takes the
+    # cameras in. So this bounds what the method must always do (frozen noisy poses stay at 14.17), not how well.
+    assert after["rot_err_deg"] <= before["rot_err_deg"] / 4, (before, after)
+    assert after["trans_err"] <= 0.25 * before["trans_err"], (before, after)
 
 
 # The quick preset as shipped (free gauge, 3 rounds of 200 iterations, its pose window), on both cores.
 POSE_TEST = dict(iters=600, rounds=3, rot_noise_deg=15.0, trans_noise=0.3, pose_opt_start=0,
-                 pose_round_window=(0.25, 1.0), depth_until=60, init_points=3000, hull_resolution=48, render_threads=0)
+                 pose_round_window=(0.25, 1.0), depth_until=100, init_points=3000, hull_resolution=48, render_threads=0)
 
 
 # ------------------------------------------------------------------------------------------------ CLI

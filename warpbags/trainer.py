@@ -72,7 +72,11 @@ class Trainer:
         self.viewmats_start, self.object_center = starting_poses(self.viewmats_init, full.masks, full.Ks, config, log)
         self.scene_extent = scene_extent(self.viewmats_init)
         if full.depths is None and config.depth_until > 0:
-            self.log("no depth maps in this scene: depth term skipped")
+            # The depth term is what takes the synthetic scene's cameras in from 15 degrees of noise (README, "Pose
+            # recovery"): without depth maps poses rest on the images and masks alone.
+            self.log("no depth maps in this scene: depth term skipped" + (
+                "; poses are corrected from the images and masks alone, which recovers far less from large pose "
+                "noise (zoe_depth/*.png or depths/*.npy per image give the depth prior)" if config.pose_opt else ""))
         if self._pose_alignment() != config.pose_alignment:
             self.log(f"{self.num_cameras} training cameras: the logged pose error uses pairwise alignment "
                      "(procrustes needs 3 camera centres)")
