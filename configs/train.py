@@ -13,12 +13,9 @@ from __future__ import annotations
 import dataclasses
 import json
 from dataclasses import dataclass, field
-from typing import Any, Literal, get_args
+from typing import Any, Literal
 
 from warpbags.errors import WarpbagsError
-
-# `warpbags.losses.depth_loss`'s modes (not imported from there: configuration stays free of the kernels)
-DepthLossMode = Literal["mad", "pearson", "local-pearson"]
 
 
 @dataclass(frozen=True)
@@ -269,9 +266,7 @@ class TrainConfig:
         lambda_chamfer: weight of the two-sided chamfer between projected Gaussian centres and mask edges (NeRS).
         silhouette_until: the two silhouette terms are used for each round's first `silhouette_until` iterations
             (0 = always).
-        depth_loss: "mad" (GaussianObject's median/MAD-normalized disparity L1), "pearson" (1 - correlation) or
-            "local-pearson" (1 - correlation within square tiles: a monocular map's smooth shape errors drop out).
-        depth_patch: tile side of "local-pearson", as a share of the image's longer side.
+        depth_loss: "mad" (GaussianObject's median/MAD-normalized disparity L1) or "pearson" (1 - correlation).
         checkpoint_every: checkpoint interval in iterations.
         pose_alignment: alignment used for the logged pose error ("procrustes", "pairwise").
         render_threads: host threads for CPU rendering (0 = the renderer's default: all cores).
@@ -311,8 +306,7 @@ class TrainConfig:
     lambda_mask_distance: float = 0.0
     lambda_chamfer: float = 1.0
     silhouette_until: int = 0
-    depth_loss: DepthLossMode = "mad"
-    depth_patch: float = 0.125
+    depth_loss: Literal["mad", "pearson"] = "mad"
     checkpoint_every: int = 500
     pose_alignment: Literal["procrustes", "pairwise"] = "procrustes"
     render_threads: int = 0
@@ -362,9 +356,7 @@ class TrainConfig:
             (self.blur_sigma_px >= 0, f"--blur-px must be >= 0, got {self.blur_sigma_px}"),
             (self.blur_until >= 0, f"--blur-until must be >= 0, got {self.blur_until}"),
             (0 <= self.lambda_depth < 1, f"lambda_depth must be in [0, 1), got {self.lambda_depth}"),
-            (self.depth_loss in get_args(DepthLossMode),
-             f"--depth-loss must be one of {', '.join(get_args(DepthLossMode))}, got {self.depth_loss!r}"),
-            (0 < self.depth_patch <= 1, f"depth_patch must be in (0, 1], got {self.depth_patch}"),
+            (self.depth_loss in ("mad", "pearson"), f"--depth-loss must be mad or pearson, got {self.depth_loss!r}"),
             (self.pose_alignment in ("procrustes", "pairwise"), f"pose_alignment: {self.pose_alignment!r}"),
             (self.camera.parameterization in ("object", "camera"),
              f"camera.parameterization must be object or camera, got {self.camera.parameterization!r}"),

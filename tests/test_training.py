@@ -51,7 +51,7 @@ def test_ssim_identical_is_one_and_differentiable():
     torch.autograd.gradcheck(lambda x: ssim(x, small), (images[:1, :12, :12].detach().requires_grad_(),))
 
 
-@pytest.mark.parametrize("mode", ["mad", "pearson", "local-pearson"])
+@pytest.mark.parametrize("mode", ["mad", "pearson"])
 def test_depth_loss_is_scale_and_shift_invariant_in_disparity(mode):
     depth = 1.0 + torch.rand(1, 16, 16)
     alphas = torch.ones(1, 16, 16)
@@ -59,32 +59,6 @@ def test_depth_loss_is_scale_and_shift_invariant_in_disparity(mode):
     assert depth_loss(depth, alphas, target, None, mode=mode).item() == pytest.approx(0.0, abs=1e-5)
     assert depth_loss(depth, alphas, 1.0 + torch.rand(1, 16, 16), None, mode=mode).item() > 0.1
     assert depth_loss(depth, torch.zeros(1, 16, 16), target, None, mode=mode) is None
-
-
-def test_local_depth_loss_ignores_a_smooth_shape_error_that_the_global_ones_see():
-    # a monocular map's typical error: the right relief, bent by a smooth field (here a ramp across the image)
-    g = torch.Generator().manual_seed(0)
-    depth = 1.0 + torch.rand(1, 32, 32, generator=g, dtype=torch.float64)
-    alphas = torch.ones(1, 32, 32, dtype=torch.float64)
-    ramp = torch.linspace(0, 1, 32, dtype=torch.float64)[None, None, :]
-    bent = 1.0 / (1.0 / depth + ramp)  # the ramp spans twice the relief of disparity (0.5 to 1)
-    local = depth_loss(depth, alphas, bent, None, mode="local-pearson", patch_px=4).item()
-    assert local < 0.05
-    for mode in ("mad", "pearson"):
-        assert depth_loss(depth, alphas, bent, None, mode=mode).item() > 4 * local
-    # the tile size decides: a tile across the whole image is the global correlation
-    whole = depth_loss(depth, alphas, bent, None, mode="local-pearson", patch_px=32).item()
-    assert whole == pytest.approx(depth_loss(depth, alphas, bent, None, mode="pearson").item(), rel=1e-9)
-
-
-def test_local_depth_loss_gradcheck_float64():
-    g = torch.Generator().manual_seed(1)
-    depth = (1.0 + torch.rand(1, 10, 12, generator=g, dtype=torch.float64)).requires_grad_()
-    alphas = torch.ones(1, 10, 12, dtype=torch.float64)
-    alphas[0, :3, :3] = 0.0  # invalid pixels and a partly valid tile
-    target = 1.0 + torch.rand(1, 10, 12, generator=g, dtype=torch.float64)
-    torch.autograd.gradcheck(lambda d: depth_loss(d, alphas, target, None, mode="local-pearson", patch_px=4),
-                             (depth,))
 
 
 def test_replace_rows_carries_adam_state():

@@ -20,9 +20,6 @@ from warpbags.kernels.loss import (
 from warpbags.wrapper import _default_cpu_threads, _launcher, _run_ranges, _to_warp
 
 
-DEPTH_LOSS_MODES = ("mad", "pearson", "local-pearson")
-
-
 @functools.lru_cache(maxsize=8)
 def _gaussian_window(size: int, sigma: float, device: str, dtype: torch.dtype) -> torch.Tensor:
     coords = torch.arange(size, dtype=torch.float64) - (size - 1) / 2
@@ -178,67 +175,32 @@ def _normalized(values: torch.Tensor) -> torch.Tensor:
     return (values - median) / (values - median).abs().mean().clamp_min(1e-6)
 
 
-def _patch_rows(values: torch.Tensor, patch: int) -> torch.Tensor:
-    """[H, W] -> [tiles, patch * patch]: the image cut into patch x patch tiles (zero-padded at the far edges)."""
-    height, width = values.shape
-    rows, cols = -(-height // patch), -(-width // patch)
-    padded = F.pad(values, (0, cols * patch - width, 0, rows * patch - height))
-    return padded.reshape(rows, patch, cols, patch).permute(0, 2, 1, 3).reshape(rows * cols, patch * patch)
-
-
-def _local_decorrelation(rendered: torch.Tensor, target: torch.Tensor, valid: torch.Tensor, patch: int) -> torch.Tensor:
-    """1 - Pearson correlation of two [H, W] disparity maps within each patch x patch tile, averaged over the tiles
-    with at least a quarter of their pixels valid, each weighted by its valid pixels (0 = no such tile)."""
-    weights = _patch_rows(valid.to(rendered.dtype), patch)
-    counts = weights.sum(dim=1)
-    kept = counts >= patch * patch / 4
-    if not kept.any():
-        return rendered.new_zeros(())
-    weights, counts = weights[kept], counts[kept]
-    centred = []
-    for values in (rendered, target):
-        tiles = _patch_rows(torch.where(valid, values, torch.zeros_like(values)), patch)[kept]
-        centred.append((tiles - (tiles.sum(dim=1) / counts)[:, None]) * weights)
-    correlation = (centred[0] * centred[1]).sum(dim=1) / (
-        centred[0].norm(dim=1) * centred[1].norm(dim=1)).clamp_min(1e-12)
-    return ((1.0 - correlation) * counts).sum() / counts.sum()
-
-
 def depth_loss(
     depths: torch.Tensor, alphas: torch.Tensor, target_depths: torch.Tensor, masks: torch.Tensor | None,
-    mode: str = "mad", patch_px: int = 16,
+    mode: str = "mad",
 ) -> torch.Tensor | None:
     """GaussianObject's monocular-depth term on disparities, invariant to their scale and shift.
 
     mode "mad" (GaussianObject's default): L1 between median/MAD-normalized disparities; "pearson":
-    1 - Pearson correlation of the disparities; "local-pearson": the same within each ``patch_px`` square tile
-    (SparseGS's patch-wise correlation), invariant to a scale and shift per tile, so a monocular map's smooth,
-    low-frequency shape errors (a far side pushed back, a tilted plane) do not pull the geometry while its local
-    relief does. Compared per view inside ``mask & alpha > 0.5 & target > 0``, so the target may be metric or
-    relative (any positive scale and shift of disparity gives the same loss).
+    1 - Pearson correlation of the disparities. Compared per view inside ``mask & alpha > 0.5 & target > 0``, so
+    the target may be metric or relative (any positive scale and shift of disparity gives the same loss).
 
     Args:
         depths: [B, H, W] rendered expected depth. alphas: [B, H, W] rendered opacity.
         target_depths: [B, H, W] depth maps (0 = no value). masks: [B, H, W] object masks, or None.
-        mode: "mad", "pearson" or "local-pearson".
-        patch_px: tile size of "local-pearson", pixels.
+        mode: "mad" or "pearson".
 
     Returns:
         [] mean over views with at least 16 valid pixels, or None when no view has enough.
     """
-    if mode not in DEPTH_LOSS_MODES:
-        raise ValueError(f"depth loss mode must be one of {', '.join(DEPTH_LOSS_MODES)}, got {mode!r}")
+    if mode not in ("mad", "pearson"):
+        raise ValueError(f"depth loss mode must be mad or pearson, got {mode!r}")
     losses = []
     for index in range(len(depths)):
         valid = (alphas[index] > 0.5) & (target_depths[index] > 0) & (depths[index] > 1e-6)
         if masks is not None:
             valid &= masks[index] > 0.5
         if int(valid.sum()) < 16:
-            continue
-        if mode == "local-pearson":
-            disparities = [torch.where(valid, 1.0 / maps[index].clamp_min(1e-6), torch.zeros_like(maps[index]))
-                           for maps in (depths, target_depths)]
-            losses.append(_local_decorrelation(*disparities, valid, patch_px))
             continue
         rendered, target = 1.0 / depths[index][valid], 1.0 / target_depths[index][valid]
         if mode == "mad":

@@ -198,9 +198,7 @@ class GaussianModel:
                 terms["chamfer"] = chamfer_term.item()
         if with_depth:
             masks = None if data.masks is None else data.masks[views]
-            patch_px = max(4, round(config.depth_patch * max(alphas.shape[1:])))
-            depth_term = depth_loss(renders[..., 3], alphas, data.depths[views], masks, mode=config.depth_loss,
-                                    patch_px=patch_px)
+            depth_term = depth_loss(renders[..., 3], alphas, data.depths[views], masks, mode=config.depth_loss)
             if depth_term is not None:  # the photometric weight is 1 - lambda_depth while the depth term is on
                 loss = loss + config.lambda_depth * depth_term - config.lambda_depth * photometric
                 terms["depth"] = depth_term.item()
