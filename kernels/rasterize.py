@@ -40,6 +40,11 @@ SIGMA_CUTOFF = 5.545177444479562  # ln(255)
 MAX_ALPHA = 0.99
 TRANSMITTANCE_MIN = 1.0e-4
 
+# CPU build: LLVM's default SLP vectorizer depth. Warp's default CPU flags add -slp-recursion-max-depth=4 (and higher
+# inlining thresholds), which leaves most of the lanes' arithmetic scalar. Kernels alone, 128^2 / 4 cameras / 10k
+# Gaussians, one thread: forward 15.5-19 -> 8.6-9.3 ms, backward 30-36 -> 26-28 ms. The CUDA build ignores it.
+wp.set_module_options({"cpu_compiler_flags": "-march=native"})
+
 
 @wp.struct
 class TileGeometry:
