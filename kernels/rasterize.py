@@ -236,10 +236,40 @@ def _forward_kernel(lanes: int):
     return rasterize_forward_kernel
 
 
+def _lane_sum(lanes: int):
+    """Sum of a vector of `lanes` (a power of two up to 16) values as a tree of halves, which the compiler turns into
+    a few vector additions (a running sum, lane after lane, fixes the order of the float additions and stays scalar)."""
+    assert lanes in (1, 2, 4, 8, 16), lanes
+
+    @wp.func
+    def lane_sum(v: Any):
+        s = v
+        for k in range(wp.static(lanes // 2)):
+            s[k] = s[k] + s[k + wp.static(lanes // 2)]
+        for k in range(wp.static(lanes // 4)):
+            s[k] = s[k] + s[k + wp.static(lanes // 4)]
+        for k in range(wp.static(lanes // 8)):
+            s[k] = s[k] + s[k + wp.static(lanes // 8)]
+        for k in range(wp.static(lanes // 16)):
+            s[k] = s[k] + s[k + wp.static(lanes // 16)]
+        return s[0]
+
+    return lane_sum
+
+
 def _backward_kernel(lanes: int, with_depth: bool):
     """The backward kernel for blocks of `lanes` pixels per thread: the lanes' gradients of one Gaussian are
-    summed in registers and added to the buffers once. Without `with_depth` the depth map's cotangent is taken as
-    zero: its terms are left out (about a sixth of the kernel's time) and v_depths is not written."""
+    summed (`_lane_sum`) and added to the buffers once. Without `with_depth` the depth map's cotangent is taken as
+    zero: its terms are left out and v_depths is not written.
+
+    Per pixel (lane), with v the pixel's colour cotangent (and depth cotangent), walking back to front:
+        T_i = T_{i+1} / (1 - alpha_i),  dL/dc_i = alpha_i T_i v,
+        dL/dalpha_i = T_i (c_i . v) - (sum_{j>i} alpha_j T_j (c_j . v) - T_final v_A) / (1 - alpha_i),
+    so a lane carries one running sum `behind` (started at -T_final v_A) instead of one per channel. The shape's
+    gradient is summed as the moments sum(dx v_sigma), sum(dy v_sigma), sum(dx dx v_sigma), sum(dx dy v_sigma),
+    sum(dy dy v_sigma) over the lanes, and turned into the conic's and the mean's gradients once per Gaussian."""
+
+    lane_sum = _lane_sum(lanes)
 
     @wp.kernel(enable_backward=False)
     def rasterize_backward_kernel(
@@ -271,37 +301,45 @@ def _backward_kernel(lanes: int, with_depth: bool):
         half = v_out_depths.dtype(0.5)
         px = wp.vector(zero, length=wp.static(lanes))
         py = wp.vector(zero, length=wp.static(lanes))
-        t_final = wp.vector(one, length=wp.static(lanes))
         v_red = wp.vector(zero, length=wp.static(lanes))
         v_green = wp.vector(zero, length=wp.static(lanes))
         v_blue = wp.vector(zero, length=wp.static(lanes))
         v_depth = wp.vector(zero, length=wp.static(lanes))
-        v_alpha_out = wp.vector(zero, length=wp.static(lanes))
         last = wp.vector(wp.int32(0), length=wp.static(lanes))  # lane k composited list entries [start, last[k])
         transmittance = wp.vector(one, length=wp.static(lanes))
-        # sums of c_j alpha_j T_j and z_j alpha_j T_j over the Gaussians behind the current one
-        red_behind = wp.vector(zero, length=wp.static(lanes))
-        green_behind = wp.vector(zero, length=wp.static(lanes))
-        blue_behind = wp.vector(zero, length=wp.static(lanes))
-        depth_behind = wp.vector(zero, length=wp.static(lanes))
+        # sum of alpha_j T_j (c_j . v) (+ z_j v_depth) over the Gaussians behind the current one, minus T_final v_A
+        behind = wp.vector(zero, length=wp.static(lanes))
         i = int(0)
         for k in range(wp.static(lanes)):
             x, y, pix = lane_pixel(x0, y0, k, block_w, cam, tiles.width, tiles.height)
             px[k] = v_out_depths.dtype(x) + v_out_depths.dtype(0.5)
             py[k] = v_out_depths.dtype(y) + v_out_depths.dtype(0.5)
             if pix >= 0:
-                t_final[k] = final_transmittance[pix]
-                transmittance[k] = t_final[k]
+                transmittance[k] = final_transmittance[pix]
                 v_color = v_out_colors[pix]
                 v_red[k] = v_color[0]
                 v_green[k] = v_color[1]
                 v_blue[k] = v_color[2]
-                v_depth[k] = v_out_depths[pix]
-                v_alpha_out[k] = v_out_alphas[pix]
+                if wp.static(with_depth):
+                    v_depth[k] = v_out_depths[pix]
+                behind[k] = -transmittance[k] * v_out_alphas[pix]
                 last[k] = isect_end[pix]
                 i = wp.max(i, last[k])
         first_gaussian = cam * tiles.num_gaussians
         start = tile_offsets[tile]
+        # each lane's share of the current Gaussian's gradients, summed over the lanes after the lanes loop
+        lane_red = wp.vector(zero, length=wp.static(lanes))
+        lane_green = wp.vector(zero, length=wp.static(lanes))
+        lane_blue = wp.vector(zero, length=wp.static(lanes))
+        lane_depth = wp.vector(zero, length=wp.static(lanes))
+        lane_opacity = wp.vector(zero, length=wp.static(lanes))
+        lane_x = wp.vector(zero, length=wp.static(lanes))  # dx v_sigma
+        lane_y = wp.vector(zero, length=wp.static(lanes))  # dy v_sigma
+        lane_xx = wp.vector(zero, length=wp.static(lanes))  # dx dx v_sigma
+        lane_xy = wp.vector(zero, length=wp.static(lanes))  # dx dy v_sigma
+        lane_yy = wp.vector(zero, length=wp.static(lanes))  # dy dy v_sigma
+        lane_colored = wp.vector(zero, length=wp.static(lanes))  # 1 where the lane composited the Gaussian
+        lane_shaped = wp.vector(zero, length=wp.static(lanes))  # 1 where, besides, alpha is below the 0.99 clamp
 
         while i > start:
             i -= 1
@@ -311,53 +349,50 @@ def _backward_kernel(lanes: int, with_depth: bool):
             opacity = opacities[g - first_gaussian]
             c = colors[g]
             z = depths[g]
-            v_c = wp.vector(zero, zero, zero)
-            v_z = zero
-            v_o = zero
-            v_conic = wp.vector(zero, zero, zero)
-            v_mean = wp.vector(zero, zero)
-            colored = zero  # 1 once a lane composited this Gaussian
-            shaped = zero  # 1 once a lane's alpha depends on its opacity and shape (below the 0.99 clamp)
             for k in range(wp.static(lanes)):
                 sigma, dx, dy = gaussian_falloff(mean, conic, px[k], py[k])
                 alpha, raw_alpha, falloff = splat_alpha(opacity, sigma, wp.where(i < last[k], one, zero))
                 one_minus_alpha_inv = one / (one - alpha)
                 transmittance[k] = transmittance[k] * one_minus_alpha_inv
                 weight = alpha * transmittance[k]
-                v_c = v_c + weight * wp.vector(v_red[k], v_green[k], v_blue[k])
+                lane_red[k] = weight * v_red[k]
+                lane_green[k] = weight * v_green[k]
+                lane_blue[k] = weight * v_blue[k]
+                color_dot = c[0] * v_red[k] + c[1] * v_green[k] + c[2] * v_blue[k]
                 if wp.static(with_depth):
-                    v_z = v_z + weight * v_depth[k]
-                v_alpha = (
-                    (c[0] * transmittance[k] - red_behind[k] * one_minus_alpha_inv) * v_red[k]
-                    + (c[1] * transmittance[k] - green_behind[k] * one_minus_alpha_inv) * v_green[k]
-                    + (c[2] * transmittance[k] - blue_behind[k] * one_minus_alpha_inv) * v_blue[k]
-                    + t_final[k] * one_minus_alpha_inv * v_alpha_out[k]
-                )
-                if wp.static(with_depth):
-                    v_alpha = v_alpha + (z * transmittance[k] - depth_behind[k] * one_minus_alpha_inv) * v_depth[k]
-                    depth_behind[k] = depth_behind[k] + weight * z
-                red_behind[k] = red_behind[k] + weight * c[0]
-                green_behind[k] = green_behind[k] + weight * c[1]
-                blue_behind[k] = blue_behind[k] + weight * c[2]
+                    lane_depth[k] = weight * v_depth[k]
+                    color_dot = color_dot + z * v_depth[k]
+                v_alpha = transmittance[k] * color_dot - behind[k] * one_minus_alpha_inv
+                behind[k] = behind[k] + weight * color_dot
                 composited = wp.where(alpha > zero, one, zero)
-                colored = wp.max(colored, composited)
+                lane_colored[k] = composited
                 shape = wp.where(raw_alpha <= v_out_depths.dtype(MAX_ALPHA), composited, zero)  # the clamp's gradient is 0
-                shaped = wp.max(shaped, shape)
+                lane_shaped[k] = shape
                 v_alpha = v_alpha * shape
-                v_o = v_o + falloff * v_alpha
+                lane_opacity[k] = falloff * v_alpha
                 v_sigma = -raw_alpha * v_alpha
-                v_conic = v_conic + wp.vector(half * dx * dx * v_sigma, dx * dy * v_sigma, half * dy * dy * v_sigma)
-                # d = pixel - mean, so d(sigma)/d(mean) = -(conic d)
-                v_mean = v_mean + wp.vector(-(conic[0] * dx + conic[1] * dy) * v_sigma,
-                                            -(conic[1] * dx + conic[2] * dy) * v_sigma)
-            if colored != zero:
-                wp.atomic_add(v_colors, g, v_c)
+                lane_x[k] = dx * v_sigma
+                lane_y[k] = dy * v_sigma
+                lane_xx[k] = dx * lane_x[k]
+                lane_xy[k] = dx * lane_y[k]
+                lane_yy[k] = dy * lane_y[k]
+            # On the CPU (lanes > 1) the sums are added unconditionally, exact zeros where no lane contributed: a
+            # branch on them splits the lanes' arithmetic into blocks the compiler vectorizes 4 lanes at a time.
+            # One pixel per thread (CUDA) adds only what a composited pixel gives, as gsplat does.
+            colored = wp.static(lanes > 1) or lane_colored[0] != zero
+            shaped = wp.static(lanes > 1) or lane_shaped[0] != zero
+            if colored:
+                wp.atomic_add(v_colors, g, wp.vector(lane_sum(lane_red), lane_sum(lane_green), lane_sum(lane_blue)))
                 if wp.static(with_depth):
-                    wp.atomic_add(v_depths, g, v_z)
-            if shaped != zero:
-                wp.atomic_add(v_opacities, g - first_gaussian, v_o)
-                wp.atomic_add(v_conics, g, v_conic)
-                wp.atomic_add(v_means2d, g, v_mean)
+                    wp.atomic_add(v_depths, g, lane_sum(lane_depth))
+            if shaped:
+                wp.atomic_add(v_opacities, g - first_gaussian, lane_sum(lane_opacity))
+                sum_x = lane_sum(lane_x)
+                sum_y = lane_sum(lane_y)
+                wp.atomic_add(v_conics, g, wp.vector(half * lane_sum(lane_xx), lane_sum(lane_xy), half * lane_sum(lane_yy)))
+                # d = pixel - mean, so d(sigma)/d(mean) = -(conic d)
+                wp.atomic_add(v_means2d, g, wp.vector(-(conic[0] * sum_x + conic[1] * sum_y),
+                                                      -(conic[1] * sum_x + conic[2] * sum_y)))
 
     return rasterize_backward_kernel
 
