@@ -392,7 +392,7 @@ def test_gradients_do_not_depend_on_the_thread_schedule(monkeypatch):
     results = []
     for schedule in ("in turn", "reversed"):
         if schedule == "reversed":  # the threads' order made deterministic and as different as it gets
-            monkeypatch.setattr(wrapper, "_run_ranges", lambda work, ranges, workers, warm_key=None: [
+            monkeypatch.setattr(wrapper, "_run_ranges", lambda work, ranges, workers: [
                 work(i, *ranges[i]) for i in [0, *reversed(range(1, len(ranges)))]])
         inputs = {k: v.detach().clone().requires_grad_(k in DIFFERENTIABLE) if isinstance(v, torch.Tensor) else v
                   for k, v in scene.items()}

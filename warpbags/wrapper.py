@@ -209,13 +209,12 @@ class _GaussianRanges(NamedTuple):
     def launch_dim(self, cut: tuple[int, int] | None):
         return self.dim if cut is None else (self.dim[0], cut[1] - cut[0])
 
-    def run(self, work, warm_key=None) -> None:
-        """work(i, cut) for every launch i, cut = (start, stop) of the Gaussians or None for all; `warm_key` as
-        `_run_ranges` takes it."""
+    def run(self, work) -> None:
+        """work(i, cut) for every launch i, cut = (start, stop) of the Gaussians or None for all."""
         if self.ranges is None:
             work(0, None)
         else:
-            _run_ranges(lambda i, start, stop: work(i, (start, stop)), self.ranges, len(self.ranges) - 1, warm_key)
+            _run_ranges(lambda i, start, stop: work(i, (start, stop)), self.ranges, len(self.ranges) - 1)
 
 
 def _cut(tensor, cut: tuple[int, int] | None, axis: int):
@@ -247,7 +246,7 @@ def _stage_forward(stage: _Stage, dim, shape: tuple, args: Sequence) -> tuple[to
     def work(_, cut):
         launcher.launch(stage.kernel, cuts.launch_dim(cut), **_stage_arguments(stage, args, outputs, cut, scalar))
 
-    cuts.run(work, (stage.kernel, scalar))
+    cuts.run(work)
     return tuple(outputs)
 
 
@@ -375,7 +374,7 @@ def _backward_over_ranges(stage: _Stage, kernel, *, gaussians: dict, cameras: di
     v_gaussians = {name: torch.zeros_like(t) for name, t in gaussians.items()}
     some = next(iter(pairs.values()))
     cuts = _GaussianRanges.of(stage, tuple(some.shape[:2]), some.device)
-    # The first range, which never runs at the same time as the second (`_run_ranges`), shares its camera gradients.
+    # The first range, which runs alone before the others start, shares the second one's camera gradients.
     v_cameras = [{name: torch.zeros_like(t) for name, t in cameras.items()}
                  for _ in range(1 if cuts.ranges is None else max(len(cuts.ranges) - 1, 1))]
     wp_cameras = [views(buffers, None, 0, "v_") for buffers in v_cameras]
@@ -386,7 +385,7 @@ def _backward_over_ranges(stage: _Stage, kernel, *, gaussians: dict, cameras: di
         launcher.launch(kernel, cuts.launch_dim(cut), **common, **views(gaussians, cut, 0), **views(pairs, cut, 1),
                         **views(v_gaussians, cut, 0, "v_"), **wp_cameras[max(i - 1, 0)])
 
-    cuts.run(work, (kernel, next(iter(gaussians.values())).dtype))
+    cuts.run(work)
     return {**v_gaussians, **{name: sum(parts[1:], parts[0])
                               for name, parts in zip(cameras, zip(*(b.values() for b in v_cameras)))}}
 
@@ -598,7 +597,7 @@ def _bin_by_counting(splats: dict, tiles: TileGeometry, radii: torch.Tensor, dep
                         row_offsets=rows["row_offsets"], first_rank=first, spans=rows["spans"])
 
     # more ranges than threads: the work per Gaussian varies
-    _run_ranges(find_spans, _first_alone_then_equal(cams * n, 4 * threads), threads, (tile_spans_kernel, depths.dtype))
+    _run_ranges(find_spans, _first_alone_then_equal(cams * n, 4 * threads), threads)
 
     chunks = _depth_chunks((radii > 0).sum(dim=1).tolist(), max(1, math.ceil(2 * threads / cams)) if threads > 1 else 1)
     cameras_of, starts, stops = (torch.tensor(column, dtype=torch.int32) for column in zip(*chunks))
@@ -611,7 +610,7 @@ def _bin_by_counting(splats: dict, tiles: TileGeometry, radii: torch.Tensor, dep
     def count(_, first, stop):
         launcher.launch(tile_histogram_kernel, stop - first, **chunk_args, first_chunk=first, chunk_counts=counts_wp)
 
-    _run_ranges(count, one_each, threads, (tile_histogram_kernel, depths.dtype))
+    _run_ranges(count, one_each, threads)
     # Tile offsets over every camera's tiles; within a tile, each chunk writes after the camera's earlier chunks.
     camera_counts = torch.zeros(cams, tiles_per_camera, dtype=torch.int32).index_add_(0, cameras_of.long(), counts)
     tile_offsets = torch.zeros(num_tiles + 1, dtype=torch.int32)
@@ -629,7 +628,7 @@ def _bin_by_counting(splats: dict, tiles: TileGeometry, radii: torch.Tensor, dep
                         first_chunk=first, chunk_cursors=cursors_wp, isect_ids=ids_wp)
 
     if len(isect_ids):
-        _run_ranges(fill, one_each, threads, (fill_tiles_front_to_back_kernel, depths.dtype))
+        _run_ranges(fill, one_each, threads)
     return tile_offsets, isect_ids
 
 
@@ -706,44 +705,23 @@ def _worker_pool(workers: int) -> ThreadPoolExecutor:
     return _POOLS[key]
 
 
-# (process id, warm key) of the kernels whose first range ran alone in this process (see `_run_ranges`)
-_WARM_KERNELS: set = set()
-
-
-def _run_ranges(work, ranges: list[tuple[int, int]], workers: int, warm_key=None) -> None:
+def _run_ranges(work, ranges: list[tuple[int, int]], workers: int) -> None:
     """Run work(i, start, stop) for every range i, on `workers` host threads that each take the next range when
     they are free (dynamic scheduling: a static share left one thread idle while the other binned every camera).
 
     Warp CPU launches release the GIL, so host threads over disjoint ranges run in parallel. The first range runs
     alone on the calling thread, so that a kernel's first-use compilation happens once, not in every thread at the
-    same time; given a `warm_key` that names the kernel `work` launches with everything that picks its build (the
-    kernel and its precision: a new overload can rebuild the module), only the first time that key runs here in
-    this process: after that the first range runs just before the second, in the same task, so the other threads
-    need not wait for it (0.2-0.6 ms per call, mostly the launch's Python side). Whatever `work` writes must depend on its range i only,
-    never on the thread that ran it (per-range outputs or gradient buffers; the first two ranges may share one,
-    they never run at the same time): then results are the same bit for bit for every schedule.
+    same time. Whatever `work` writes must depend on its range i only, never on the thread that ran it (per-range
+    outputs or gradient buffers): then results are the same bit for bit for every schedule.
     """
     if not ranges:
         return
-    parallel = workers > 1 and len(ranges) > 2
-    key = (os.getpid(), warm_key)
-    if not parallel or warm_key is None or key not in _WARM_KERNELS:
-        work(0, *ranges[0])
-        if warm_key is not None:
-            _WARM_KERNELS.add(key)
-        if not parallel:
-            for i in range(1, len(ranges)):
-                work(i, *ranges[i])
-            return
-        list(_worker_pool(workers).map(lambda i: work(i, *ranges[i]), range(1, len(ranges))))
+    work(0, *ranges[0])
+    if workers <= 1 or len(ranges) <= 2:
+        for i in range(1, len(ranges)):
+            work(i, *ranges[i])
         return
-
-    def first_two_or_one(i):
-        if i == 1:
-            work(0, *ranges[0])
-        work(i, *ranges[i])
-
-    list(_worker_pool(workers).map(first_two_or_one, range(1, len(ranges))))
+    list(_worker_pool(workers).map(lambda i: work(i, *ranges[i]), range(1, len(ranges))))
 
 
 def _visits_per_tile(tile_offsets: torch.Tensor, isect_end: torch.Tensor, tiles: TileGeometry) -> torch.Tensor:
@@ -846,7 +824,7 @@ class _RasterizeToPixels(torch.autograd.Function):
         def work(_, start, stop):
             launcher.launch(kernel, stop - start, **common, first_block=start, **outputs)
 
-        _run_ranges(work, ranges, workers, (kernel, scalar))
+        _run_ranges(work, ranges, workers)
 
         ctx.workers, ctx.blocks_per_tile = workers, blocks_per_tile
         ctx.save_for_backward(means2d, conics, colors, opacities, depths, bins.tile_offsets, bins.isect_ids,
@@ -882,8 +860,8 @@ class _RasterizeToPixels(torch.autograd.Function):
         ranges = _raster_ranges(tile_offsets.numel() - 1, ctx.blocks_per_tile, workers, 1,
                                 lambda: _visits_per_tile(tile_offsets, isect_end, ctx.geometry["tiles"]))
         # One private set of gradient buffers per range (CPU atomics are plain adds), summed in range order: the
-        # gradients do not depend on which thread ran which range. The first range, which never runs at the same
-        # time as the second (`_run_ranges`), shares its set.
+        # gradients do not depend on which thread ran which range. The first range, which runs alone before the
+        # others start, shares the second one's set.
         buffers = [{name: torch.zeros_like(t) for name, t in splats.items()} for _ in range(max(len(ranges) - 1, 1))]
         wp_buffers = [{"v_" + name: _to_warp(t, _SPLAT_KINDS[name]) for name, t in b.items()} for b in buffers]
 
@@ -893,7 +871,7 @@ class _RasterizeToPixels(torch.autograd.Function):
         def work(i, start, stop):
             launcher.launch(kernel, stop - start, **common, first_block=start, **saved, **wp_buffers[max(i - 1, 0)])
 
-        _run_ranges(work, ranges, workers, (kernel, scalar))
+        _run_ranges(work, ranges, workers)
 
         v_means2d, v_conics, v_colors, v_opacities, v_depths = (
             sum(parts[1:], parts[0]) for parts in zip(*(b.values() for b in buffers))
