@@ -407,7 +407,7 @@ def quick() -> TrainConfig:
 
     The paper's schedule compressed for 2 cores, with what made pose recovery work from 15 deg / 0.3 noise on every
     camera (4 views; mean rotation error after sim(3) alignment, single-seed exploration runs of
-    `bench/pose_recovery.py SCENE --seeds 0 --set ...`; the README has the full table):
+    `bench/pose_recovery.py SCENE --seeds 0 --set ...`; docs/pose-recovery.md has the full tables):
     - the object-centric, preconditioned camera parameterization (`camera`): synthetic 14.2 -> 1.86 deg, against
       7.03 for an se(3) twist about the camera centre;
     - the chamfer between projected Gaussian centres and mask edges (lambda_chamfer 1): synthetic 1.86 -> 0.91;
