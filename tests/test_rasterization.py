@@ -383,6 +383,28 @@ def test_cost_balanced_ranges_cover_the_tiles_in_order():
     assert _cost_balanced_ranges(torch.zeros(0), 2, 3) == []
 
 
+def test_visits_per_tile_sums_each_tiles_pixels():
+    """The backward's cost per tile: the list entries each pixel composited (its end minus its tile's start), summed
+    over the tile's pixels, plus one; also for an image that is not a whole number of tiles."""
+    from warpbags.wrapper import _tile_geometry, _visits_per_tile
+
+    cams, height, width, size = 2, 7, 10, 4
+    tiles = _tile_geometry(1, width, height, size)
+    g = torch.Generator().manual_seed(0)
+    offsets = torch.cat([torch.zeros(1), torch.randint(0, 9, (cams * tiles.tiles_x * tiles.tiles_y,), generator=g)])
+    offsets = torch.cumsum(offsets, 0).to(torch.int32)
+    ends = torch.zeros(cams, height, width, dtype=torch.int32)
+    expected = torch.ones(len(offsets) - 1, dtype=torch.int64)
+    for c in range(cams):
+        for y in range(height):
+            for x in range(width):
+                tile = (c * tiles.tiles_y + y // size) * tiles.tiles_x + x // size
+                start, stop = int(offsets[tile]), int(offsets[tile + 1])
+                ends[c, y, x] = int(torch.randint(start, stop + 1, (1,), generator=g))
+                expected[tile] += int(ends[c, y, x]) - start
+    assert torch.equal(_visits_per_tile(offsets, ends, tiles), expected)
+
+
 def test_gradients_do_not_depend_on_the_thread_schedule(monkeypatch):
     """Each range of tiles has its own gradient buffers, summed in range order: two threads taking the ranges in
     any order give the same gradients bit for bit as one thread walking them in turn."""

@@ -26,6 +26,7 @@ from typing import NamedTuple, Sequence
 
 import numpy as np
 import torch
+import torch.nn.functional as F
 import warp as wp
 
 from warpbags.kernels.bin import (
@@ -96,11 +97,27 @@ class _Launcher(NamedTuple):
             raise TypeError(f"kernel {kernel.key}: missing arguments {[n for n in names if n not in arguments]}, "
                             f"unknown {[n for n in arguments if n not in names]}")
         values = [arguments[name] for name in names]
+        kernel = _overload(kernel, values)
         if adjoints is None:
             wp.launch(kernel, dim=dim, inputs=values, device=self.device, stream=self.stream, record_tape=False)
         else:
             wp.launch(kernel, dim=dim, inputs=values, adj_inputs=[adjoints.get(name) for name in names],
                       adjoint=True, device=self.device, stream=self.stream, record_tape=False)
+
+
+_OVERLOADS: dict[tuple, object] = {}
+
+
+def _overload(kernel, values: list):
+    """The concrete overload of a generic kernel (`Any`-typed parameters) for these arguments, resolved once per
+    kernel and argument types: Warp infers it from the arguments at every launch, ~0.2 ms for the projection
+    kernels' 20 parameters, six launches per rendering pass."""
+    if not kernel.is_generic:
+        return kernel
+    key = (kernel, *((type(v), getattr(v, "dtype", None), getattr(v, "ndim", None)) for v in values))
+    if key not in _OVERLOADS:
+        _OVERLOADS[key] = kernel.add_overload(kernel.infer_argument_types(values))
+    return _OVERLOADS[key]
 
 
 def _launcher(device: torch.device) -> _Launcher:
@@ -726,14 +743,16 @@ def _run_ranges(work, ranges: list[tuple[int, int]], workers: int) -> None:
 
 def _visits_per_tile(tile_offsets: torch.Tensor, isect_end: torch.Tensor, tiles: TileGeometry) -> torch.Tensor:
     """[tiles] the list entries the forward composited, summed over each tile's pixels (isect_end: [C, H, W]):
-    the work of the backward, which walks each pixel's contributing range back to front."""
+    the work of the backward, which walks each pixel's contributing range back to front. Summed over tiles as a
+    reshape of the image padded to whole tiles (a gather and scatter per pixel cost 3x as much)."""
     cams, height, width = isect_end.shape
-    per_camera = tiles.tiles_x * tiles.tiles_y
-    tile = ((torch.arange(cams) * per_camera)[:, None, None] + (torch.arange(height) // tiles.tile_size)[None, :, None]
-            * tiles.tiles_x + (torch.arange(width) // tiles.tile_size)[None, None, :]).reshape(-1)
-    offsets = tile_offsets.to(device="cpu", dtype=torch.int64)
-    visits = isect_end.to(device="cpu", dtype=torch.int64).reshape(-1) - offsets[tile]
-    return torch.zeros(cams * per_camera, dtype=torch.int64).index_add_(0, tile, visits) + 1
+    size, tiles_x, tiles_y = tiles.tile_size, tiles.tiles_x, tiles.tiles_y
+    ends = F.pad(isect_end.to(device="cpu", dtype=torch.int64), (0, tiles_x * size - width, 0, tiles_y * size - height))
+    ends_per_tile = ends.view(cams, tiles_y, size, tiles_x, size).sum(dim=(2, 4))
+    rows = (height - torch.arange(tiles_y) * size).clamp(max=size)
+    columns = (width - torch.arange(tiles_x) * size).clamp(max=size)
+    starts = tile_offsets[:-1].to(device="cpu", dtype=torch.int64).view(cams, tiles_y, tiles_x)
+    return (ends_per_tile - rows[:, None] * columns[None, :] * starts).reshape(-1) + 1
 
 
 # Pixels one rasterizer thread composites, (width, height) within a tile. On CUDA one pixel per thread (gsplat's
