@@ -1,14 +1,14 @@
 """Where the photometric optimum sits: Gaussians fitted at the reference poses (frozen), then the poses alone.
 
     python bench/pose_optimum.py SCENE [SCENE ...] [--views 4] [--fit-iters 50,200,400] [--pose-iters 100]
-        [--max-image-size 128] [--pose-lr 3e-3] [--start-noise 0/0,5/0.1] [--preset quick] [--set NAME=VALUE ...]
-        [--json PATH]
+        [--max-image-size 128] [--pose-lr 3e-3] [--optimizer adam|lbfgs] [--start-noise 0/0,5/0.1] [--preset quick]
+        [--set NAME=VALUE ...] [--json PATH]
 
 SCENE: as bench/pose_recovery.py (a preset, a folder, `synthetic-small` or `synthetic-tele-small`). For each
 scene, one model is trained on the training views at their reference poses, frozen (no noise, no mask-centroid
 start; one round of the preset's schedule otherwise). After `fit` iterations of it, for each value of
---fit-iters, a copy of the camera optimizer takes --pose-iters Adam steps with every training view rendered and
-the Gaussians held fixed; the poses it reaches are compared with the reference after sim(3) Procrustes alignment
+--fit-iters, a copy of the camera optimizer takes --pose-iters Adam steps (or L-BFGS iterations, as test-pose
+refinement does: `--optimizer lbfgs`) with every training view rendered and the Gaussians held fixed; the poses it reaches are compared with the reference after sim(3) Procrustes alignment
 (mean and max rotation error, centre floor, camera centres in % of the orbit radius), then the model trains on.
 With --start-noise ROT/TRANS[,...] the pose-only steps start, once per pair, from the reference poses perturbed as
 `--rot-noise-deg ROT --trans-noise TRANS` would (noise seed 0) instead of from the reference: how wide the basin
@@ -51,10 +51,12 @@ def _errors(trainer: Trainer, viewmats: torch.Tensor) -> dict:
             "translation_pct": 100 * float(errors["translation_error_mean"]) / ORBIT_RADIUS}
 
 
-def pose_only_optimum(trainer: Trainer, steps: int, lr: float, start_noise: tuple[float, float] = (0.0, 0.0)) -> dict:
-    """Adam steps of a copy of the trainer's cameras, started from the reference poses perturbed by `start_noise`
-    (rotation std in degrees, centre std in scene units), against its current Gaussians (held fixed); the errors at
-    the start and at the end. The trainer's own cameras and Gaussians are left as they were."""
+def pose_only_optimum(trainer: Trainer, steps: int, lr: float, start_noise: tuple[float, float] = (0.0, 0.0),
+                      optimizer: str = "adam") -> dict:
+    """Adam steps (or L-BFGS iterations, `CameraOptimizer.refine`) of a copy of the trainer's cameras, started from
+    the reference poses perturbed by `start_noise` (rotation std in degrees, centre std in scene units), against its
+    current Gaussians (held fixed); the errors at the start and at the end. The trainer's own cameras and Gaussians
+    are left as they were."""
     cameras = copy.deepcopy(trainer.cameras)
     with torch.no_grad():
         cameras.viewmats_init.copy_(perturb_viewmats(trainer.viewmats_true.to(cameras.viewmats_init), *start_noise,
@@ -64,17 +66,19 @@ def pose_only_optimum(trainer: Trainer, steps: int, lr: float, start_noise: tupl
     cameras.set_learning_rate(lr)
     model, views = trainer.model, torch.arange(trainer.num_cameras)
     settings = dataclasses.replace(trainer.schedule.at(trainer.iteration), pose_active=True, depth=False)
-    for _ in range(steps):
+    if optimizer == "lbfgs":
+        cameras.refine(lambda viewmats: model.loss(views, viewmats, settings)[0], steps)
+    for _ in range(steps if optimizer == "adam" else 0):
         loss, _, _ = model.loss(views, cameras.apply(views), settings)
         loss.backward()
         cameras.step(views)
         cameras.zero_grad()
-        model.optimizer.zero_grad(set_to_none=True)
+    model.optimizer.zero_grad(set_to_none=True)
     return {"start_rotation_mean": start["rotation_mean"], **_errors(trainer, cameras.viewmats())}
 
 
 def run_scene(name: str, scene, views: int, fit_iters: list[int], pose_iters: int, lr: float, preset: str,
-              overrides: dict, start_noises: list[tuple[float, float]]) -> list[dict]:
+              overrides: dict, start_noises: list[tuple[float, float]], optimizer: str = "adam") -> list[dict]:
     settings = dict(views=views, rot_noise_deg=0.0, trans_noise=0.0, rounds=1, iters=max(fit_iters) + 1,
                     pose_opt=True, pose_opt_start=10**9, repair={"iters": 0}, camera={"centroid_start": False})
     for key, value in overrides.items():
@@ -87,8 +91,8 @@ def run_scene(name: str, scene, views: int, fit_iters: list[int], pose_iters: in
         while trainer.iteration < fit:
             trainer.train_step()
         for noise in start_noises:
-            row = {"scene": name, "views": views, "size": trainer.scene.width, "fit_iters": fit,
-                   "pose_iters": pose_iters, "start_noise": list(noise), **pose_only_optimum(trainer, pose_iters, lr, noise),
+            row = {"scene": name, "views": views, "size": trainer.scene.width, "fit_iters": fit, "optimizer": optimizer,
+                   "pose_iters": pose_iters, "start_noise": list(noise), **pose_only_optimum(trainer, pose_iters, lr, noise, optimizer),
                    "minutes": (time.time() - started) / 60}
             rows.append(row)
             print(f"{name:<22} {views:>5} {row['size']:>5} {fit:>8} {noise[0]:>5g}/{noise[1]:<5g}"
@@ -103,7 +107,10 @@ def main() -> None:
     parser.add_argument("--views", type=int, default=4)
     parser.add_argument("--fit-iters", default="50,200,400", help="comma-separated iterations of Gaussian fitting")
     parser.add_argument("--pose-iters", type=int, default=100)
-    parser.add_argument("--pose-lr", type=float, default=3e-3, help="the rotation lr of the pose-only steps")
+    parser.add_argument("--pose-lr", type=float, default=3e-3, help="the rotation lr of the pose-only Adam steps")
+    parser.add_argument("--optimizer", choices=("adam", "lbfgs"), default="adam",
+                        help="pose-only steps: Adam (as training) or L-BFGS (as test-pose refinement); with lbfgs, "
+                             "--pose-iters counts its iterations")
     parser.add_argument("--start-noise", default="0/0", help="comma-separated ROT_DEG/TRANS pairs")
     parser.add_argument("--max-image-size", type=int, default=None, help="default: the preset's")
     parser.add_argument("--preset", default="quick")
@@ -121,7 +128,7 @@ def main() -> None:
     for name, scene in scenes.items():
         rows += run_scene(name, scene, args.views, _numbers(args.fit_iters, int), args.pose_iters, args.pose_lr,
                           args.preset, overrides, [tuple(float(v) for v in pair.split("/")) for pair in
-                                                   args.start_noise.split(",") if pair])
+                                                   args.start_noise.split(",") if pair], args.optimizer)
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)
         args.json.write_text(json.dumps(rows, indent=2))

@@ -141,27 +141,31 @@ def pose_accuracy(run: TrainingRun, log=print) -> dict:
     return report
 
 
-def refine_poses(params, viewmats, Ks, targets, width, height, sh_degree, iters: int, lr: float = 1e-3,
+def refine_poses(params, viewmats, Ks, targets, width, height, sh_degree, iters: int,
                  settings: CameraOptimizerSettings | None = None):
     """Photometric pose refinement of each view with the Gaussians frozen (BARF's test-time optimization), through
-    the same camera optimizer as training (`settings`: its parameterization; default object-centric, preconditioned).
+    the same camera optimizer as training (`settings`: its parameterization; default object-centric, preconditioned),
+    by `iters` L-BFGS iterations per view (`CameraOptimizer.refine`: Adam wanders against a frozen model).
 
     Returns:
         [C,4,4] refined world-to-camera matrices.
     """
     frozen = {name: value.detach() for name, value in params.items()}
-    settings = dataclasses.replace(settings or CameraOptimizerSettings(), lr=lr, fix_first_camera=False)
+    settings = dataclasses.replace(settings or CameraOptimizerSettings(), fix_first_camera=False)
     weights = torch.sigmoid(frozen["opacities"])[:, None]
     center = (frozen["means"] * weights).sum(0) / weights.sum().clamp_min(1e-12)
     cameras = CameraOptimizer(viewmats, settings, center, Ks, width, height, frozen["means"])
-    backgrounds = torch.ones(len(viewmats), 3)
-    for _ in range(iters):
-        images, _, _ = render_gaussians(frozen, cameras.apply(), Ks, width, height, sh_degree=sh_degree,
-                                        backgrounds=backgrounds)
-        loss, _ = photometric_loss(images, targets)
-        cameras.zero_grad()
-        loss.backward()
-        cameras.step()
+    background = torch.ones(1, 3)
+
+    def loss_of_view(view: int):
+        def loss(corrected: torch.Tensor) -> torch.Tensor:
+            images, _, _ = render_gaussians(frozen, corrected[view:view + 1], Ks[view:view + 1], width, height,
+                                            sh_degree=sh_degree, backgrounds=background)
+            return photometric_loss(images, targets[view:view + 1])[0]
+        return loss
+
+    for view in range(len(viewmats)):  # one solve per view: each has its own curvature and line search
+        cameras.refine(loss_of_view(view), iters)
     return cameras.viewmats()
 
 
