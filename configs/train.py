@@ -108,6 +108,17 @@ class CameraConfig:
             images pull it firmly (a proximal step; the first round, which starts far off, is free). 0 = off.
             Measured at 1 (15 deg / 0.3, 4 views, seeds 0-2): maryrose 10.64 -> 8.13 deg, the telephoto synthetic
             scene 0.79 -> 2.89 (its later rounds gain by the same kind of moves), so off by default.
+        lbfgs_from_round: from this coarse round on (0-based), the poses no longer take an Adam step with every
+            Gaussian step: every `lbfgs_every` iterations of the pose window, all training cameras are solved by
+            `lbfgs_iters` L-BFGS iterations of the training loss against the current Gaussians, held fixed during
+            the solve (`CameraOptimizer.refine`). Adam steps about its learning rate whatever the gradient's size
+            and so moves the cameras along the directions the images barely constrain (an orbit about the object
+            with the matching image shift); a solve moves them only as far as the loss goes down. None = Adam in
+            every round. The repair stage keeps Adam. Measured at 0 (15 deg / 0.3, 4 views, seeds 0-2): maryrose
+            10.65 -> 8.35 deg (its later rounds no longer drift), the telephoto synthetic scene 0.78 -> 0.94 with
+            its exact depth maps and 1.19 -> 4.1 (two seeds) with monocular-like ones (its later rounds gain less),
+            so off by default.
+        lbfgs_every, lbfgs_iters: how often the cameras are solved and the L-BFGS iterations of a solve.
     """
 
     parameterization: Literal["object", "camera"] = "object"
@@ -117,6 +128,9 @@ class CameraConfig:
     fix_first_camera: bool = False
     orbit_from_round: int = 0
     round_anchor: float = 0.0
+    lbfgs_from_round: int | None = None
+    lbfgs_every: int = 10
+    lbfgs_iters: int = 10
 
 
 @dataclass(frozen=True)
@@ -335,6 +349,11 @@ class TrainConfig:
             (self.camera.orbit_from_round == 0 or self.camera.parameterization == "object",
              "camera.orbit_from_round needs the object parameterization (--camera-param object)"),
             (self.camera.round_anchor >= 0, f"camera.round_anchor must be >= 0, got {self.camera.round_anchor}"),
+            (self.camera.lbfgs_from_round is None or (type(self.camera.lbfgs_from_round) is int
+                                                      and self.camera.lbfgs_from_round >= 0),
+             f"camera.lbfgs_from_round must be >= 0 or null, got {self.camera.lbfgs_from_round}"),
+            (self.camera.lbfgs_every >= 1, f"camera.lbfgs_every must be >= 1, got {self.camera.lbfgs_every}"),
+            (self.camera.lbfgs_iters >= 1, f"camera.lbfgs_iters must be >= 1, got {self.camera.lbfgs_iters}"),
             (self.pose_opt_start >= 0, f"--pose-opt-start must be >= 0, got {self.pose_opt_start}"),
             (_is_window(self.pose_round_window),
              f"pose_round_window must be (start, end) with 0 <= start < end <= 1, got {self.pose_round_window}"),

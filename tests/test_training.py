@@ -398,6 +398,36 @@ def test_rounds_take_their_own_pose_windows():
             load_preset("quick", pose_round_windows=bad)
 
 
+def test_lbfgs_rounds_solve_the_poses_every_few_iterations_instead_of_adam_steps():
+    schedule = Schedule(load_preset("quick", iters=40, rounds=2, camera={"lbfgs_from_round": 1, "lbfgs_every": 4}))
+    steps = [schedule.at(i) for i in range(40)]
+    assert [i for i, s in enumerate(steps) if s.pose_active] == list(range(5, 20))  # Adam in round 0's window
+    assert [i for i, s in enumerate(steps) if s.pose_solve] == [27, 31, 35, 39]  # solves in round 1's window
+    assert not any(s.pose_solve for s in steps[:20]) and not any(s.pose_active for s in steps[20:])
+    assert not any(s.pose_solve for s in map(Schedule(load_preset("quick", iters=40, rounds=2)).at, range(40)))
+    with pytest.raises(WarpbagsError, match="camera.lbfgs_every"):
+        load_preset("quick", camera={"lbfgs_every": 0})
+
+
+def test_a_pose_solve_moves_every_camera_and_no_adam_step_does(scene_dir, tmp_path):
+    """With L-BFGS rounds the cameras keep their poses between solves (no Adam step, no moments) and a solve lowers
+    the loss of every view against the Gaussians it holds still."""
+    trainer = make_trainer(scene_dir, tmp_path, iters=20, rounds=1, pose_opt_start=0, rot_noise_deg=5.0,
+                           trans_noise=0.1, camera={"lbfgs_from_round": 0, "lbfgs_every": 10, "lbfgs_iters": 5})
+    views = torch.arange(trainer.num_cameras)
+    trainer.train(stop_at=9)
+    before = trainer.current_viewmats()
+    assert not trainer.cameras.optimizer.state  # no Adam step was taken
+    trainer.train(stop_at=10)  # iteration 9: a step of the Gaussians, then a solve against them
+    after = trainer.current_viewmats()
+    moved = (after - before).abs().amax(dim=(1, 2))
+    assert (moved > 1e-4).all(), moved
+    settings = trainer.schedule.at(9)
+    assert trainer.model.loss(views, after, settings)[0].item() < trainer.model.loss(views, before, settings)[0].item()
+    trainer.train(stop_at=15)
+    assert torch.equal(trainer.current_viewmats(), after)
+
+
 def test_the_orbit_is_held_until_its_round():
     config = load_preset("quick", iters=30, rounds=3, camera={"orbit_from_round": 2}, repair={"iters": 5})
     schedule = Schedule(config)

@@ -29,6 +29,8 @@ class StepSettings:
         silhouette: the mask-distance and chamfer terms are on.
         depth: the depth term is on.
         pose_active: the cameras rendered take an Adam step.
+        pose_solve: after the Gaussians' step, every camera is solved by L-BFGS against them
+            (`camera.lbfgs_from_round`; then `pose_active` is False).
         gaussian_lr_fraction: position-lr schedule position in [0, 1] (exponential from `lr.means_init` to
             `lr.means_final`).
         pose_lr: the camera optimizer's rotation learning rate.
@@ -45,6 +47,7 @@ class StepSettings:
     silhouette: bool
     depth: bool
     pose_active: bool
+    pose_solve: bool
     gaussian_lr_fraction: float
     pose_lr: float
     orbit_free: bool
@@ -117,6 +120,12 @@ class Schedule:
         start, end = self.pose_window(iteration)
         return self.in_repair(iteration) or start <= iteration < end
 
+    def solves_poses(self, iteration: int) -> bool:
+        """Poses move by L-BFGS solves instead of Adam steps in this iteration's round (`camera.lbfgs_from_round`;
+        coarse rounds only)."""
+        first = self.config.camera.lbfgs_from_round
+        return first is not None and not self.in_repair(iteration) and self.round_index(iteration) >= first
+
     def at(self, iteration: int) -> StepSettings:
         config, round_iteration, in_repair = self.config, self.round_iteration(iteration), self.in_repair(iteration)
         # GaussianObject's repair keeps the final position lr; the poses keep their final lr. The pose lr decays
@@ -124,12 +133,15 @@ class Schedule:
         gaussian_fraction = 1.0 if in_repair else round_iteration / max(self.round_length - 1, 1)
         pose_start, pose_end = self.pose_window(iteration)
         pose_fraction = 1.0 if in_repair else (iteration - pose_start) / max(pose_end - pose_start - 1, 1)
+        poses_move, solves = self.pose_active(iteration), self.solves_poses(iteration)
         return StepSettings(
             iteration=iteration, round_iteration=round_iteration, in_repair=in_repair,
             sh_degree=self.sh_degree(iteration), blur_sigma=self.blur_sigma(iteration),
             silhouette=(config.silhouette_until <= 0 or round_iteration < config.silhouette_until) and not in_repair,
             depth=not in_repair and round_iteration < config.depth_until and config.lambda_depth > 0,
-            pose_active=self.pose_active(iteration), gaussian_lr_fraction=gaussian_fraction,
+            pose_active=poses_move and not solves,
+            pose_solve=poses_move and solves and (iteration + 1) % config.camera.lbfgs_every == 0,
+            gaussian_lr_fraction=gaussian_fraction,
             pose_lr=exponential_lr(config.lr.pose, config.lr.pose_final, pose_fraction),
             orbit_free=self.orbit_free(iteration),
             pose_anchor=config.camera.round_anchor if in_repair or self.round_index(iteration) > 0 else 0.0,

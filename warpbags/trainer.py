@@ -37,7 +37,7 @@ from warpbags.model import Diverged, GaussianModel, TrainingViews, camera_viewma
 from warpbags.repair import RepairStage, Repairer, repairer_factory
 from warpbags.repair.stage import pseudo_ratio
 from warpbags.run_folder import RunFolder
-from warpbags.schedule import Schedule
+from warpbags.schedule import Schedule, StepSettings
 from warpbags.threads import torch_threads
 
 
@@ -176,8 +176,20 @@ class Trainer:
         self.cameras.set_orbit_free(settings.orbit_free)
         with self._divergence_reported():
             loss, terms = self.model.fit_step(self.cameras, settings)
+            if settings.pose_solve:
+                self._solve_poses(settings)
         self.iteration += 1
         return self._record("coarse", loss, terms, started)
+
+    def _solve_poses(self, settings: StepSettings) -> None:
+        """Every camera solved by L-BFGS against the current Gaussians, which hold still (`camera.lbfgs_from_round`):
+        the loss of this iteration's terms over all training views."""
+        views = torch.arange(self.num_cameras, device=self.device)
+        self.cameras.refine(lambda viewmats: self.model.loss(views, viewmats, settings)[0],
+                            self.config.camera.lbfgs_iters)
+        self.model.optimizer.zero_grad(set_to_none=True)
+        if not torch.isfinite(self.cameras.params()).all():
+            raise Diverged("the L-BFGS pose solve left non-finite camera parameters")
 
     def _repair_step(self) -> dict:
         """A repair-stage iteration: (1 - r) real-view loss + r pseudo-view loss, no densification."""
