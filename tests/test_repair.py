@@ -15,7 +15,7 @@ from warpbags.data import SyntheticOptions, ensure_synthetic_scene, load_scene
 from warpbags.errors import WarpbagsError
 from warpbags.evaluation import evaluate_run, held_out_views, load_run
 from warpbags.gaussians import render_gaussians, sh_degree_of
-from warpbags.losses import gaussian_blur
+from warpbags.blur import gaussian_blur
 from warpbags.repair import RepairPairs, UNetRepairer, make_repairer
 from warpbags.repair.pairs import LEAVE_ONE_OUT, NOISE, NOISY_PARAMETERS, NoiseStatistics, perturbed_gaussians
 from warpbags.repair.stage import distance_weights

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import functools
-import math
 
 import torch
 import torch.nn.functional as F
@@ -26,22 +25,6 @@ def _gaussian_window(size: int, sigma: float, device: str, dtype: torch.dtype) -
     g = torch.exp(-(coords**2) / (2 * sigma**2))
     g = g / g.sum()
     return (g[:, None] @ g[None, :]).to(device=device, dtype=dtype)
-
-
-def gaussian_blur(images: torch.Tensor, sigma: float) -> torch.Tensor:
-    """Separable Gaussian blur of [B, H, W, C] images (reflect-padded, 3 sigma radius); identity for sigma < 0.3."""
-    if sigma < 0.3:
-        return images
-    radius = max(1, min(int(math.ceil(3 * sigma)), min(images.shape[1:3]) - 1))
-    coords = torch.arange(-radius, radius + 1, dtype=images.dtype, device=images.device)
-    kernel = torch.exp(-(coords**2) / (2 * sigma**2))
-    kernel = kernel / kernel.sum()
-    x = images.permute(0, 3, 1, 2)
-    channels = x.shape[1]
-    x = F.pad(x, (radius, radius, radius, radius), mode="reflect")
-    x = F.conv2d(x, kernel.view(1, 1, 1, -1).expand(channels, 1, 1, -1), groups=channels)
-    x = F.conv2d(x, kernel.view(1, 1, -1, 1).expand(channels, 1, -1, 1), groups=channels)
-    return x.permute(0, 2, 3, 1)
 
 
 def ssim(images: torch.Tensor, targets: torch.Tensor, window_size: int = 11, sigma: float = 1.5) -> torch.Tensor:

@@ -23,7 +23,8 @@ from warpbags.data.scene import Scene
 from warpbags.errors import WarpbagsError
 from warpbags.gaussians import render_gaussians
 from warpbags.init import hull_or_random_points, initial_gaussians
-from warpbags.losses import depth_loss, gaussian_blur, mask_loss, photometric_loss
+from warpbags.blur import gaussian_blur
+from warpbags.losses import depth_loss, mask_loss, photometric_loss
 from warpbags.schedule import StepSettings
 from warpbags.silhouette import SilhouetteTargets
 from warpbags.strategy import DensifyStrategy

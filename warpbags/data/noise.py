@@ -11,7 +11,7 @@ import torch.nn.functional as F
 from warpbags.cameras import camera_centers, viewmats_from_centers
 from warpbags.data.scene import Scene
 from warpbags.lie import so3_exp
-from warpbags.losses import gaussian_blur
+from warpbags.blur import gaussian_blur
 
 __all__ = ["PoseNoise", "monocular_like_depths", "noisy_viewmats", "perturb_viewmats"]
 
