@@ -11,7 +11,8 @@ an estimate: sim(3) Procrustes alignment of the camera centres, rotation error p
 orbit radius. Printed per scene: views registered, mean reprojection error (px), the reconstruction's focal length
 and radial distortion next to the reference focal, the rotation error's mean / median / max over all views and
 over each training split (sparse_4, sparse_6, sparse_9 where the scene has them), and the centre error. A scene
-whose views SfM cannot reconstruct (synthetic-tele-small's 128 px renders have too few features) says so.
+whose views SfM cannot reconstruct says so (the synthetic scenes: neither `synthetic`'s 48 views at 256 px nor
+synthetic-tele-small's 16 at 128 px give SIFT enough to build a model).
 
 What it is for: the pose benchmarks measure against the reference poses, so before a few-degree disagreement on a
 real capture is blamed on the method, this says whether the reference itself holds to that precision. On maryrose
