@@ -68,11 +68,12 @@ def pose_only_optimum(trainer: Trainer, steps: int, lr: float, start_noise: tupl
     settings = dataclasses.replace(trainer.schedule.at(trainer.iteration), pose_active=True, depth=False)
     if optimizer == "lbfgs":
         cameras.refine(lambda viewmats: model.loss(views, viewmats, settings)[0], steps)
-    for _ in range(steps if optimizer == "adam" else 0):
-        loss, _, _ = model.loss(views, cameras.apply(views), settings)
-        loss.backward()
-        cameras.step(views)
-        cameras.zero_grad()
+    else:
+        for _ in range(steps):
+            loss, _, _ = model.loss(views, cameras.apply(views), settings)
+            loss.backward()
+            cameras.step(views)
+            cameras.zero_grad()
     model.optimizer.zero_grad(set_to_none=True)
     return {"start_rotation_mean": start["rotation_mean"], **_errors(trainer, cameras.viewmats())}
 
@@ -91,8 +92,9 @@ def run_scene(name: str, scene, views: int, fit_iters: list[int], pose_iters: in
         while trainer.iteration < fit:
             trainer.train_step()
         for noise in start_noises:
-            row = {"scene": name, "views": views, "size": trainer.scene.width, "fit_iters": fit, "optimizer": optimizer,
-                   "pose_iters": pose_iters, "start_noise": list(noise), **pose_only_optimum(trainer, pose_iters, lr, noise, optimizer),
+            row = {"scene": name, "views": views, "size": trainer.scene.width, "fit_iters": fit,
+                   "optimizer": optimizer, "pose_iters": pose_iters, "start_noise": list(noise),
+                   **pose_only_optimum(trainer, pose_iters, lr, noise, optimizer),
                    "minutes": (time.time() - started) / 60}
             rows.append(row)
             print(f"{name:<22} {views:>5} {row['size']:>5} {fit:>8} {noise[0]:>5g}/{noise[1]:<5g}"

@@ -120,11 +120,12 @@ def main() -> None:
             row = compare(scene, model, viewmats)
         row["minutes"] = (time.time() - started) / 60
         rows.append(row)
-        print(f"{name}: {row['registered']}/{row['views']} views registered, reprojection {row['reprojection_px']:.2f} px, "
-              f"focal {row['sfm_focal']:.1f} (reference {row['reference_focal']:.1f}), radial k {row['sfm_radial']:.4f}, "
-              f"{row['minutes']:.1f} min")
-        print(f"  reference vs SfM, rotation deg: mean {row['rotation_mean']:.3f}, median {row['rotation_median']:.3f}, "
-              f"max {row['rotation_max']:.3f}; centres {row['centres_pct']:.2f}% of the orbit radius")
+        print(f"{name}: {row['registered']}/{row['views']} views registered, "
+              f"reprojection {row['reprojection_px']:.2f} px, focal {row['sfm_focal']:.1f} "
+              f"(reference {row['reference_focal']:.1f}), radial k {row['sfm_radial']:.4f}, {row['minutes']:.1f} min")
+        print(f"  reference vs SfM, rotation deg: mean {row['rotation_mean']:.3f}, "
+              f"median {row['rotation_median']:.3f}, max {row['rotation_max']:.3f}; "
+              f"centres {row['centres_pct']:.2f}% of the orbit radius")
         for key, errors in row["splits"].items():
             print(f"  sparse_{key}: " + ", ".join(f"{error:.2f}" for error in errors))
     if args.json:

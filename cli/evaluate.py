@@ -25,7 +25,8 @@ def evaluate(
         True, "--procrustes/--pairwise",
         help="Map test cameras into the model's frame with sim(3) Procrustes (BARF) or SPARF's pairwise alignment.",
     ),
-    refine_iters: int = typer.Option(100, "--refine-iters", help="Test-time pose refinement: L-BFGS iterations per held-out view (0 = off)."),
+    refine_iters: int = typer.Option(
+        100, "--refine-iters", help="Test-time pose refinement: L-BFGS iterations per held-out view (0 = off)."),
 ) -> None:
     """Render held-out views, compare with ground truth (PSNR/SSIM/FLIP/LPIPS) and measure camera-pose errors."""
     run_dir = run_dir or latest_run()

@@ -114,8 +114,8 @@ class CameraConfig:
             the solve (`CameraOptimizer.refine`). Adam steps about its learning rate whatever the gradient's size
             and so moves the cameras along the directions the images barely constrain (an orbit about the object
             with the matching image shift); a solve moves them only as far as the loss goes down. None = Adam in
-            every round. The repair stage keeps Adam; `round_anchor` does not enter the solves. Measured at 0 (15 deg / 0.3, 4 views, seeds 0-2): maryrose
-            10.65 -> 8.35 deg (its later rounds no longer drift), the telephoto synthetic scene 0.78 -> 0.94 with
+            every round. The repair stage keeps Adam; `round_anchor` does not enter the solves. Measured at 0
+            (15 deg / 0.3, 4 views, seeds 0-2): maryrose 10.65 -> 8.35 deg (its later rounds no longer drift), the telephoto synthetic scene 0.78 -> 0.94 with
             its exact depth maps and 1.19 -> 4.1 (two seeds) with monocular-like ones (its later rounds gain less),
             so off by default.
         lbfgs_every, lbfgs_iters: how often the cameras are solved and the L-BFGS iterations of a solve.

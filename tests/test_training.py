@@ -289,7 +289,8 @@ def test_fifteen_degree_noise_on_every_camera_is_cut_to_a_quarter(pose_run):
     # Measured 14.17 -> 1.06 deg and 0.357 -> 0.022 with the depth term in the first half of each round (60
     # iterations: 3.56 / 0.109; rounding-level changes have moved a single seed's result by 2 deg,
     # docs/pose-recovery.md). Without the scene's depth maps the same run ends at 12.95 deg: the depth prior is what
-    # takes the cameras in. So this bounds what the method must always do (frozen noisy poses stay at 14.17), not how well.
+    # takes the cameras in. So this bounds what the method must always do (frozen noisy poses stay at 14.17), not
+    # how well.
     assert after["rot_err_deg"] <= before["rot_err_deg"] / 4, (before, after)
     assert after["trans_err"] <= 0.25 * before["trans_err"], (before, after)
 

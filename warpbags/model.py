@@ -17,13 +17,13 @@ from dataclasses import dataclass
 import torch
 
 from warpbags.camera_optimizer import CameraOptimizer, exponential_lr
+from warpbags.blur import gaussian_blur
 from warpbags.cameras import camera_centers
 from warpbags.configs.train import TrainConfig
 from warpbags.data.scene import Scene
 from warpbags.errors import WarpbagsError
 from warpbags.gaussians import render_gaussians
 from warpbags.init import hull_or_random_points, initial_gaussians
-from warpbags.blur import gaussian_blur
 from warpbags.losses import depth_loss, mask_loss, photometric_loss
 from warpbags.schedule import StepSettings
 from warpbags.silhouette import SilhouetteTargets
