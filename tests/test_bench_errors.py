@@ -13,7 +13,7 @@ BENCH = Path(__file__).resolve().parents[1] / "bench"
 
 
 @pytest.mark.parametrize("script", ["pose_recovery.py", "pose_optimum.py", "repair.py", "hull_noise.py",
-                                    "reference_poses.py"])
+                                    "reference_poses.py", "view_agreement.py"])
 def test_an_unknown_scene_is_one_error_line(script, tmp_path):
     result = subprocess.run([sys.executable, str(BENCH / script), "nosuchscene"], capture_output=True, text=True,
                             timeout=300, cwd=tmp_path)
