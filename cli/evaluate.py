@@ -33,7 +33,10 @@ def evaluate(
     alignment = "procrustes" if procrustes else "pairwise"
     result = evaluate_run(run_dir, alignment=alignment, refine_iters=refine_iters, log=stdout.print)
 
-    poses = Table(title=f"training-camera pose error ({result['views']} views)", title_justify="left")
+    title = (f"training-camera pose error ({result['views']} views)" if result["pose_noise_injected"] else
+             f"training cameras against the scene's own poses ({result['views']} views; no noise was injected, so "
+             "the final rows are how far training moved them)")
+    poses = Table(title=title, title_justify="left")
     for column in ("alignment", "stage", "rot mean", "rot median", "centre floor", "trans mean", "% orbit"):
         poses.add_column(column, no_wrap=column in ("alignment", "stage"))
     for name, entry in result["poses"].items():

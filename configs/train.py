@@ -334,6 +334,12 @@ class TrainConfig:
         """Coarse plus repair iterations."""
         return self.iters + self.repair.iters
 
+    @property
+    def injects_pose_noise(self) -> bool:
+        """True when noise is added to the scene's poses (an experiment: the scene's poses are the truth). Without
+        it training starts from the scene's own poses, and the distance from them is a correction, not an error."""
+        return self.rot_noise_deg > 0 or self.trans_noise > 0
+
     def validate(self) -> TrainConfig:
         """Check value ranges; returns self.
 

@@ -52,6 +52,7 @@ def test_eval_writes_metrics_and_pictures(finished_run):
         assert entry["rotation_deg_centre_floor_mean"] == pytest.approx(np.mean(entry["rotation_deg_centre_floor"]))
         assert "rotation_deg_centre_floor" not in report["poses"]["pairwise"][stage]
     assert "centre floor" in result.output
+    assert report["pose_noise_injected"] is True and "training-camera pose error" in result.output
     for key in ("images", "images_after_test_pose_refinement"):
         mean = report[key]["mean"]
         assert 5.0 < mean["psnr"] < 60.0 and 0.0 < mean["ssim"] <= 1.0

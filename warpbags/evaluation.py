@@ -278,6 +278,8 @@ def evaluate_run(path: str | Path, *, alignment: str = "procrustes", refine_iter
         "run": str(run.path),
         "scene": run.info["scene"],
         "views": run.config.views,
+        # False: training started from the scene's own poses, so the final pose rows measure the corrections
+        "pose_noise_injected": run.config.injects_pose_noise,
         "test_views": len(test.image_names),
         "image_size": [test.width, test.height],
         "alignment": alignment,
