@@ -35,6 +35,10 @@ class LearningRates:
         pose_translation_scale: translation lr = this x the rotation lr. Far from a small object a camera
             rotation and a sideways translation shift the image almost alike; a slower translation makes the
             optimizer explain shifts by rotation first (GaussianObject's COLMAP-free mode uses 1/3).
+        pose_warmup: the pose lr ramps up linearly over the first this many steps of each round's pose window
+            (0 = none). Adam's moments restart with every round, and its first steps move every latent by about
+            the lr whatever the gradient: through the preconditioner that turns maryrose's cameras 4-8 deg about
+            the object in one step (docs/pose-recovery.md).
     """
 
     means_init: float = 1.6e-4
@@ -48,6 +52,7 @@ class LearningRates:
     pose: float = 3e-3
     pose_final: float = 3e-4
     pose_translation_scale: float = 1.0
+    pose_warmup: int = 0
 
 
 @dataclass(frozen=True)
@@ -386,6 +391,7 @@ class TrainConfig:
             (self.camera.parameterization in ("object", "camera"),
              f"camera.parameterization must be object or camera, got {self.camera.parameterization!r}"),
             (self.camera.precondition_reg > 0, f"camera.precondition_reg must be > 0, got {self.camera.precondition_reg}"),
+            (self.lr.pose_warmup >= 0, f"lr.pose_warmup must be >= 0, got {self.lr.pose_warmup}"),
             (min(self.lambda_mask_distance, self.lambda_chamfer) >= 0, "silhouette loss weights must be >= 0"),
             (self.silhouette_until >= 0, f"silhouette_until must be >= 0, got {self.silhouette_until}"),
             *self.repair.checks(),

@@ -405,6 +405,16 @@ def test_rounds_take_their_own_pose_windows():
             load_preset("quick", pose_round_windows=bad)
 
 
+def test_the_pose_lr_warms_up_at_the_start_of_every_rounds_pose_window():
+    config = load_preset("quick", iters=80, rounds=2, lr={"pose_warmup": 4})
+    schedule, plain = Schedule(config), Schedule(load_preset("quick", iters=80, rounds=2))
+    for window_start in (10, 50):  # a quarter into each round of 40
+        ramp = [schedule.at(window_start + k).pose_lr / plain.at(window_start + k).pose_lr for k in range(6)]
+        assert ramp == pytest.approx([0.25, 0.5, 0.75, 1.0, 1.0, 1.0])
+    with pytest.raises(WarpbagsError, match="lr.pose_warmup must be >= 0"):
+        load_preset("quick", lr={"pose_warmup": -1})
+
+
 def test_lbfgs_rounds_solve_the_poses_every_few_iterations_instead_of_adam_steps():
     schedule = Schedule(load_preset("quick", iters=40, rounds=2, camera={"lbfgs_from_round": 1, "lbfgs_every": 4}))
     steps = [schedule.at(i) for i in range(40)]

@@ -120,6 +120,15 @@ class Schedule:
         start, end = self.pose_window(iteration)
         return self.in_repair(iteration) or start <= iteration < end
 
+    def pose_warmup_factor(self, iteration: int) -> float:
+        """The pose lr's linear ramp over the first `lr.pose_warmup` steps of the round's pose window (1 after it,
+        in the repair stage, and without a warm-up)."""
+        steps = self.config.lr.pose_warmup
+        if steps <= 0 or self.in_repair(iteration):
+            return 1.0
+        start, _ = self.pose_window(iteration)
+        return min(1.0, max(iteration - start + 1, 1) / steps)
+
     def solves_poses(self, iteration: int) -> bool:
         """Poses move by L-BFGS solves instead of Adam steps in this iteration's round (`camera.lbfgs_from_round`;
         coarse rounds only)."""
@@ -142,7 +151,8 @@ class Schedule:
             pose_active=poses_move and not solves,
             pose_solve=poses_move and solves and (iteration + 1) % config.camera.lbfgs_every == 0,
             gaussian_lr_fraction=gaussian_fraction,
-            pose_lr=exponential_lr(config.lr.pose, config.lr.pose_final, pose_fraction),
+            pose_lr=exponential_lr(config.lr.pose, config.lr.pose_final, pose_fraction)
+            * self.pose_warmup_factor(iteration),
             orbit_free=self.orbit_free(iteration),
             pose_anchor=config.camera.round_anchor if in_repair or self.round_index(iteration) > 0 else 0.0,
         )
