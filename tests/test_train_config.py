@@ -45,7 +45,7 @@ QUICK = {
     "pose_alignment": "procrustes", "render_threads": 0,
     "lr": {"means_init": 0.0016, "means_final": 1.6e-05, "sh_dc": 0.0025, "sh_rest": 0.000125, "opacities": 0.05,
            "scales": 0.005, "quats": 0.001, "adam_eps": 1e-15, "pose": 0.01, "pose_final": 0.001,
-           "pose_translation_scale": 0.1, "pose_warmup": 0},
+           "pose_translation_scale": 0.1, "pose_warmup": 20},
     "camera": {"parameterization": "object", "precondition": True, "precondition_reg": 0.1, "centroid_start": True,
                "fix_first_camera": False, "orbit_from_round": 0, "round_anchor": 0.0,
                "lbfgs_from_round": None, "lbfgs_every": 10, "lbfgs_iters": 10},

@@ -394,7 +394,8 @@ def test_rounds_take_their_own_pose_windows():
     # rounds 0-1 from a quarter in, round 2 and the rounds after it (the last entry) from half-way
     assert [i for i in range(40) if schedule.at(i).pose_active] == [
         *range(3, 10), *range(13, 20), *range(25, 30), *range(35, 40)]
-    assert schedule.at(25).pose_lr == pytest.approx(config.lr.pose)  # the lr decays over each round's own window
+    # the lr decays over each round's own window (and ramps up over its first lr.pose_warmup steps)
+    assert schedule.at(25).pose_lr == pytest.approx(config.lr.pose / config.lr.pose_warmup)
     # empty: pose_round_window in every round
     assert [i for i in range(20) if Schedule(load_preset("quick", iters=40, rounds=4)).at(i).pose_active] == [
         *range(3, 10), *range(13, 20)]
@@ -407,7 +408,7 @@ def test_rounds_take_their_own_pose_windows():
 
 def test_the_pose_lr_warms_up_at_the_start_of_every_rounds_pose_window():
     config = load_preset("quick", iters=80, rounds=2, lr={"pose_warmup": 4})
-    schedule, plain = Schedule(config), Schedule(load_preset("quick", iters=80, rounds=2))
+    schedule, plain = Schedule(config), Schedule(load_preset("quick", iters=80, rounds=2, lr={"pose_warmup": 0}))
     for window_start in (10, 50):  # a quarter into each round of 40
         ramp = [schedule.at(window_start + k).pose_lr / plain.at(window_start + k).pose_lr for k in range(6)]
         assert ramp == pytest.approx([0.25, 0.5, 0.75, 1.0, 1.0, 1.0])
