@@ -120,15 +120,6 @@ class Schedule:
         start, end = self.pose_window(iteration)
         return self.in_repair(iteration) or start <= iteration < end
 
-    def pose_warmup_factor(self, iteration: int) -> float:
-        """The pose lr's linear ramp over the first `lr.pose_warmup` steps of the round's pose window (1 after it,
-        in the repair stage, and without a warm-up)."""
-        steps = self.config.lr.pose_warmup
-        if steps <= 0 or self.in_repair(iteration):
-            return 1.0
-        start, _ = self.pose_window(iteration)
-        return min(1.0, max(iteration - start + 1, 1) / steps)
-
     def solves_poses(self, iteration: int) -> bool:
         """Poses move by L-BFGS solves instead of Adam steps in this iteration's round (`camera.lbfgs_from_round`;
         coarse rounds only)."""
@@ -142,6 +133,9 @@ class Schedule:
         gaussian_fraction = 1.0 if in_repair else round_iteration / max(self.round_length - 1, 1)
         pose_start, pose_end = self.pose_window(iteration)
         pose_fraction = 1.0 if in_repair else (iteration - pose_start) / max(pose_end - pose_start - 1, 1)
+        # a linear ramp over the first `lr.pose_warmup` steps of the window (none in the repair stage)
+        warmup_steps = config.lr.pose_warmup
+        warmup = 1.0 if in_repair or warmup_steps <= 0 else min(1.0, max(iteration - pose_start + 1, 1) / warmup_steps)
         poses_move, solves = self.pose_active(iteration), self.solves_poses(iteration)
         return StepSettings(
             iteration=iteration, round_iteration=round_iteration, in_repair=in_repair,
@@ -151,8 +145,7 @@ class Schedule:
             pose_active=poses_move and not solves,
             pose_solve=poses_move and solves and (iteration + 1) % config.camera.lbfgs_every == 0,
             gaussian_lr_fraction=gaussian_fraction,
-            pose_lr=exponential_lr(config.lr.pose, config.lr.pose_final, pose_fraction)
-            * self.pose_warmup_factor(iteration),
+            pose_lr=exponential_lr(config.lr.pose, config.lr.pose_final, pose_fraction) * warmup,
             orbit_free=self.orbit_free(iteration),
             pose_anchor=config.camera.round_anchor if in_repair or self.round_index(iteration) > 0 else 0.0,
         )
