@@ -261,9 +261,15 @@ class GaussianModel:
     def _check_finite(self, loss: torch.Tensor, cameras: CameraOptimizer) -> None:
         if not torch.isfinite(loss):
             raise Diverged(f"loss is {loss.item()}")
-        for name, param in [*self.params.items(), ("camera parameters", cameras.params().detach())]:
-            if not torch.isfinite(param).all():
+        named = [*self.params.items(), ("camera parameters", cameras.params())]
+        # A sum is non-finite where any element is (or where it overflows float range, which sane parameters never
+        # approach): 0.15 ms against 5 for isfinite per tensor at 60k Gaussians with SH degree 2.
+        if torch.isfinite(torch.stack([param.detach().sum() for _, param in named])).all():
+            return
+        for name, param in named:
+            if not torch.isfinite(param.detach()).all():
                 raise Diverged(f"parameter {name} has NaN/inf values")
+        raise Diverged("the parameters' sum overflows: they have diverged")
 
     # ----------------------------------------------------------------------------------------------- state
     def continue_from(self, other: GaussianModel) -> None:
