@@ -63,9 +63,15 @@ def synth(
     views: int = typer.Option(48, help="Number of cameras on the dome."),
     size: int = typer.Option(256, help="Image width and height in pixels."),
     seed: int = typer.Option(0, help="Seed for textures and sampled points."),
+    light_jitter_deg: float = typer.Option(0.0, help="Turn each view's light by up to this angle (lighting that "
+                                                     "changes between shots)."),
+    gain_jitter: float = typer.Option(0.0, help="Scale each view's colour channels by exp(N(0, this^2)) (exposure "
+                                                "and white balance changing between shots)."),
 ) -> None:
     """Render the synthetic excavator scene (exact poses, masks, depth maps) in the MipNeRF360 layout."""
-    folder = generate_synthetic_scene(out_dir, SyntheticOptions(views=views, width=size, height=size, seed=seed))
+    options = SyntheticOptions(views=views, width=size, height=size, seed=seed, light_jitter_deg=light_jitter_deg,
+                               gain_jitter=gain_jitter)
+    folder = generate_synthetic_scene(out_dir, options)
     stdout.print(f"wrote {views} views ({size}x{size}) to {folder}")
 
 

@@ -563,3 +563,26 @@ def test_synthetic_cache_keeps_the_scene_another_process_finished_first(tmp_path
     folder = ensure_synthetic_scene(options, cache_dir=cache)
     assert folder == cache / options.folder_name() and (folder / "synthetic.json").is_file()
     assert [path.name for path in cache.iterdir()] == [folder.name]  # no staging folder left behind
+
+
+def test_synthetic_lighting_changes_the_images_and_nothing_else(tmp_path):
+    plain = SyntheticOptions(views=4, width=24, height=24)
+    lit = SyntheticOptions(views=4, width=24, height=24, light_jitter_deg=30.0, gain_jitter=0.1)
+    assert lit.folder_name() == plain.folder_name() + "-light_jitter30-gain_jitter0.1"
+    generate_synthetic_scene(tmp_path / "plain", plain)
+    result = CliRunner().invoke(app, ["synth", str(tmp_path / "lit"), "--views", "4", "--size", "24",
+                                      "--light-jitter-deg", "30", "--gain-jitter", "0.1"])
+    assert result.exit_code == 0, result.output
+    folders = [tmp_path / "plain", tmp_path / "lit"]
+    for index in range(4):
+        stem = f"view_{index:03d}"
+        masks = [cv2.imread(str(folder / "masks" / f"{stem}.png")) for folder in folders]
+        depths = [np.load(folder / "depths" / f"{stem}.npy") for folder in folders]
+        images = [cv2.imread(str(folder / "images" / f"{stem}.png")).astype(int) for folder in folders]
+        assert np.array_equal(*masks) and np.array_equal(*depths)
+        background = cv2.dilate(masks[0][..., 0], np.ones((3, 3), np.uint8)) == 0  # edge pixels mix object rays
+        assert np.array_equal(images[0][background], images[1][background])
+        assert np.abs(images[0] - images[1])[~background].mean() > 3  # levels of 255
+    result = CliRunner().invoke(app, ["synth", str(tmp_path / "bad"), "--views", "4", "--gain-jitter", "-1"])
+    assert result.exit_code != 0 and "gain jitter must be >= 0" in result.output
+    assert not (tmp_path / "bad").exists()

@@ -51,6 +51,11 @@ class SyntheticOptions:
         min_elevation_deg, max_elevation_deg: camera elevation range above the base plane.
         supersample: colour is averaged over supersample^2 rays per pixel (masks and depth use the pixel centre).
         num_points: SfM-like points written to points3D.bin (unprojected from the depth maps).
+        light_jitter_deg: each view's light direction is turned from `LIGHT_DIRECTION` by up to this angle (uniform,
+            about a random axis): the shading changes from view to view, as on a capture whose object was moved
+            between sequences under fixed lights.
+        gain_jitter: each view's colour channels are scaled by exp(N(0, gain_jitter^2)) (exposure and white
+            balance changing between shots). The background stays white; masks and depth maps do not change.
     """
 
     views: int = 48
@@ -63,13 +68,16 @@ class SyntheticOptions:
     max_elevation_deg: float = 60.0
     supersample: int = 2
     num_points: int = 4000
+    light_jitter_deg: float = 0.0
+    gain_jitter: float = 0.0
 
     def folder_name(self) -> str:
         """The cache folder's name: every setting that changes the scene (defaults of optics and orbit left out, so
         the folders of older versions keep their names)."""
         name = f"synthetic-v{GENERATOR_VERSION}-{self.views}views-{self.width}x{self.height}-seed{self.seed}"
         defaults = SyntheticOptions()
-        for field in ("fov_deg", "radius", "min_elevation_deg", "max_elevation_deg", "supersample", "num_points"):
+        for field in ("fov_deg", "radius", "min_elevation_deg", "max_elevation_deg", "supersample", "num_points",
+                      "light_jitter_deg", "gain_jitter"):
             if getattr(self, field) != getattr(defaults, field):
                 name += f"-{field.replace('_deg', '')}{getattr(self, field):g}"
         return name
@@ -241,11 +249,13 @@ def _hits_bounding_sphere(primitive: Primitive, origins: np.ndarray, directions:
     return (squared_distance <= bound**2 * 1.0001) & (along > -bound)
 
 
-def cast_rays(primitives: list[Primitive], origins: np.ndarray, directions: np.ndarray):
+def cast_rays(primitives: list[Primitive], origins: np.ndarray, directions: np.ndarray,
+              light: np.ndarray = LIGHT_DIRECTION):
     """First hit of each ray against the scene.
 
     Args:
         origins, directions: [N,3] world rays (directions unit length).
+        light: [3] unit direction of the light (Lambertian shading, two-sided).
 
     Returns:
         t [N] (inf on a miss), colors [N,3] float shaded RGB (background where missed).
@@ -267,7 +277,7 @@ def cast_rays(primitives: list[Primitive], origins: np.ndarray, directions: np.n
         rows = np.minimum((uv[:, 1] * texture.shape[0]).astype(int), texture.shape[0] - 1)
         cols = np.minimum((uv[:, 0] * texture.shape[1]).astype(int), texture.shape[1] - 1)
         world_normals = normals[closer] @ primitive.rotation.T
-        lambert = np.abs(world_normals @ LIGHT_DIRECTION)
+        lambert = np.abs(world_normals @ light)
         colors[rays] = texture[rows, cols] * (0.35 + 0.65 * lambert)[:, None]
     return best_t, np.clip(colors, 0, 1)
 
@@ -301,9 +311,11 @@ def intrinsics(options: SyntheticOptions) -> np.ndarray:
 
 
 def render_view(
-    primitives: list[Primitive], viewmat: np.ndarray, K: np.ndarray, width: int, height: int, supersample: int
+    primitives: list[Primitive], viewmat: np.ndarray, K: np.ndarray, width: int, height: int, supersample: int,
+    light: np.ndarray = LIGHT_DIRECTION, gain: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Render one view. Returns image [H,W,3] float32, mask [H,W] float32, z-depth [H,W] float32 (0 = background)."""
+    """Render one view lit from `light`, the object's colours scaled by [3] `gain` (None: 1). Returns image [H,W,3]
+    float32, mask [H,W] float32, z-depth [H,W] float32 (0 = background)."""
     rotation = viewmat[:3, :3]
     eye = camera_centers(torch.from_numpy(viewmat)).numpy()
 
@@ -322,9 +334,29 @@ def render_view(
     steps = (np.arange(supersample) + 0.5) / supersample
     offsets = np.stack(np.meshgrid(steps, steps), -1).reshape(-1, 2)
     _, sample_world = rays(offsets)
-    _, colors = cast_rays(primitives, np.broadcast_to(eye, sample_world.shape), sample_world)
+    sample_t, colors = cast_rays(primitives, np.broadcast_to(eye, sample_world.shape), sample_world, light)
+    if gain is not None:
+        colors = np.where(np.isfinite(sample_t)[:, None], np.clip(colors * gain, 0, 1), colors)
     image = colors.reshape(height, width, len(offsets), 3).mean(2)
     return image.astype(np.float32), hit.reshape(height, width).astype(np.float32), depth.astype(np.float32)
+
+
+def view_lighting(options: SyntheticOptions) -> list[tuple[np.ndarray, np.ndarray | None]]:
+    """Each view's (light direction, colour gain or None) under `options.light_jitter_deg` and `gain_jitter`, from a
+    random stream of its own (the scene's other random draws do not move when they are switched on)."""
+    if options.light_jitter_deg == 0 and options.gain_jitter == 0:
+        return [(LIGHT_DIRECTION, None)] * options.views
+    rng = np.random.default_rng([options.seed, 1])
+    lighting = []
+    for _ in range(options.views):
+        axis = rng.normal(size=3)
+        axis /= np.linalg.norm(axis)
+        angle = np.radians(options.light_jitter_deg) * rng.uniform()
+        # Rodrigues: the light turned by `angle` about `axis`
+        light = (LIGHT_DIRECTION * np.cos(angle) + np.cross(axis, LIGHT_DIRECTION) * np.sin(angle)
+                 + axis * (axis @ LIGHT_DIRECTION) * (1 - np.cos(angle)))
+        lighting.append((light, np.exp(rng.normal(scale=options.gain_jitter, size=3))))
+    return lighting
 
 
 def generate_synthetic_scene(out_dir: str | Path, options: SyntheticOptions = SyntheticOptions()) -> Path:
@@ -338,6 +370,9 @@ def generate_synthetic_scene(out_dir: str | Path, options: SyntheticOptions = Sy
             f"synthetic scene needs at least 4 views and 8x8 pixels, "
             f"got {options.views} views of {options.width}x{options.height}"
         )
+    if options.light_jitter_deg < 0 or options.gain_jitter < 0:
+        raise WarpbagsError(f"light jitter and gain jitter must be >= 0, got {options.light_jitter_deg} and "
+                            f"{options.gain_jitter}")
     if out_dir.exists() and any(out_dir.iterdir()):
         raise WarpbagsError(f"{out_dir} exists and is not empty")
     staging = out_dir.with_name(f".{out_dir.name}.partial-{os.getpid()}")
@@ -352,8 +387,9 @@ def generate_synthetic_scene(out_dir: str | Path, options: SyntheticOptions = Sy
         rng = np.random.default_rng(options.seed)
         points, colors = [], []
         per_view = max(1, options.num_points // options.views)
-        for name, viewmat in zip(names, viewmats):
-            image, mask, depth = render_view(primitives, viewmat, K, options.width, options.height, options.supersample)
+        for name, viewmat, (light, gain) in zip(names, viewmats, view_lighting(options)):
+            image, mask, depth = render_view(primitives, viewmat, K, options.width, options.height, options.supersample,
+                                             light, gain)
             stem = Path(name).stem
             image_bgr = cv2.cvtColor(np.round(image * 255).astype(np.uint8), cv2.COLOR_RGB2BGR)
             cv2.imwrite(str(staging / "images" / name), image_bgr)
