@@ -32,6 +32,7 @@ from warpbags.cameras import camera_centers
 from warpbags.data.colmap import write_model
 from warpbags.data.scene import DEFAULT_SPLIT_SIZES, farthest_views
 from warpbags.errors import WarpbagsError
+from warpbags.lie import so3_exp
 
 GENERATOR_VERSION = 3  # bump whenever the geometry or rendering changes: cache folders are keyed on it
 BACKGROUND = 1.0  # white
@@ -352,9 +353,7 @@ def view_lighting(options: SyntheticOptions) -> list[tuple[np.ndarray, np.ndarra
         axis = rng.normal(size=3)
         axis /= np.linalg.norm(axis)
         angle = np.radians(options.light_jitter_deg) * rng.uniform()
-        # Rodrigues: the light turned by `angle` about `axis`
-        light = (LIGHT_DIRECTION * np.cos(angle) + np.cross(axis, LIGHT_DIRECTION) * np.sin(angle)
-                 + axis * (axis @ LIGHT_DIRECTION) * (1 - np.cos(angle)))
+        light = so3_exp(torch.from_numpy(axis * angle)).numpy() @ LIGHT_DIRECTION
         lighting.append((light, np.exp(rng.normal(scale=options.gain_jitter, size=3))))
     return lighting
 
