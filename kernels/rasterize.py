@@ -144,8 +144,31 @@ def lane_pixel(x0: int, y0: int, lane: int, block_w: int, cam: int, width: int, 
     return x, y, pix
 
 
+def _lane_sum(lanes: int):
+    """Sum of a vector of `lanes` (a power of two up to 16) values as a tree of halves, which the compiler turns into
+    a few vector additions (a running sum, lane after lane, fixes the order of the float additions and stays scalar)."""
+    assert lanes in (1, 2, 4, 8, 16), lanes
+
+    @wp.func
+    def lane_sum(v: Any):
+        s = v
+        for k in range(wp.static(lanes // 2)):
+            s[k] = s[k] + s[k + wp.static(lanes // 2)]
+        for k in range(wp.static(lanes // 4)):
+            s[k] = s[k] + s[k + wp.static(lanes // 4)]
+        for k in range(wp.static(lanes // 8)):
+            s[k] = s[k] + s[k + wp.static(lanes // 8)]
+        for k in range(wp.static(lanes // 16)):
+            s[k] = s[k] + s[k + wp.static(lanes // 16)]
+        return s[0]
+
+    return lane_sum
+
+
 def _forward_kernel(lanes: int):
     """The forward kernel for blocks of `lanes` pixels per thread (block_w * block_h == lanes)."""
+
+    lane_sum = _lane_sum(lanes)
 
     @wp.kernel(enable_backward=False)
     def rasterize_forward_kernel(
@@ -182,8 +205,11 @@ def _forward_kernel(lanes: int):
         depth = wp.vector(zero, length=wp.static(lanes))
         start = tile_offsets[tile]
         end = tile_offsets[tile + 1]
-        last = wp.vector(start, length=wp.static(lanes))
-        remaining = int(0)
+        # The end of each lane's contributing range, counted from `start`, in floats, and the early exit from a sum
+        # of the live lanes: the lanes' update then compiles to vector blends, where an int32 per lane (and a count
+        # of the live lanes) stayed scalar code. Exact in float32 below 2^24 entries in a tile's list, which the
+        # wrapper ensures (no more than 2^24 Gaussians per camera).
+        last = wp.vector(zero, length=wp.static(lanes))
         for k in range(wp.static(lanes)):
             x, y, lane_pix = lane_pixel(x0, y0, k, block_w, cam, tiles.width, tiles.height)
             px[k] = out_depths.dtype(x) + out_depths.dtype(0.5)
@@ -191,8 +217,7 @@ def _forward_kernel(lanes: int):
             if lane_pix >= 0:
                 pix[k] = lane_pix
                 live[k] = one
-                remaining += 1
-        if remaining == 0:
+        if lane_sum(live) == zero:
             return
         # isect ids are flat (camera, Gaussian) indices and opacities per Gaussian: one subtraction per visit
         first_gaussian = cam * tiles.num_gaussians
@@ -200,6 +225,7 @@ def _forward_kernel(lanes: int):
 
         for i in range(start, end):
             g = isect_ids[i]
+            past_i = out_depths.dtype(i + 1 - start)
             mean = means2d[g]
             conic = conics[g]
             opacity = opacities[g - first_gaussian]
@@ -219,10 +245,9 @@ def _forward_kernel(lanes: int):
                 blue[k] = blue[k] + weight * c[2]
                 depth[k] = depth[k] + weight * z
                 transmittance[k] = wp.where(stops > zero, transmittance[k], next_transmittance)
-                last[k] = wp.where(stops > zero, last[k], wp.where(alpha > zero, i + 1, last[k]))
+                last[k] = wp.where(stops > zero, last[k], wp.where(alpha > zero, past_i, last[k]))
                 live[k] = live[k] * (one - stops)
-                remaining -= int(stops)
-            if remaining == 0:
+            if lane_sum(live) == zero:
                 break
 
         for k in range(wp.static(lanes)):
@@ -231,30 +256,9 @@ def _forward_kernel(lanes: int):
                 out_depths[pix[k]] = depth[k]
                 out_alphas[pix[k]] = one - transmittance[k]
                 final_transmittance[pix[k]] = transmittance[k]
-                isect_end[pix[k]] = last[k]
+                isect_end[pix[k]] = start + int(last[k])
 
     return rasterize_forward_kernel
-
-
-def _lane_sum(lanes: int):
-    """Sum of a vector of `lanes` (a power of two up to 16) values as a tree of halves, which the compiler turns into
-    a few vector additions (a running sum, lane after lane, fixes the order of the float additions and stays scalar)."""
-    assert lanes in (1, 2, 4, 8, 16), lanes
-
-    @wp.func
-    def lane_sum(v: Any):
-        s = v
-        for k in range(wp.static(lanes // 2)):
-            s[k] = s[k] + s[k + wp.static(lanes // 2)]
-        for k in range(wp.static(lanes // 4)):
-            s[k] = s[k] + s[k + wp.static(lanes // 4)]
-        for k in range(wp.static(lanes // 8)):
-            s[k] = s[k] + s[k + wp.static(lanes // 8)]
-        for k in range(wp.static(lanes // 16)):
-            s[k] = s[k] + s[k + wp.static(lanes // 16)]
-        return s[0]
-
-    return lane_sum
 
 
 def _backward_kernel(lanes: int, with_depth: bool):
@@ -305,10 +309,13 @@ def _backward_kernel(lanes: int, with_depth: bool):
         v_green = wp.vector(zero, length=wp.static(lanes))
         v_blue = wp.vector(zero, length=wp.static(lanes))
         v_depth = wp.vector(zero, length=wp.static(lanes))
-        last = wp.vector(wp.int32(0), length=wp.static(lanes))  # lane k composited list entries [start, last[k])
+        # lane k composited list entries [start, start + last[k]) (floats, as in the forward: with an int32 per lane
+        # the lanes' arithmetic vectorized 4 lanes at a time instead of 16)
+        last = wp.vector(zero, length=wp.static(lanes))
         transmittance = wp.vector(one, length=wp.static(lanes))
         # sum of alpha_j T_j (c_j . v) (+ z_j v_depth) over the Gaussians behind the current one, minus T_final v_A
         behind = wp.vector(zero, length=wp.static(lanes))
+        start = tile_offsets[tile]
         i = int(0)
         for k in range(wp.static(lanes)):
             x, y, pix = lane_pixel(x0, y0, k, block_w, cam, tiles.width, tiles.height)
@@ -323,10 +330,9 @@ def _backward_kernel(lanes: int, with_depth: bool):
                 if wp.static(with_depth):
                     v_depth[k] = v_out_depths[pix]
                 behind[k] = -transmittance[k] * v_out_alphas[pix]
-                last[k] = isect_end[pix]
-                i = wp.max(i, last[k])
+                last[k] = v_out_depths.dtype(isect_end[pix] - start)
+                i = wp.max(i, isect_end[pix])
         first_gaussian = cam * tiles.num_gaussians
-        start = tile_offsets[tile]
         # each lane's share of the current Gaussian's gradients, summed over the lanes after the lanes loop
         lane_red = wp.vector(zero, length=wp.static(lanes))
         lane_green = wp.vector(zero, length=wp.static(lanes))
@@ -349,9 +355,10 @@ def _backward_kernel(lanes: int, with_depth: bool):
             opacity = opacities[g - first_gaussian]
             c = colors[g]
             z = depths[g]
+            rank = v_out_depths.dtype(i - start)
             for k in range(wp.static(lanes)):
                 sigma, dx, dy = gaussian_falloff(mean, conic, px[k], py[k])
-                alpha, raw_alpha, falloff = splat_alpha(opacity, sigma, wp.where(i < last[k], one, zero))
+                alpha, raw_alpha, falloff = splat_alpha(opacity, sigma, wp.where(rank < last[k], one, zero))
                 one_minus_alpha_inv = one / (one - alpha)
                 transmittance[k] = transmittance[k] * one_minus_alpha_inv
                 weight = alpha * transmittance[k]

@@ -237,6 +237,17 @@ def test_bad_arguments_are_named(override, message):
         warpbags.rasterization(**scene, **override)
 
 
+def test_float32_refuses_more_gaussians_than_it_counts_exactly(monkeypatch):
+    """The kernels count a pixel's place in its tile's list in the float type; float32 is exact below 2^24 entries,
+    so more Gaussians per camera are refused by name (the limit lowered here to 5 to keep the scene small)."""
+    import warpbags.wrapper as wrapper
+
+    monkeypatch.setattr(wrapper, "_FLOAT32_EXACT_COUNT", 5)
+    with pytest.raises(ValueError, match="2\\^24 Gaussians per camera, got 5"):
+        warpbags.rasterization(**random_scene(n=5, cams=1, dtype=torch.float32))
+    warpbags.rasterization(**random_scene(n=5, cams=1))  # float64 counts exactly far beyond
+
+
 # Pixel blocks: on the CPU one rasterizer thread composites a block of a tile (warpbags.wrapper.DEFAULT_PIXEL_BLOCK);
 # one pixel per thread is the CUDA layout. Every block must give the dense reference's image and gradients.
 PIXEL_BLOCKS = [(1, 1), (2, 1), (1, 2), (2, 2), (4, 1), (4, 2), (2, 4), (4, 4)]

@@ -801,6 +801,9 @@ def _splat_arguments(splats: dict[str, torch.Tensor], tile_offsets: torch.Tensor
             "tile_offsets": _to_warp(tile_offsets, "int32"), "isect_ids": _to_warp(isect_ids, "int32"), **geometry}
 
 
+_FLOAT32_EXACT_COUNT = 2**24  # integers from here on are not all representable in float32
+
+
 class _RasterizeToPixels(torch.autograd.Function):
     """Forward and hand-written backward rasterization kernels; see kernels/rasterize.py.
 
@@ -813,6 +816,9 @@ class _RasterizeToPixels(torch.autograd.Function):
                 pixel_block):
         cams, n = depths.shape
         device, scalar = means2d.device, means2d.dtype
+        if scalar == torch.float32 and n >= _FLOAT32_EXACT_COUNT:
+            # the kernels count a pixel's position in its tile's list (at most n entries) in the float type
+            raise ValueError(f"float32 rasterization takes fewer than 2^24 Gaussians per camera, got {n}")
         splats = _flat_splats(means2d, conics, colors, opacities, depths)
         pixels = cams * height * width
         out_colors = torch.zeros(cams, height, width, 3, dtype=scalar, device=device)
