@@ -47,7 +47,10 @@ def gaussian_optimizer(params: dict[str, torch.nn.Parameter], config: TrainConfi
     rates = {"means": lr.means_init * extent, "scales": lr.scales, "quats": lr.quats, "opacities": lr.opacities,
              "sh0": lr.sh_dc, "shN": lr.sh_rest}
     groups = [{"params": [param], "lr": rates[name], "name": name} for name, param in params.items()]
-    return torch.optim.Adam(groups, lr=0.0, eps=lr.adam_eps)
+    # foreach: the same arithmetic as the per-tensor loop torch picks on the CPU, bit for bit, in fewer passes
+    # over memory (8.5 -> ~4 ms a step at 100k Gaussians with SH degree 2); `fused` is faster still but rounds
+    # differently.
+    return torch.optim.Adam(groups, lr=0.0, eps=lr.adam_eps, foreach=True)
 
 
 def camera_viewmats(cameras: CameraOptimizer, views: torch.Tensor, pose_grad: bool) -> torch.Tensor:
@@ -262,10 +265,10 @@ class GaussianModel:
         if not torch.isfinite(loss):
             raise Diverged(f"loss is {loss.item()}")
         named = [*self.params.items(), ("camera parameters", cameras.params())]
-        # A sum is non-finite where any element is: one vectorized pass per tensor (0.15 ms against 5 for isfinite
-        # per element at 60k Gaussians with SH degree 2); the element check runs only when a sum is non-finite, so
-        # a sum that overflows finite elements raises nothing, as before.
-        if torch.isfinite(torch.stack([param.detach().sum(dtype=torch.float64) for _, param in named])).all():
+        # A sum is non-finite where any element is: one vectorized pass per tensor, in the tensor's own dtype (0.3
+        # ms at 100k Gaussians with SH degree 2, against 2.5 summed in float64 and 5 for isfinite per element); the
+        # element check runs only when a sum is non-finite, so a sum that overflows finite elements raises nothing.
+        if torch.isfinite(torch.stack([param.detach().sum() for _, param in named])).all():
             return
         for name, param in named:
             if not torch.isfinite(param.detach()).all():
@@ -288,4 +291,6 @@ class GaussianModel:
         self.params = {name: torch.nn.Parameter(value.to(device)) for name, value in state["params"].items()}
         self.optimizer = gaussian_optimizer(self.params, self.config, self.scene_extent)
         self.optimizer.load_state_dict(state["optimizer"])
+        for group in self.optimizer.param_groups:  # checkpoints before foreach was chosen saved None (per tensor)
+            group["foreach"] = True
         self.strategy.load_state_dict(state["strategy"])
