@@ -18,7 +18,7 @@ Procrustes alignment. Variants:
     --ablations   bags with one part switched off in turn: no-centroid-start, no-silhouette (mask distance and
                   chamfer terms), no-precondition, camera-param (se(3) about the camera centre, no preconditioner),
                   poses-whole-round and poses-first-half (the pose window of each round, instead of from a quarter
-                  of the round to its end)
+                  of the round to its end), no-hypotheses (no turns of the worst-fit camera tried in round 2)
 --depth: the depth maps training sees. `true`: the scene's own (a synthetic scene's are exact, which no capture
 has); `monocular`: those degraded once per scene as a monocular network's would be (relative, smooth shape errors of
 20% of the object's relief, soft edges: `warpbags.data.noise.monocular_like_depths`); `none`: no depth maps, as a
@@ -63,9 +63,11 @@ VARIANTS = {
     "truth-start": dict(rot_noise_deg=0.0, trans_noise=0.0),
     # the object-centric orbit held in every round (any value >= the preset's rounds)
     "frozen-orbit": dict(camera={"orbit_from_round": 99}),
+    # no search over turns of the worst-fit camera (`camera.hypotheses_round`)
+    "no-hypotheses": dict(camera={"hypotheses_round": 0}),
 }
 ABLATIONS = ["no-centroid-start", "no-silhouette", "no-precondition", "camera-param", "poses-whole-round",
-             "poses-first-half"]
+             "poses-first-half", "no-hypotheses"]
 
 
 def _merge(base: dict, extra: dict) -> dict:

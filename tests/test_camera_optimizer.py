@@ -10,7 +10,8 @@ import torch
 import warp as wp
 from conftest import look_at
 
-from warpbags.camera_optimizer import CameraOptimizer, CameraOptimizerSettings, corrected_viewmats, preconditioner
+from warpbags.camera_optimizer import (CameraOptimizer, CameraOptimizerSettings, corrected_viewmats, hypothesis_turns,
+                                       preconditioner)
 from warpbags.cameras import project_points
 from warpbags.lie import se3_exp
 from warpbags.wrapper import apply_object_deltas
@@ -169,3 +170,26 @@ def test_orbit_freezing_needs_the_object_parameterization():
 
     with pytest.raises(WarpbagsError, match="object parameterization"):
         _optimizer(CameraOptimizerSettings(parameterization="camera", precondition=False)).set_orbit_free(False)
+
+
+@pytest.mark.parametrize("parameterization", ["camera", "object"])
+def test_a_turn_about_the_object_keeps_its_centre_and_turns_by_the_angle(parameterization):
+    cameras = _optimizer(CameraOptimizerSettings(parameterization=parameterization, precondition=False, lr=1e-2),
+                         dtype=F64)
+    cameras.apply()[:, :3, 3].sum().backward()  # corrections and Adam moments, which the turn folds in and clears
+    cameras.step()
+    before = cameras.viewmats()
+    turns = hypothesis_turns("zx", (30.0, 15.0))
+    assert [label for label, _ in turns] == ["+15 deg about z", "-15 deg about z", "+15 deg about x",
+                                             "-15 deg about x", "+30 deg about z", "-30 deg about z",
+                                             "+30 deg about x", "-30 deg about x"]
+    cameras.turn_about_object(1, turns[0][1].to(before))
+    after = cameras.viewmats()
+    torch.testing.assert_close(after[[0, 2]], before[[0, 2]], rtol=0, atol=1e-12)  # the others stay
+    center = cameras.object_centers[1]
+    seen = [(pose[:3, :3] @ center + pose[:3, 3]) for pose in (before[1], after[1])]
+    torch.testing.assert_close(seen[1], seen[0], rtol=0, atol=1e-12)  # the object centre stays where it was seen
+    turn = after[1, :3, :3] @ before[1, :3, :3].T  # in the camera's frame: about its z axis by 15 deg
+    assert math.degrees(math.acos((turn.trace().item() - 1) / 2)) == pytest.approx(15.0, abs=1e-9)
+    assert turn[2, 2].item() == pytest.approx(1.0, abs=1e-12)
+    assert torch.all(cameras.rotations == 0) and not cameras.optimizer.state

@@ -202,6 +202,17 @@ class CameraOptimizer(torch.nn.Module):
             self.translations.zero_()
         self.reset_moments()
 
+    def turn_about_object(self, camera: int, rotation: torch.Tensor) -> None:
+        """Turn camera `camera` about the object centre by [3] axis-angle `rotation` in its own frame (z: roll about
+        the line of sight to the object centre, x and y: an orbit), whatever the parameterization: the current
+        corrections are folded into the base poses first (`rebase`)."""
+        self.rebase()
+        with torch.no_grad():
+            turn = torch.zeros(1, 6, dtype=self.viewmats_init.dtype, device=self.viewmats_init.device)
+            turn[0, :3] = rotation
+            self.viewmats_init[camera] = corrected_viewmats("object", self.viewmats_init[camera:camera + 1], turn,
+                                                            self.object_centers[camera:camera + 1])[0]
+
     def anchor_loss(self, views: torch.Tensor) -> torch.Tensor:
         """Mean over cameras `views` ([B] long) of 1/2 |corrections|^2: after a `rebase`, a differentiable pull of
         those cameras towards where they were then (`camera.round_anchor`)."""
@@ -277,6 +288,19 @@ class CameraOptimizer(torch.nn.Module):
     def load_state(self, state: dict) -> None:
         self.load_state_dict(state["module"])
         self.optimizer.load_state_dict(state["optimizer"])
+
+
+def hypothesis_turns(axes: str, angles_deg: tuple[float, ...]) -> list[tuple[str, torch.Tensor]]:
+    """(label, [3] float64 axis-angle) of every turn by +-each of `angles_deg` about each of `axes` ("x", "y", "z" of
+    a camera's frame), for `CameraOptimizer.turn_about_object`; smaller angles first."""
+    turns = []
+    for angle in sorted(angles_deg):
+        for axis in axes:
+            for sign in (1, -1):
+                rotation = torch.zeros(3, dtype=torch.float64)
+                rotation["xyz".index(axis)] = sign * math.radians(angle)
+                turns.append((f"{sign * angle:+g} deg about {axis}", rotation))
+    return turns
 
 
 def exponential_lr(initial: float, final: float, fraction: float) -> float:

@@ -11,15 +11,17 @@ renders, next to the real views). The parts it runs, each in its own module:
     warpbags.camera_setup      the starting poses and the camera optimizer (`warpbags.camera_optimizer`)
     warpbags.run_folder        config, poses, log, checkpoints and results on disk (the layout is documented there)
 
-The trainer adds the loop itself: rounds, the repair stage, checkpoint cadence, the log and Ctrl-C. The module is
-a little over 300 lines because it also holds the run's entry points that the command line, the benchmarks, the
-sweep and the tests import from here (`training_scene`, `start_or_resume`, `default_run_dir`) and the attributes
-they read (`params`, `cameras`, `scene`, `Ks`, `pose_error`).
+The trainer adds the loop itself: rounds, the search of one round over turns of its worst-fit camera
+(`camera.hypotheses_round`), the repair stage, checkpoint cadence, the log and Ctrl-C. The module also
+holds the run's entry points that the command line, the benchmarks, the sweep and the tests import from here
+(`training_scene`, `start_or_resume`, `default_run_dir`) and the attributes they read (`params`, `cameras`,
+`scene`, `Ks`, `pose_error`).
 """
 
 from __future__ import annotations
 
 import contextlib
+import copy
 import signal
 import time
 from collections.abc import Callable, Iterator
@@ -28,6 +30,7 @@ from pathlib import Path
 import torch
 
 from warpbags.alignment import alignment_for, pose_errors
+from warpbags.camera_optimizer import hypothesis_turns
 from warpbags.camera_setup import given_viewmats, starting_poses, training_cameras
 from warpbags.configs.train import TrainConfig
 from warpbags.data.scene import Scene
@@ -294,6 +297,89 @@ class Trainer:
     def _request_stop(self, signum, frame) -> None:
         self._stop_requested = True
 
+    def _worst_fit_view(self) -> int:
+        """The training view with the highest loss under the current Gaussians and poses (last iteration's terms)."""
+        settings = self.schedule.at(self.iteration - 1)
+        viewmats = self.current_viewmats()
+        losses = [self.model.loss(views, viewmats[views], settings)[0].item()
+                  for views in torch.arange(self.num_cameras, device=self.device)[:, None]]
+        return max(range(self.num_cameras), key=losses.__getitem__)
+
+    def _search_view_hypotheses(self) -> list[tuple[dict, torch.Tensor]] | None:
+        """`camera.hypotheses_round`: train the round that starts now once with the worst-fit camera as it is and
+        once per turn of `hypothesis_turns`, and keep the trial of lowest mean loss over the round's last tenth if
+        it beats the unturned camera's by more than `camera.hypothesis_margin` (relative). The trainer is left at
+        the kept trial's end. Returns its (log record, poses) per iteration, or None on Ctrl-C (the trainer is then
+        back at the round's start)."""
+        settings = self.config.camera
+        camera = self._worst_fit_view()
+        round_index = self.iteration // self.round_length
+        length = min(self.round_length, self.config.iters - self.iteration)
+        scored = max(1, round(0.1 * length))
+        # Each trial starts from the same state; copies, since Adam's state tensors are stepped in place.
+        start_model, start_cameras = self.model, copy.deepcopy(self.cameras.state())
+        start_generator = self.generator.get_state()
+
+        def back_to_start() -> None:
+            self.model, self.iteration = start_model, round_index * self.round_length
+            self.cameras.load_state(copy.deepcopy(start_cameras))
+            self.generator.set_state(start_generator)
+
+        unturned, best = None, None
+        for label, rotation in [("not turned", None), *hypothesis_turns(settings.hypothesis_axes,
+                                                                       settings.hypothesis_angles)]:
+            back_to_start()
+            if rotation is not None:
+                self.cameras.turn_about_object(camera, rotation.to(self.cameras.viewmats_init))
+            steps = []
+            for _ in range(length):
+                steps.append((self.train_step(), self.current_viewmats()))
+                if self._stop_requested:
+                    back_to_start()
+                    return None
+            trial = dict(label=label, steps=steps, model=self.model, cameras=copy.deepcopy(self.cameras.state()),
+                         generator=self.generator.get_state(),
+                         score=sum(record["loss"] for record, _ in steps[-scored:]) / scored)
+            if rotation is None:
+                unturned = trial
+            elif best is None or trial["score"] < best["score"]:
+                best = trial
+        kept = best if best["score"] < (1 - settings.hypothesis_margin) * unturned["score"] else unturned
+        self.model, self.iteration = kept["model"], round_index * self.round_length + length
+        self.cameras.load_state(kept["cameras"])
+        self.generator.set_state(kept["generator"])
+        self.log(f"round {round_index}: camera {camera}, the worst fit, turned {best['label']}: loss "
+                 f"{best['score']:.4f} against {unturned['score']:.4f} not turned: "
+                 + ("kept" if kept is best else "not kept"))
+        return kept["steps"]
+
+    def _hypotheses_due(self) -> bool:
+        """True at the start of the coarse round `camera.hypotheses_round` (> 0) when poses are optimized."""
+        round_index = self.config.camera.hypotheses_round
+        return (round_index > 0 and self.config.pose_opt and self.schedule.starts_round(self.iteration)
+                and self.iteration == round_index * self.round_length)
+
+    def _finish_iteration(self, record: dict, viewmats: torch.Tensor, write_log: Callable[[dict], None],
+                          callback: Callable[[dict], None] | None, stop_at: int, can_checkpoint: bool = True) -> dict:
+        """Log the iteration of `record` (`record["iter"]` iterations done; its poses `viewmats`), write the coarse
+        result when it ends the coarse stage, checkpoint on the cadence (when `can_checkpoint`: the trainer's state
+        is this iteration's) and stop on Ctrl-C. Returns the record."""
+        iteration = record["iter"]
+        write_log(record)
+        self.run_folder.record_poses(iteration, viewmats)
+        if callback is not None:
+            callback(record)
+        coarse_done = iteration == self.config.iters and self.config.repair.iters > 0
+        if coarse_done:
+            self.write_run_files(folder=self.out_dir / "coarse")
+            self.write_results(self.out_dir / "coarse")
+        if can_checkpoint and (iteration % self.config.checkpoint_every == 0 or iteration == stop_at or coarse_done):
+            self.save_checkpoint()
+        if self._stop_requested and can_checkpoint:
+            self.save_checkpoint()
+            raise KeyboardInterrupt
+        return record
+
     def train(self, stop_at: int | None = None, callback: Callable[[dict], None] | None = None) -> dict:
         """Train until `stop_at` (default: all coarse and repair iterations) are done; returns the last record.
 
@@ -301,7 +387,8 @@ class Trainer:
         Checkpoints every `checkpoint_every` iterations, at the end of the coarse stage and at the end. With a
         repair stage, the coarse result is also written to coarse/ as a run folder of its own. Ctrl-C (SIGINT)
         finishes the current iteration, saves a checkpoint and raises KeyboardInterrupt. Divergence raises
-        WarpbagsError.
+        WarpbagsError. The round searched for view hypotheses (`camera.hypotheses_round`) trains as a whole: a
+        `stop_at` inside it stops at its start, Ctrl-C goes back to its start, and only its end is checkpointed.
         """
         total = self.config.total_iters
         stop_at = total if stop_at is None else min(stop_at, total)
@@ -316,20 +403,20 @@ class Trainer:
         try:
             with threads, self.run_folder.log_writer() as write_log:
                 while self.iteration < stop_at:
-                    record = self.train_step()
-                    write_log(record)
-                    self.run_folder.record_poses(self.iteration, self.current_viewmats())
-                    if callback is not None:
-                        callback(record)
-                    coarse_done = self.iteration == self.config.iters and self.config.repair.iters > 0
-                    if coarse_done:
-                        self.write_run_files(folder=self.out_dir / "coarse")
-                        self.write_results(self.out_dir / "coarse")
-                    if self.iteration % self.config.checkpoint_every == 0 or self.iteration == stop_at or coarse_done:
-                        self.save_checkpoint()
-                    if self._stop_requested:
-                        self.save_checkpoint()
-                        raise KeyboardInterrupt
+                    if self._hypotheses_due():
+                        if self.iteration + self.round_length > stop_at:
+                            break  # the search trains its round as a whole
+                        steps = self._search_view_hypotheses()
+                        if steps is None:  # Ctrl-C during the search: back at the round's start
+                            self.save_checkpoint()
+                            raise KeyboardInterrupt
+                        # Only the kept round's state is left, so only its last iteration can be checkpointed.
+                        for index, (record, viewmats) in enumerate(steps):
+                            record = self._finish_iteration(record, viewmats, write_log, callback, stop_at,
+                                                            can_checkpoint=index == len(steps) - 1)
+                        continue
+                    record = self._finish_iteration(self.train_step(), self.current_viewmats(), write_log, callback,
+                                                    stop_at)
         finally:
             if previous_handler is not None:
                 signal.signal(signal.SIGINT, previous_handler)
