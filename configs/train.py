@@ -124,14 +124,14 @@ class CameraConfig:
             its exact depth maps and 1.19 -> 4.1 (two seeds) with monocular-like ones (its later rounds gain less),
             so off by default.
         lbfgs_every, lbfgs_iters: how often the cameras are solved and the L-BFGS iterations of a solve.
-        hypotheses_round: at the start of this coarse round (0-based; 0 = never), the training camera whose view the
-            last round's Gaussians fit worst is tried turned about the object centre (`hypothesis_axes`,
-            `hypothesis_angles`). The unturned camera and each turn train the whole round from fresh Gaussians, and
-            the turn of lowest mean loss over the round's last tenth is kept if that is below the unturned camera's
-            by more than `hypothesis_margin`; training goes on from the kept trial (the issue's "outlier views"). The
-            mask-centroid start fixes pan and tilt, not roll, and without depth maps a camera left 15-20 deg off in
-            roll stays there, which the loss tells (telephoto synthetic scene, seed 0: 0.087 against 0.075-0.076
-            for the seeds that converge). Costs one round per turn.
+        hypotheses_round: at the start of this coarse round (0-based; 0 or a round past the last = never; poses
+            optimized only), the training camera whose view the last round's Gaussians fit worst is tried turned about
+            the object centre (`hypothesis_axes`, `hypothesis_angles`). The unturned camera and each turn train the
+            whole round from fresh Gaussians, and the turn of lowest mean loss over the round's last tenth is kept if
+            that is below the unturned camera's by more than `hypothesis_margin`; training goes on from the kept trial
+            (the issue's "outlier views"). The mask-centroid start fixes pan and tilt, not roll, and without depth maps
+            a camera left 15-20 deg off in roll stays there, which the loss tells (telephoto synthetic scene, seed 0:
+            0.087 against 0.075-0.076 for the seeds that converge). Costs one round per turn.
         hypothesis_axes, hypothesis_angles, hypothesis_margin: the axes of the camera's frame turned about ("z": roll
             about the line of sight to the object centre; "x", "y": an orbit), the angles (degrees, each with both
             signs), and the relative loss decrease a turn must bring to be kept.
