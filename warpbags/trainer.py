@@ -325,9 +325,11 @@ class Trainer:
             self.cameras.load_state(copy.deepcopy(start_cameras))
             self.generator.set_state(start_generator)
 
+        turns = hypothesis_turns(settings.hypothesis_axes, settings.hypothesis_angles)
+        self.log(f"round {round_index}: camera {camera} fits worst; the round is trained unturned and with each of "
+                 f"{len(turns)} turns of it about the object")
         unturned, best = None, None
-        for label, rotation in [("not turned", None), *hypothesis_turns(settings.hypothesis_axes,
-                                                                       settings.hypothesis_angles)]:
+        for label, rotation in [("not turned", None), *turns]:
             back_to_start()
             if rotation is not None:
                 self.cameras.turn_about_object(camera, rotation.to(self.cameras.viewmats_init))
