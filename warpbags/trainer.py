@@ -389,8 +389,10 @@ class Trainer:
         Checkpoints every `checkpoint_every` iterations, at the end of the coarse stage and at the end. With a
         repair stage, the coarse result is also written to coarse/ as a run folder of its own. Ctrl-C (SIGINT)
         finishes the current iteration, saves a checkpoint and raises KeyboardInterrupt. Divergence raises
-        WarpbagsError. The round searched for view hypotheses (`camera.hypotheses_round`) trains as a whole: a
-        `stop_at` inside it stops at its start, Ctrl-C goes back to its start, and only its end is checkpointed.
+        WarpbagsError. `callback(record)` is called after each iteration. The round searched for view hypotheses
+        (`camera.hypotheses_round`) trains as a whole: a `stop_at` inside it stops at its start, Ctrl-C goes back to
+        its start, only its end is checkpointed, and its iterations are logged (and passed to `callback`) after the
+        search, the trainer then at the round's end.
         """
         total = self.config.total_iters
         stop_at = total if stop_at is None else min(stop_at, total)
