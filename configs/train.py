@@ -526,10 +526,11 @@ def _is_window(value: Any) -> bool:
     return numbers and 0 <= value[0] < value[1] <= 1
 
 
-def _typed(value: Any, default: Any, name: str) -> Any:
-    """`value` as the type of the field's `default` (ints pass for floats, lists for tuples). An empty tuple default
-    is a list of any length (its nested lists become tuples; `TrainConfig.validate` checks the items)."""
-    if default == () and isinstance(value, (list, tuple)):
+def _typed(value: Any, default: Any, name: str, any_length: bool = False) -> Any:
+    """`value` as the type of the field's `default` (ints pass for floats, lists for tuples). An empty tuple default,
+    or a field declared `tuple[T, ...]` (`any_length`), takes a list of any length (nested lists become tuples;
+    `TrainConfig.validate` checks the items)."""
+    if (default == () or any_length) and isinstance(value, (list, tuple)):
         return tuple(tuple(item) if isinstance(item, list) else item for item in value)
     if default is None or value is None:
         return value
@@ -549,8 +550,8 @@ def _typed(value: Any, default: Any, name: str) -> Any:
 
 def _replaced(base: Any, overrides: dict[str, Any], prefix: str = "") -> Any:
     """`base` (a config dataclass) with fields replaced, nested groups given as partial dicts, types checked."""
-    fields = {f.name for f in dataclasses.fields(base)}
-    unknown = set(overrides) - fields
+    fields = {f.name: f.type for f in dataclasses.fields(base)}
+    unknown = set(overrides) - set(fields)
     if unknown:
         raise WarpbagsError(f"unknown training option(s): {', '.join(prefix + key for key in sorted(unknown))}")
     changes = {}
@@ -561,7 +562,7 @@ def _replaced(base: Any, overrides: dict[str, Any], prefix: str = "") -> Any:
                 raise WarpbagsError(f"{prefix}{key} must be a group of fields, got {value!r}")
             changes[key] = _replaced(current, value, f"{prefix}{key}.")
         else:
-            changes[key] = _typed(value, current, prefix + key)
+            changes[key] = _typed(value, current, prefix + key, any_length=", ...]" in str(fields[key]))
     return dataclasses.replace(base, **changes)
 
 

@@ -73,3 +73,18 @@ def test_presets_are_unchanged_by_the_refactor():
 def test_paper_is_the_defaults_with_its_repair_stage():
     assert dataclasses.replace(paper(), repair=RepairConfig()) == TrainConfig()
     assert paper().repair.iters > 0 and TrainConfig().repair.iters == 0
+
+
+def test_a_field_declared_of_any_length_takes_a_list_of_any_length():
+    """`camera.hypothesis_angles` is `tuple[float, ...]`: one angle or three, not only the default's two; a pair such
+    as `pose_round_window` keeps its length."""
+    import pytest
+    from warpbags.configs.train import load_preset
+    from warpbags.errors import WarpbagsError
+
+    assert load_preset("quick", camera={"hypothesis_angles": [20]}).camera.hypothesis_angles == (20,)
+    assert load_preset("quick", camera={"hypothesis_angles": [10, 20, 30]}).camera.hypothesis_angles == (10, 20, 30)
+    with pytest.raises(WarpbagsError, match="hypothesis_angles must be positive"):
+        load_preset("quick", camera={"hypothesis_angles": []})
+    with pytest.raises(WarpbagsError, match="pose_round_window must be like"):
+        load_preset("quick", pose_round_window=[0.25])
