@@ -48,8 +48,8 @@ def gaussian_optimizer(params: dict[str, torch.nn.Parameter], config: TrainConfi
              "sh0": lr.sh_dc, "shN": lr.sh_rest}
     groups = [{"params": [param], "lr": rates[name], "name": name} for name, param in params.items()]
     # foreach: the same arithmetic as the per-tensor loop torch picks on the CPU, bit for bit, in fewer passes
-    # over memory (8.5 -> ~4 ms a step at 100k Gaussians with SH degree 2); `fused` is faster still but rounds
-    # differently.
+    # (Adam alone over 100k Gaussians with SH degree 2: 14.3 -> 9.8 ms; inside a training step, where the memory
+    # traffic dominates, 8.5 -> 8.1); `fused` is faster still but rounds differently.
     return torch.optim.Adam(groups, lr=0.0, eps=lr.adam_eps, foreach=True)
 
 
