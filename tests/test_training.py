@@ -332,8 +332,10 @@ def test_a_camera_left_rolled_off_is_turned_back_by_the_hypotheses(scene_dir, tm
     errors = pose_errors(trainer.current_viewmats().double(), trainer.viewmats_true.double())["rotation_errors_deg"]
     assert errors[2] < 5.0, errors
     # The kept trial's iterations are logged once each, in order, with its poses.
-    log = (tmp_path / "log.jsonl").read_text().splitlines()
-    assert [json.loads(line)["iter"] for line in log] == list(range(1, 201))
+    log = [json.loads(line) for line in (tmp_path / "log.jsonl").read_text().splitlines()]
+    assert [record["iter"] for record in log] == list(range(1, 201))
+    decisions = [record["view_hypotheses"] for record in log if "view_hypotheses" in record]
+    assert len(decisions) == 1 and log[100]["view_hypotheses"]["kept"] and log[100]["view_hypotheses"]["camera"] == 2
     assert read_pose_history(tmp_path).iterations.tolist() == list(range(10, 201, 10))
 
 

@@ -91,6 +91,12 @@ def write_run_report(run_dir: Path, result: dict) -> Path:
                          f"{e['translation_percent_of_orbit']:.2f} |")
     lines += ["", "Centre floor: the rotation error that the camera centres alone force on cameras that look at the "
               "object (Procrustes only)."]
+    searches = [(r["iter"], r["view_hypotheses"]) for r in records if "view_hypotheses" in r]
+    if searches:
+        lines += ["", "## Turns of the worst-fit camera", "",
+                  "| from iteration | camera | best turn | its loss | unturned loss | kept |", "|---|---|---|---|---|---|"]
+        lines += [f"| {iteration - 1} | {s['camera']} | {s['best_turn']} | {s['best_loss']:.4f} | "
+                  f"{s['unturned_loss']:.4f} | {'yes' if s['kept'] else 'no'} |" for iteration, s in searches]
     lines += ["", f"## Held-out views ({result['test_views']}, test cameras aligned by {result['alignment']})", "",
               "| test poses | PSNR | SSIM | FLIP | LPIPS |", "|---|---|---|---|---|"]
     rows = [("aligned", result["images"])]

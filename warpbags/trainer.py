@@ -350,6 +350,10 @@ class Trainer:
         self.model, self.iteration = kept["model"], round_index * self.round_length + length
         self.cameras.load_state(kept["cameras"])
         self.generator.set_state(kept["generator"])
+        # The decision goes into the round's first log record too (the report lists it).
+        decision = {"camera": camera, "best_turn": best["label"], "best_loss": best["score"],
+                    "unturned_loss": unturned["score"], "kept": kept is best}
+        kept["steps"][0][0]["view_hypotheses"] = decision
         self.log(f"round {round_index}: camera {camera}, the worst fit, turned {best['label']}: loss "
                  f"{best['score']:.4f} against {unturned['score']:.4f} not turned: "
                  + ("kept" if kept is best else "not kept"))
