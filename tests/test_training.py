@@ -339,6 +339,17 @@ def test_a_camera_left_rolled_off_is_turned_back_by_the_hypotheses(scene_dir, tm
     assert read_pose_history(tmp_path).iterations.tolist() == list(range(10, 201, 10))
 
 
+def test_a_search_in_a_shorter_last_round_trains_to_the_end(scene_dir, tmp_path):
+    """8 iterations in 3 rounds: rounds of 3, 3 and 2; the search in the last round trains its 2 iterations per trial
+    and the run ends at iteration 8 with its results written."""
+    trainer = make_trainer(scene_dir, tmp_path, iters=8, rounds=3, pose_opt_start=0,
+                           camera={"hypotheses_round": 2, "hypothesis_angles": (10.0, 20.0)})
+    trainer.train()
+    assert trainer.iteration == 8 and (tmp_path / "gaussians.ply").is_file()
+    log = [json.loads(line)["iter"] for line in (tmp_path / "log.jsonl").read_text().splitlines()]
+    assert log == list(range(1, 9))
+
+
 # ------------------------------------------------------------------------------------------------ CLI
 runner = CliRunner()
 

@@ -98,6 +98,10 @@ class Schedule:
         """The 0-based coarse round of `iteration` (the repair stage counts as the last round)."""
         return min(iteration // self.round_length, self.rounds - 1)
 
+    def round_end(self, iteration: int) -> int:
+        """The first iteration after the coarse round of `iteration` (the last round may be shorter)."""
+        return min(iteration - self.round_iteration(iteration) + self.round_length, self.config.iters)
+
     def orbit_free(self, iteration: int) -> bool:
         return self.round_index(iteration) >= self.config.camera.orbit_from_round
 

@@ -313,15 +313,15 @@ class Trainer:
         back at the round's start)."""
         settings = self.config.camera
         camera = self._worst_fit_view()
-        round_index = self.iteration // self.round_length
-        length = min(self.round_length, self.config.iters - self.iteration)
+        round_start, round_end = self.iteration, self.schedule.round_end(self.iteration)
+        round_index, length = self.schedule.round_index(round_start), round_end - round_start
         scored = max(1, round(0.1 * length))
         # Each trial starts from the same state; copies, since Adam's state tensors are stepped in place.
         start_model, start_cameras = self.model, copy.deepcopy(self.cameras.state())
         start_generator = self.generator.get_state()
 
         def back_to_start() -> None:
-            self.model, self.iteration = start_model, round_index * self.round_length
+            self.model, self.iteration = start_model, round_start
             self.cameras.load_state(copy.deepcopy(start_cameras))
             self.generator.set_state(start_generator)
 
@@ -347,7 +347,7 @@ class Trainer:
             elif best is None or trial["score"] < best["score"]:
                 best = trial
         kept = best if best["score"] < (1 - settings.hypothesis_margin) * unturned["score"] else unturned
-        self.model, self.iteration = kept["model"], round_index * self.round_length + length
+        self.model, self.iteration = kept["model"], round_end
         self.cameras.load_state(kept["cameras"])
         self.generator.set_state(kept["generator"])
         # The decision goes into the round's first log record too (the report lists it).
@@ -363,7 +363,7 @@ class Trainer:
         """True at the start of the coarse round `camera.hypotheses_round` (> 0) when poses are optimized."""
         round_index = self.config.camera.hypotheses_round
         return (round_index > 0 and self.config.pose_opt and self.schedule.starts_round(self.iteration)
-                and self.iteration == round_index * self.round_length)
+                and self.schedule.round_index(self.iteration) == round_index)
 
     def _finish_iteration(self, record: dict, viewmats: torch.Tensor, write_log: Callable[[dict], None],
                           callback: Callable[[dict], None] | None, stop_at: int, can_checkpoint: bool = True) -> dict:
@@ -412,7 +412,7 @@ class Trainer:
             with threads, self.run_folder.log_writer() as write_log:
                 while self.iteration < stop_at:
                     if self._hypotheses_due():
-                        if self.iteration + self.round_length > stop_at:
+                        if self.schedule.round_end(self.iteration) > stop_at:
                             break  # the search trains its round as a whole
                         steps = self._search_view_hypotheses()
                         if steps is None:  # Ctrl-C during the search: back at the round's start
