@@ -68,7 +68,7 @@ def preconditioner(parameterization: str, viewmats: torch.Tensor, Ks: torch.Tens
     scale = float(max(width, height))
     columns = []
     for k in range(6):
-        offset = torch.zeros(cams, 6, dtype=torch.float64)
+        offset = torch.zeros(cams, 6, dtype=torch.float64, device=viewmats.device)
         offset[:, k] = step
         plus, _ = project_points(corrected_viewmats(parameterization, viewmats, offset, centers), Ks, points)
         minus, _ = project_points(corrected_viewmats(parameterization, viewmats, -offset, centers), Ks, points)

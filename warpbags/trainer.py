@@ -267,7 +267,7 @@ class Trainer:
         self.model.training_views = self._training_views()
         self.model.load_state_dict(state)
         self.cameras.load_state(state["cameras"])
-        self.generator.set_state(state["generator"])
+        self.generator.set_state(state["generator"].cpu())  # the checkpoint was loaded onto the training device
         self.viewmats_init = state["viewmats_init"].to(self.device)
         self.viewmats_start = state["viewmats_start"].to(self.device)
         self.repair_stage, self._repair_state = None, state.get("repair")
