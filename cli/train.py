@@ -11,9 +11,10 @@ from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
 from warpbags.cli.common import clean_errors
-from warpbags.cli.train_options import train_config, with_train_options
+from warpbags.cli.train_options import resumed_config, train_config, with_train_options
 from warpbags.errors import WarpbagsError
-from warpbags.trainer import default_run_dir, start_or_resume, training_scene
+from warpbags.run_folder import RunFolder
+from warpbags.trainer import default_run_dir, saved_run_config, start_or_resume, training_scene
 
 stdout = Console(highlight=False)
 
@@ -22,7 +23,8 @@ stdout = Console(highlight=False)
 def train(
     scene: str = typer.Argument(..., help="Preset name (kitchen, maryrose, synthetic) or a scene folder."),
     *,
-    preset: str = typer.Option("quick", "--preset", help="paper (the report's schedule) or quick (CPU-sized)."),
+    preset: Optional[str] = typer.Option(
+        None, "--preset", help="paper (the report's schedule) or quick (CPU-sized; the default)."),
     settings: Optional[list[str]] = typer.Option(
         None, "--set", help="Any TrainConfig field: name=value or group.name=value, JSON values (repeatable), e.g. "
         "--set repair.fit_steps=800 --set lr.pose=0.005. A field is given once: by its option or by --set."),
@@ -39,10 +41,14 @@ def train(
         raise WarpbagsError(f"--log-every must be >= 1, got {log_every}")
     if resume and out is None:
         raise WarpbagsError("--resume needs --out (the run folder to continue)")
-    config = train_config(preset, config_options, settings or [])
-    if config.views < 2:
-        raise WarpbagsError(f"--views must be >= 2, got {config.views}")
+    # A resumed run goes on with the config it was started with; options given again must agree with it.
+    config = (resumed_config(saved_run_config(out), preset, config_options, settings or []) if resume else
+              train_config(preset or "quick", config_options, settings or []))
     scene_data = training_scene(scene, config, data_root, log=stdout.print)
+    scene_root = str(Path(scene_data.root).resolve())
+    resumed_root = RunFolder(out).read_info().get("scene_root") if resume else scene_root
+    if resumed_root != scene_root:
+        raise WarpbagsError(f"--resume: {out} holds a run of the scene in {resumed_root}, not of {scene_root}")
     views = config.views
     out = out or default_run_dir(scene_data.name, views)
     trainer = start_or_resume(scene_data, config, out, device=device, resume=resume, log=stdout.print)

@@ -260,6 +260,26 @@ def _check_once(given: dict[str, tuple[str, Any]], path: str, source: str) -> No
             raise WarpbagsError(f"{other_source} and {source} both set {min(path, other, key=len)}; give one")
 
 
+def resumed_config(saved: TrainConfig, preset: str | None, given: dict[str, Any], settings: list[str]) -> TrainConfig:
+    """`saved`, the config of the run that `warpbags train --resume` continues, once the preset and the TRAIN_OPTIONS
+    and `--set` items given alongside agree with it: a run does not change its schedule half-way, and the same
+    command line that started it may be given again.
+
+    Raises:
+        WarpbagsError: a preset, option or `--set` value that differs from the run's.
+    """
+    if preset is not None and preset != saved.preset:
+        raise WarpbagsError(f"--resume: the run was trained with --preset {saved.preset}, not {preset}; drop --preset "
+                            "or start a new run")
+    overrides = config_overrides(given, settings)
+    asked = load_preset(saved.preset, **overrides)
+    for path, _ in _flattened(overrides):
+        if field_value(asked, path) != field_value(saved, path):
+            raise WarpbagsError(f"--resume: the run was trained with {path}={_text(field_value(saved, path))}, not "
+                                f"{_text(field_value(asked, path))}; drop that option or start a new run")
+    return saved
+
+
 def train_config(preset: str, given: dict[str, Any], settings: list[str]) -> TrainConfig:
     """The preset `preset` with the TRAIN_OPTIONS given and the `--set` items applied (`config_overrides`); a field
     with `follows` that neither gives takes the value of the field it follows.

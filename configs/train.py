@@ -23,15 +23,17 @@ class LearningRates:
     """Adam learning rates per parameter group (3DGS / GaussianObject defaults).
 
     Attributes:
-        means_init, means_final: position lr at the first and last iteration, times the scene extent,
-            exponential decay in between.
+        means_init, means_final: position lr at the first and last iteration of each coarse round (each round
+            starts fresh Gaussians), times the scene extent, exponential decay in between; the repair stage keeps
+            the final one.
         sh_dc, sh_rest: SH degree-0 and higher-degree coefficients.
         opacities: logit opacities.
         scales: log scales.
         quats: quaternions.
         adam_eps: Adam epsilon for the Gaussian groups.
         pose: pose-delta rotation lr when pose optimization starts.
-        pose_final: pose-delta rotation lr at the last iteration (exponential decay over the pose phase, as BARF).
+        pose_final: pose-delta rotation lr at the end of each round's pose window (exponential decay over the
+            window, as BARF, restarted every round); the repair stage keeps it.
         pose_translation_scale: translation lr = this x the rotation lr. Far from a small object a camera
             rotation and a sideways translation shift the image almost alike; a slower translation makes the
             optimizer explain shifts by rotation first (GaussianObject's COLMAP-free mode uses 1/3).
@@ -281,7 +283,8 @@ class TrainConfig:
             level (1 = every round at full resolution).
         views_per_step: views rendered per iteration (0 = all training views; 1 = one random view, as 3DGS).
         background: "white" or "black"; the ground truth is masked onto it.
-        sh_degree: final SH degree; one degree is added every `sh_degree_every` iterations.
+        sh_degree: final SH degree; one degree is added every `sh_degree_every` iterations of each coarse round
+            (each round's fresh Gaussians start at degree 0).
         init: "hull" (visual hull from masks and the current poses), "sfm" (the scene's SfM points, e.g. COLMAP's
             points3D) or "random" (uniform in the camera frusta's common bounds).
         init_points: number of initial Gaussians (hull voxels are subsampled / random points drawn to this).
@@ -367,7 +370,7 @@ class TrainConfig:
             WarpbagsError: the first out-of-range value, named as its CLI option.
         """
         checks = [
-            (self.views >= 1, f"--views must be >= 1, got {self.views}"),
+            (self.views >= 2, f"--views must be >= 2, got {self.views}"),  # a visual hull needs two
             (self.iters >= 1, f"--iters must be >= 1, got {self.iters}"),
             (1 <= self.rounds <= self.iters, f"--rounds must be in [1, iters], got {self.rounds}"),
             (self.camera.orbit_from_round >= 0,
@@ -415,6 +418,14 @@ class TrainConfig:
              f"camera.parameterization must be object or camera, got {self.camera.parameterization!r}"),
             (self.camera.precondition_reg > 0, f"camera.precondition_reg must be > 0, got {self.camera.precondition_reg}"),
             (self.lr.pose_warmup >= 0, f"lr.pose_warmup must be >= 0, got {self.lr.pose_warmup}"),
+            # the exponential schedules interpolate in log space: their ends must be positive
+            *((getattr(self.lr, name) > 0, f"lr.{name} must be > 0, got {getattr(self.lr, name)}")
+              for name in ("means_init", "means_final", "pose", "pose_final", "adam_eps")),
+            *((getattr(self.lr, name) >= 0, f"lr.{name} must be >= 0, got {getattr(self.lr, name)}")
+              for name in ("sh_dc", "sh_rest", "opacities", "scales", "quats", "pose_translation_scale")),
+            (self.densify.every >= 1, f"densify.every must be >= 1, got {self.densify.every}"),
+            (min(self.densify.floater_every, self.densify.opacity_reset_every) >= 0,
+             "densify.floater_every and densify.opacity_reset_every must be >= 0 (0: never)"),
             (min(self.lambda_mask_distance, self.lambda_chamfer) >= 0, "silhouette loss weights must be >= 0"),
             (self.silhouette_until >= 0, f"silhouette_until must be >= 0, got {self.silhouette_until}"),
             *self.repair.checks(),

@@ -88,3 +88,19 @@ def test_a_field_declared_of_any_length_takes_a_list_of_any_length():
         load_preset("quick", camera={"hypothesis_angles": []})
     with pytest.raises(WarpbagsError, match="pose_round_window must be like"):
         load_preset("quick", pose_round_window=[0.25])
+
+
+def test_values_that_would_break_training_later_are_refused_up_front():
+    """A learning-rate schedule interpolates in log space and densification divides by its period: such values fail
+    at load time with the field's name, not as a math error hundreds of iterations into a run."""
+    import pytest
+    from warpbags.configs.train import load_preset
+    from warpbags.errors import WarpbagsError
+
+    for overrides, message in [({"lr": {"pose_final": 0}}, "lr.pose_final must be > 0"),
+                               ({"lr": {"means_init": -1e-4}}, "lr.means_init must be > 0"),
+                               ({"lr": {"quats": -1}}, "lr.quats must be >= 0"),
+                               ({"densify": {"every": 0}}, "densify.every must be >= 1")]:
+        with pytest.raises(WarpbagsError, match=message):
+            load_preset("quick", **overrides)
+    assert load_preset("quick", lr={"sh_rest": 0}).lr.sh_rest == 0  # a group held still is allowed

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+import signal
 
 import numpy as np
 import pytest
@@ -224,6 +225,20 @@ def test_resume_equals_uninterrupted(scene_dir, tmp_path, rounds):
     np.testing.assert_allclose(resumed_history.viewmats[[0, 2]], full_history.viewmats, rtol=0, atol=1e-6)
 
 
+def test_a_checkpoint_at_a_rounds_start_resumes_at_the_last_rounds_resolution(scene_dir, tmp_path):
+    """With a pyramid over the rounds, the Gaussians saved at a round's start were trained at the round before's
+    level: a resumed trainer holds them with those training views until the next step starts the round (which is
+    what the search over turns renders them with), as the uninterrupted trainer does."""
+    overrides = dict(iters=8, rounds=2, pyramid_levels=2, checkpoint_every=100)
+    interrupted = make_trainer(scene_dir, tmp_path, **overrides)
+    interrupted.write_run_files()
+    interrupted.train(stop_at=4)
+    resumed = make_trainer(scene_dir, tmp_path, **overrides)
+    assert resumed.resume() and resumed.iteration == 4
+    width = interrupted.model.training_views.targets.shape[2]
+    assert resumed.model.training_views.targets.shape[2] == width == interrupted.full_scene.width // 2
+
+
 def test_nan_is_caught_and_last_checkpoint_kept(scene_dir, tmp_path):
     trainer = make_trainer(scene_dir, tmp_path, iters=30, checkpoint_every=5)
     trainer.train(stop_at=10)
@@ -234,6 +249,27 @@ def test_nan_is_caught_and_last_checkpoint_kept(scene_dir, tmp_path):
         trainer.train()
     assert trainer.latest_checkpoint() == good
     assert torch.load(good, weights_only=False)["iteration"] == 10
+
+
+def test_a_log_record_describes_the_step_it_logs(scene_dir, tmp_path):
+    """Record "iter" n is the n-th step (index n - 1): its pose flag and SH degree are that step's schedule's."""
+    trainer = make_trainer(scene_dir, tmp_path, iters=6, pose_opt_start=3, sh_degree=1, sh_degree_every=2)
+    records = [trainer.train_step() for _ in range(6)]
+    assert [record["iter"] for record in records] == [1, 2, 3, 4, 5, 6]
+    assert [record["pose_opt"] for record in records] == [False, False, False, True, True, True]
+    assert [record["sh_degree"] for record in records] == [0, 0, 1, 1, 1, 1]
+
+
+def test_ctrl_c_stops_one_call_of_train_not_the_next(scene_dir, tmp_path):
+    """Ctrl-C (SIGINT) finishes the iteration, checkpoints and raises; a later `train()` of the same trainer goes on
+    to the end instead of stopping again after one iteration."""
+    trainer = make_trainer(scene_dir, tmp_path, iters=6, checkpoint_every=100)
+    trainer.write_run_files()
+    with pytest.raises(KeyboardInterrupt):  # the signal handler's effect, as a Ctrl-C during iteration 1 has
+        trainer.train(callback=lambda record: trainer._request_stop(signal.SIGINT, None))
+    assert trainer.iteration == 1 and trainer.latest_checkpoint().name == "checkpoint_000001.pt"
+    trainer.train()
+    assert trainer.iteration == 6
 
 
 def test_resuming_a_finished_run_trains_nothing(scene_dir, tmp_path):
@@ -299,6 +335,18 @@ def test_fifteen_degree_noise_on_every_camera_is_cut_to_a_quarter(pose_run):
     assert after["trans_err"] <= 0.25 * before["trans_err"], (before, after)
 
 
+def test_the_search_never_turns_a_gauge_camera(scene_dir, tmp_path):
+    """With camera 0 held as the gauge (`camera.fix_first_camera`), the worst fit is chosen among the others, even
+    when camera 0 fits worst: a turn of the gauge camera could never be corrected."""
+    trainer = make_trainer(scene_dir, tmp_path, iters=4, camera={"fix_first_camera": True})
+    trainer.train()
+    fits = {0: 9.0, 1: 1.0, 2: 3.0, 3: 2.0}  # camera 0 fits worst, camera 2 next
+    trainer.model.loss = lambda views, viewmats, settings: (torch.tensor(fits[int(views[0])]), {}, {})
+    assert trainer._worst_fit_view() == 2
+    trainer.cameras.gauge[0] = 1.0  # a free gauge: every camera may be chosen
+    assert trainer._worst_fit_view() == 0
+
+
 # The quick preset as shipped (free gauge, 3 rounds of 200 iterations, its pose window), on both cores, but without
 # the search over turns of the worst-fit camera (`tiny_config`; its own test is below).
 POSE_TEST = dict(iters=600, rounds=3, rot_noise_deg=15.0, trans_noise=0.3, pose_opt_start=0,
@@ -315,7 +363,8 @@ def test_a_camera_left_rolled_off_is_turned_back_by_the_hypotheses(scene_dir, tm
     from warpbags.camera_optimizer import corrected_viewmats
 
     config = tiny_config(**{**POSE_TEST, "iters": 200, "rounds": 2, "depth_until": 50, "rot_noise_deg": 0.0,
-                            "trans_noise": 0.0, "camera": {"hypotheses_round": 1, "hypothesis_angles": (10.0, 20.0)}})
+                            "trans_noise": 0.0, "checkpoint_every": 1000,
+                            "camera": {"hypotheses_round": 1, "hypothesis_angles": (10.0, 20.0)}})
     scene = dataclasses.replace(training_scene(load_scene(scene_dir, name="tiny"), config), depths=None)
     viewmats = scene.viewmats.clone().float()
     roll = torch.tensor([[0.0, 0.0, math.radians(20.0), 0.0, 0.0, 0.0]])
@@ -323,7 +372,8 @@ def test_a_camera_left_rolled_off_is_turned_back_by_the_hypotheses(scene_dir, tm
     messages = []
     trainer = Trainer(scene, config, tmp_path, viewmats_init=viewmats, log=messages.append)
     trainer.train(stop_at=150)
-    assert trainer.iteration == 100  # the search trains its round as a whole: a stop inside it stops at its start
+    assert trainer.iteration == 100  # the search trains its round as a whole: a stop inside it stops at its start,
+    assert trainer.latest_checkpoint().name == "checkpoint_000100.pt"  # and checkpoints there
     trainer.train()
     assert trainer.iteration == 200
     search = [message for message in messages if "the worst fit" in message]
@@ -370,6 +420,25 @@ def test_cli_smoke_writes_run_files(scene_dir, tmp_path):
     # A fresh run into the same folder is refused (resuming one: test_resuming_a_finished_run_trains_nothing).
     again = runner.invoke(app, ["train", str(scene_dir), "--iters", "6", "--out", str(out)])
     assert again.exit_code == 2 and "--resume" in again.output
+
+
+def test_cli_resume_goes_on_with_the_runs_config(scene_dir, tmp_path):
+    out = tmp_path / "run"
+    command = ["train", str(scene_dir), "--iters", "4", "--max-image-size", "32", "--set", "init_points=300",
+               "--out", str(out)]
+    assert runner.invoke(app, command).exit_code == 0
+    # the command line that started the run, given again: accepted (the run is finished, nothing trains)
+    again = runner.invoke(app, [*command, "--resume"])
+    assert again.exit_code == 0, again.output
+    assert len((out / "log.jsonl").read_text().splitlines()) == 4
+    # anything that would change the run half-way is refused, before the scene is loaded at another size
+    for extra, message in [(["--views", "5"], "trained with views=4, not 5"),
+                           (["--preset", "paper"], "trained with --preset quick, not paper"),
+                           (["--max-image-size", "64"], "trained with max_image_size=32, not 64"),
+                           (["--set", "init_points=500"], "trained with init_points=300, not 500")]:
+        result = runner.invoke(app, [*command, "--resume", *extra])
+        lines = [line for line in result.output.splitlines() if line.strip()]
+        assert result.exit_code == 2 and len(lines) == 1 and message in lines[0], result.output
 
 
 @pytest.mark.parametrize(
@@ -434,6 +503,14 @@ def test_pyramid_levels_train_early_rounds_at_lower_resolution(scene_dir, tmp_pa
     assert trainer.render(torch.arange(2))[0].shape[1:3] == (full, full)
     trainer.write_run_files()
     assert np.load(tmp_path / "intrinsics.npy")[0, 0, 2] == pytest.approx(trainer.full_scene.Ks[0, 0, 2].item())
+
+
+def test_the_position_lr_ends_every_round_at_its_final_value():
+    """The Gaussians' position lr decays over each round's own length: a shorter last round (11 iterations in rounds
+    of 3, 3, 3, 2) still reaches the final value at its last iteration."""
+    schedule = Schedule(load_preset("quick", iters=11, rounds=4))
+    fractions = [schedule.at(i).gaussian_lr_fraction for i in range(11)]
+    assert fractions == [0.0, 0.5, 1.0, 0.0, 0.5, 1.0, 0.0, 0.5, 1.0, 0.0, 1.0]
 
 
 def test_rounds_take_their_own_pose_windows():

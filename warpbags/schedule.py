@@ -21,9 +21,7 @@ class StepSettings:
     """Everything one iteration needs from the schedule.
 
     Attributes:
-        iteration: iterations done before this one (0-based index of this one).
         round_iteration: iterations done in the current round (Gaussian schedules restart with each round).
-        in_repair: the coarse iterations are done and this is a repair-stage iteration.
         sh_degree: SH degree rendered.
         blur_sigma: coarse-to-fine blur of renders and targets, pixels (0 = none).
         silhouette: the mask-distance and chamfer terms are on.
@@ -39,9 +37,7 @@ class StepSettings:
             (`camera.round_anchor` from the second round on and in the repair stage, else 0).
     """
 
-    iteration: int
     round_iteration: int
-    in_repair: bool
     sh_degree: int
     blur_sigma: float
     silhouette: bool
@@ -76,8 +72,9 @@ class Schedule:
         return self.config.repair.iters > 0 and iteration >= self.config.iters
 
     def pyramid_level(self, iteration: int) -> int:
-        """The round's level: with L levels, round r of R trains at 1/2^(L-1-r) of the resolution (never finer than
-        full), so the last rounds are at full resolution; the repair stage is too."""
+        """The round's level (0: full resolution): with L levels the last round trains at full resolution, the one
+        before at half of it, and so on for L rounds; earlier rounds stay at the coarsest level, 1/2^(L-1). The
+        repair stage is at full resolution."""
         if self.in_repair(iteration):
             return 0
         return min(self.config.pyramid_levels - 1, self.rounds - 1 - self.round_index(iteration))
@@ -134,7 +131,9 @@ class Schedule:
         config, round_iteration, in_repair = self.config, self.round_iteration(iteration), self.in_repair(iteration)
         # GaussianObject's repair keeps the final position lr; the poses keep their final lr. The pose lr decays
         # within each round's pose window (a warm restart per round: each round is a fresh coarse-to-fine fit).
-        gaussian_fraction = 1.0 if in_repair else round_iteration / max(self.round_length - 1, 1)
+        # (over the round's own length: a shorter last round still ends at the final position lr)
+        round_length = self.round_end(iteration) - (iteration - round_iteration)
+        gaussian_fraction = 1.0 if in_repair else round_iteration / max(round_length - 1, 1)
         pose_start, pose_end = self.pose_window(iteration)
         pose_fraction = 1.0 if in_repair else (iteration - pose_start) / max(pose_end - pose_start - 1, 1)
         # a linear ramp over the first `lr.pose_warmup` steps of the window (none in the repair stage)
@@ -142,7 +141,7 @@ class Schedule:
         warmup = 1.0 if in_repair or warmup_steps <= 0 else min(1.0, max(iteration - pose_start + 1, 1) / warmup_steps)
         poses_move, solves = self.pose_active(iteration), self.solves_poses(iteration)
         return StepSettings(
-            iteration=iteration, round_iteration=round_iteration, in_repair=in_repair,
+            round_iteration=round_iteration,
             sh_degree=self.sh_degree(iteration), blur_sigma=self.blur_sigma(iteration),
             silhouette=(config.silhouette_until <= 0 or round_iteration < config.silhouette_until) and not in_repair,
             depth=not in_repair and round_iteration < config.depth_until and config.lambda_depth > 0,

@@ -238,10 +238,12 @@ class Trainer:
             raise WarpbagsError(f"training diverged at iteration {self.iteration}: {error}; {kept}") from None
 
     def _record(self, stage: str, loss: torch.Tensor, terms: dict, started: float) -> dict:
+        """The log record of the step just taken: "iter" counts the steps done, the schedule's entries are those of
+        the step itself (index iter - 1)."""
         schedule, iteration = self.schedule, self.iteration
         return {"iter": iteration, "stage": stage, "loss": loss.item(), **terms,
-                "num_gaussians": self.model.num_gaussians, "sh_degree": schedule.sh_degree(iteration),
-                "pose_opt": schedule.pose_active(iteration), **self.pose_error(),
+                "num_gaussians": self.model.num_gaussians, "sh_degree": schedule.sh_degree(iteration - 1),
+                "pose_opt": schedule.pose_active(iteration - 1), **self.pose_error(),
                 "seconds": time.perf_counter() - started}
 
     # ----------------------------------------------------------------------------------------------- files
@@ -264,7 +266,8 @@ class Trainer:
         """
         state = self.run_folder.load_checkpoint(path, self.device)
         self.iteration = state["iteration"]
-        self.model.training_views = self._training_views()
+        # the level the saved Gaussians were trained at (a checkpoint at a round's start holds the last round's)
+        self.model.training_views = self._training_views(self.schedule.pyramid_level(max(self.iteration - 1, 0)))
         self.model.load_state_dict(state)
         self.cameras.load_state(state["cameras"])
         self.generator.set_state(state["generator"].cpu())  # the checkpoint was loaded onto the training device
@@ -298,12 +301,14 @@ class Trainer:
         self._stop_requested = True
 
     def _worst_fit_view(self) -> int:
-        """The training view with the highest loss under the current Gaussians and poses (last iteration's terms)."""
+        """The training view with the highest loss under the current Gaussians and poses (last iteration's terms),
+        among the cameras that may move (not a gauge camera held at its given pose)."""
         settings = self.schedule.at(self.iteration - 1)
         viewmats = self.current_viewmats()
-        losses = [self.model.loss(views, viewmats[views], settings)[0].item()
-                  for views in torch.arange(self.num_cameras, device=self.device)[:, None]]
-        return max(range(self.num_cameras), key=losses.__getitem__)
+        movable = [camera for camera in range(self.num_cameras) if self.cameras.gauge[camera, 0] != 0]
+        losses = {camera: self.model.loss(torch.tensor([camera], device=self.device), viewmats[[camera]],
+                                          settings)[0].item() for camera in movable}
+        return max(movable, key=losses.__getitem__)
 
     def _search_view_hypotheses(self) -> list[tuple[dict, torch.Tensor]] | None:
         """`camera.hypotheses_round`: train the round that starts now once with the worst-fit camera as it is and
@@ -400,6 +405,7 @@ class Trainer:
         """
         total = self.config.total_iters
         stop_at = total if stop_at is None else min(stop_at, total)
+        self._stop_requested = False  # a Ctrl-C that stopped an earlier call is not this one's
         previous_handler = None
         try:
             previous_handler = signal.signal(signal.SIGINT, self._request_stop)
@@ -413,7 +419,8 @@ class Trainer:
                 while self.iteration < stop_at:
                     if self._hypotheses_due():
                         if self.schedule.round_end(self.iteration) > stop_at:
-                            break  # the search trains its round as a whole
+                            self.save_checkpoint()  # the search trains its round as a whole: stop at its start
+                            break
                         steps = self._search_view_hypotheses()
                         if steps is None:  # Ctrl-C during the search: back at the round's start
                             self.save_checkpoint()
@@ -458,6 +465,18 @@ def default_run_dir(scene_name: str, views: int, root: str | Path = "runs") -> P
     return Path(root) / f"{scene_name}-{views}v-{time.strftime('%Y%m%d-%H%M%S')}"
 
 
+def saved_run_config(out_dir: str | Path) -> TrainConfig:
+    """The config of the run in `out_dir`, which a resumed run continues with.
+
+    Raises:
+        WarpbagsError: no checkpoint in `out_dir`, or no readable config.json.
+    """
+    run_folder = RunFolder(out_dir)
+    if not run_folder.has_checkpoint():
+        raise WarpbagsError(f"--resume: no checkpoint in {run_folder.checkpoints}")
+    return run_folder.saved_config()
+
+
 def start_or_resume(scene: Scene, config: TrainConfig, out_dir: str | Path, device: str = "cpu", resume: bool = False,
                     log: Callable[[str], None] = print) -> Trainer:
     """A Trainer for `out_dir`: fresh (run files written) or, with `resume`, continued from its last checkpoint
@@ -468,9 +487,7 @@ def start_or_resume(scene: Scene, config: TrainConfig, out_dir: str | Path, devi
     """
     run_folder = RunFolder(out_dir)
     if resume:
-        if not run_folder.has_checkpoint():
-            raise WarpbagsError(f"--resume: no checkpoint in {run_folder.checkpoints}")
-        config = run_folder.saved_config()
+        config = saved_run_config(out_dir)
     elif run_folder.has_checkpoint():
         raise WarpbagsError(f"{out_dir} already holds a run; pass --resume to continue it or choose another --out")
     trainer = Trainer(scene, config, out_dir, device=device, log=log)
