@@ -290,6 +290,40 @@ def test_transforms_json_matches_exact_poses(synthetic_dir, tmp_path):
     assert scene.masks is not None
 
 
+def test_blender_test_views_are_never_chosen_for_training(synthetic_dir, tmp_path):
+    """With transforms_train.json / transforms_test.json, the 4/6/9-view splits and any other view count are chosen
+    among the train views: the test views (here the first six names, where farthest-point sampling starts) stay
+    held out."""
+    folder = _strip_to_images(synthetic_dir, tmp_path / "blender")
+    opengl = np.linalg.inv(dome_viewmats(SYNTHETIC)) @ np.diag([1.0, -1.0, -1.0, 1.0])
+    fov = math.radians(SYNTHETIC.fov_deg)
+    for name, indices in (("train", range(6, 12)), ("test", range(6))):
+        frames = [{"file_path": f"./images/view_{i:03d}", "transform_matrix": opengl[i].tolist()} for i in indices]
+        (folder / f"transforms_{name}.json").write_text(json.dumps({"camera_angle_x": fov, "frames": frames}))
+    scene = load_scene(folder, normalize=False)
+    assert scene.splits["test"] == [0, 1, 2, 3, 4, 5]
+    for views in (4, 5, 6):
+        assert set(scene.train_views(views)) <= set(range(6, 12)), views
+    (folder / "sparse_4.txt").write_text("0\n6\n7\n8\n")
+    _expect_error(folder, r"split 4 of scene .* \(sparse_4.txt\) uses test views \[0\]", normalize=False)
+
+
+def test_frame_paths_outside_the_scene_folder_are_one_line(synthetic_dir, tmp_path):
+    folder = _strip_to_images(synthetic_dir, tmp_path / "outside")
+    frames = [{"file_path": "/elsewhere/view_000.png", "transform_matrix": np.eye(4).tolist()}]
+    (folder / "transforms.json").write_text(json.dumps({"camera_angle_x": 0.5, "frames": frames}))
+    _expect_error(folder, r"transforms.json: frame file_path '/elsewhere/view_000.png' is outside the scene folder")
+
+
+def test_a_text_colmap_model_directly_in_sparse_is_read(scene_copy, synthetic):
+    model = scene_copy / "sparse" / "0"
+    write_model(scene_copy / "sparse", synthetic.image_names, synthetic.viewmats.double().numpy(),
+                synthetic.Ks.double().numpy(), synthetic.width, synthetic.height, binary=False)
+    shutil.rmtree(model)
+    scene = load_scene(scene_copy)
+    assert scene.num_views == synthetic.num_views and scene.layout == synthetic.layout
+
+
 # ---------------------------------------------------------------------------------------------------------------
 # Resolutions, distortion, depth formats, splits
 
@@ -467,6 +501,12 @@ def test_mask_missing(scene_copy):
 def test_mask_wrong_size(scene_copy):
     cv2.imwrite(str(scene_copy / "masks" / "view_002.png"), np.zeros((50, 70), np.uint8))
     _expect_error(scene_copy, r"mask .*view_002.png is 70x50, its image is 64x64")
+
+
+@pytest.mark.parametrize("lines", ["0\n3\n7\n", "0\n3\n3\n7\n", ""])
+def test_split_of_the_wrong_size_or_with_repeats(scene_copy, lines):
+    (scene_copy / "sparse_4.txt").write_text(lines)
+    _expect_error(scene_copy, r"sparse_4.txt: a split of 4 views needs 4 different view indices")
 
 
 def test_split_index_out_of_range(scene_copy):

@@ -28,7 +28,7 @@ import numpy as np
 import torch
 from skimage.metrics import peak_signal_noise_ratio, structural_similarity
 
-from warpbags.alignment import align_viewmats, centre_floor_errors, pose_errors
+from warpbags.alignment import align_viewmats, alignment_for, centre_floor_errors, pose_errors
 from warpbags.camera_optimizer import CameraOptimizer, CameraOptimizerSettings
 from warpbags.configs.train import TrainConfig
 from warpbags.data import ORBIT_RADIUS, Scene, SceneNormalization, load_scene
@@ -250,6 +250,9 @@ def evaluate_run(path: str | Path, *, alignment: str = "procrustes", refine_iter
         raise WarpbagsError(f"--refine-iters must be >= 0, got {refine_iters}")
     run = load_run(path)
     test = held_out_views(run)
+    if alignment_for(len(run.poses_final), alignment) != alignment:  # as the trainer's pose errors do
+        log(f"{len(run.poses_final)} training cameras: pairwise alignment (Procrustes needs at least 3)")
+        alignment = "pairwise"
     try:
         sim3 = pose_errors(run.poses_final, run.poses_true, alignment=alignment)["sim3"]
     except ValueError as error:
@@ -297,6 +300,8 @@ def evaluate_run(path: str | Path, *, alignment: str = "procrustes", refine_iter
                                                         **image_metrics(images, targets, lpips_metric, flip_metric)}
     out = run.path / "eval"
     out.mkdir(exist_ok=True)
+    for stale in out.glob("*.png"):  # comparisons of an earlier evaluation (another split) must not stay
+        stale.unlink()
     for name, target, image in zip(test.image_names, targets, images):
         _save_comparison(out / f"{Path(name).stem}.png", target, image)
     with atomic_output(run.path / "eval.json") as temporary:

@@ -56,12 +56,16 @@ def render_turntable(path: str | Path, frames: int = 36, video: bool = True) -> 
     Ks = camera_0.expand(frames, 3, 3).contiguous()
     out = run.path / "turntable"
     out.mkdir(exist_ok=True)
+    for stale in out.glob("frame_*.png"):  # an earlier render of more frames must not leave its tail behind
+        stale.unlink()
     with torch.no_grad():
         images, _, _ = render_gaussians(run.params, viewmats, Ks, width, height, sh_degree=sh_degree_of(run.params),
                                         backgrounds=torch.ones(frames, 3))
     pixels = (images.clamp(0, 1).numpy() * 255 + 0.5).astype(np.uint8)
     for index, image in enumerate(pixels):
-        cv2.imwrite(str(out / f"frame_{index:03d}.png"), cv2.cvtColor(image, cv2.COLOR_RGB2BGR))
+        frame = out / f"frame_{index:03d}.png"
+        if not cv2.imwrite(str(frame), cv2.cvtColor(image, cv2.COLOR_RGB2BGR)):
+            raise WarpbagsError(f"could not write {frame}")
     if video:
         with atomic_output(run.path / "turntable.mp4") as temporary:
             writer = cv2.VideoWriter(str(temporary), cv2.VideoWriter_fourcc(*"mp4v"), 12, (width, height))

@@ -160,4 +160,8 @@ def _frame_name(root: Path, frame: dict, source: Path) -> str:
     relative = Path(str(frame["file_path"]))
     if not relative.suffix:  # Blender writes "./train/r_0" for "./train/r_0.png"
         relative = relative.with_suffix(".png")
-    return (root / relative).resolve().relative_to(root.resolve()).as_posix()
+    try:
+        return (root / relative).resolve().relative_to(root.resolve()).as_posix()
+    except ValueError:  # an absolute path or one that climbs out of the scene folder
+        raise WarpbagsError(f"{source}: frame file_path {frame['file_path']!r} is outside the scene folder {root}; "
+                            "file paths are relative to it") from None

@@ -61,7 +61,8 @@ def load_scene(
     root = Path(root)
     if not root.is_dir():
         raise WarpbagsError(f"scene folder {root} does not exist")
-    if (root / "sparse" / "0").is_dir() or (root / "sparse" / "cameras.bin").is_file():
+    if (root / "sparse" / "0").is_dir() or any((root / "sparse" / name).is_file() for name in ("cameras.bin",
+                                                                                             "cameras.txt")):
         cameras = colmap_cameras(root)
     elif (root / "poses_bounds.npy").is_file():
         cameras = llff_cameras(root)

@@ -149,7 +149,14 @@ class Scene:
             raise WarpbagsError(f"scene {self.name} has {self.num_views} images, fewer than --views {views}")
         if str(views) in self.splits:
             return list(self.splits[str(views)])
-        return farthest_views(self.camera_centers().double().numpy(), views)
+        # a view count without a split: farthest-point views among those not held out for testing
+        test = set(self.splits.get("test", []))
+        candidates = [index for index in range(self.num_views) if index not in test]
+        if views > len(candidates):
+            raise WarpbagsError(f"scene {self.name} has {len(candidates)} images besides its {len(test)} test views, "
+                                f"fewer than --views {views}")
+        centers = self.camera_centers().double().numpy()[candidates]
+        return [candidates[pick] for pick in farthest_views(centers, views)]
 
     def subset(self, indices: list[int]) -> Scene:
         """A scene with only the given views (splits dropped, since their indices would no longer hold)."""
@@ -191,21 +198,18 @@ class Scene:
                        Ks=Ks, width=width, height=height)
 
 
-def farthest_views(camera_centers: np.ndarray, count: int, center: np.ndarray | None = None) -> list[int]:
-    """Deterministic farthest-point sampling of viewing directions, starting from view 0.
-
-    With the default centre this reproduces the split files shipped with maryrose.
+def farthest_views(camera_centers: np.ndarray, count: int) -> list[int]:
+    """Deterministic farthest-point sampling of viewing directions (from the mean camera centre), starting from
+    view 0. It reproduces the split files shipped with maryrose.
 
     Args:
         camera_centers: [C,3] camera centres.
         count: how many views to choose (<= C).
-        center: [3] point the directions are taken from (default: the mean camera centre).
 
     Returns:
         `count` view indices in the order chosen (each set is a prefix of the next larger one).
     """
-    center = camera_centers.mean(0) if center is None else np.asarray(center, dtype=np.float64)
-    directions = camera_centers - center
+    directions = camera_centers - camera_centers.mean(0)
     directions = directions / np.maximum(np.linalg.norm(directions, axis=1, keepdims=True), 1e-12)
     chosen = [0]
     angle_to_chosen = np.arccos(np.clip(directions @ directions[0], -1.0, 1.0))

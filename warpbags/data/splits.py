@@ -38,6 +38,18 @@ def read_splits(
     for path in sorted(root.glob("sparse_*.txt")):
         key = path.stem.removeprefix("sparse_")
         splits[key], sources[key] = read_split_file(path, scene.num_views), path.name
+        if key.isdigit() and not len(set(splits[key])) == len(splits[key]) == int(key):
+            raise WarpbagsError(f"{path}: a split of {key} views needs {key} different view indices, got "
+                                f"{splits[key]}")
+    if "test" not in splits and test_names:
+        splits["test"] = [i for i, name in enumerate(scene.image_names) if name in test_names]
+        sources["test"] = "transforms_test.json"
+    # training views are chosen among the views that are not held out for testing
+    test = set(splits.get("test", []))
+    for key, indices in splits.items():
+        if key != "test" and test & set(indices):
+            raise WarpbagsError(f"split {key} of scene {scene.name} ({sources[key]}) uses test views "
+                                f"{sorted(test & set(indices))}")
     for key, indices in (default_splits or {}).items():
         if key in splits:
             continue
@@ -48,20 +60,17 @@ def read_splits(
             )
         splits[key], sources[key] = list(indices), "preset"
         logger.warning("%s: sparse_%s.txt missing, using the published split %s", scene.name, key, indices)
-    centers = scene.camera_centers().double().numpy()
+    candidates = [index for index in range(scene.num_views) if index not in test]
+    centers = scene.camera_centers().double().numpy()[candidates]
     for size in DEFAULT_SPLIT_SIZES:
-        if str(size) in splits or size > scene.num_views:
+        if str(size) in splits or size > len(candidates):
             continue
-        splits[str(size)] = sorted(farthest_views(centers, size))
+        splits[str(size)] = sorted(candidates[pick] for pick in farthest_views(centers, size))
         sources[str(size)] = "farthest-point"
         logger.warning("%s: sparse_%d.txt missing, farthest-point views %s", scene.name, size, splits[str(size)])
     if "test" not in splits:
-        if test_names:
-            splits["test"] = [i for i, name in enumerate(scene.image_names) if name in test_names]
-            sources["test"] = "transforms_test.json"
-        else:
-            train = {index for key, indices in splits.items() for index in indices}
-            splits["test"] = [i for i in range(0, scene.num_views, TEST_EVERY) if i not in train]
-            sources["test"] = f"every {TEST_EVERY}th"
-            logger.warning("%s: sparse_test.txt missing, test views %s", scene.name, splits["test"])
+        train = {index for key, indices in splits.items() for index in indices}
+        splits["test"] = [i for i in range(0, scene.num_views, TEST_EVERY) if i not in train]
+        sources["test"] = f"every {TEST_EVERY}th"
+        logger.warning("%s: sparse_test.txt missing, test views %s", scene.name, splits["test"])
     return splits, sources
