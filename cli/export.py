@@ -19,7 +19,8 @@ def export(
     run_dir: Optional[Path] = typer.Argument(None, help="Run folder (default: the newest under runs/)."),
     out: Optional[Path] = typer.Option(None, "--out", help="Output folder (default: RUN_DIR/export)."),
 ) -> None:
-    """Write the Gaussians (standard 3DGS PLY) and final poses in the input scene's frame."""
+    """Write the Gaussians (standard 3DGS PLY) and final poses in the input scene's frame: poses_final.npy holds
+    [C,4,4] world-to-camera matrices with OpenCV axes, whatever the input layout."""
     folder = export_run(run_dir or latest_run(), out)
     stdout.print(f"wrote {folder / 'gaussians.ply'} and {folder / 'poses_final.npy'} (input scene frame)")
 
