@@ -9,6 +9,7 @@ Conventions (the renderer relies on them):
 
 from __future__ import annotations
 
+from collections.abc import Container
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
@@ -151,12 +152,10 @@ class Scene:
             return list(self.splits[str(views)])
         # a view count without a split: farthest-point views among those not held out for testing
         test = set(self.splits.get("test", []))
-        candidates = [index for index in range(self.num_views) if index not in test]
-        if views > len(candidates):
-            raise WarpbagsError(f"scene {self.name} has {len(candidates)} images besides its {len(test)} test views, "
-                                f"fewer than --views {views}")
-        centers = self.camera_centers().double().numpy()[candidates]
-        return [candidates[pick] for pick in farthest_views(centers, views)]
+        if views > self.num_views - len(test):
+            raise WarpbagsError(f"scene {self.name} has {self.num_views - len(test)} images besides its {len(test)} "
+                                f"test views, fewer than --views {views}")
+        return farthest_views(self.camera_centers().double().numpy(), views, excluded=test)
 
     def subset(self, indices: list[int]) -> Scene:
         """A scene with only the given views (splits dropped, since their indices would no longer hold)."""
@@ -198,17 +197,21 @@ class Scene:
                        Ks=Ks, width=width, height=height)
 
 
-def farthest_views(camera_centers: np.ndarray, count: int) -> list[int]:
-    """Deterministic farthest-point sampling of viewing directions (from the mean camera centre), starting from
-    view 0. It reproduces the split files shipped with maryrose.
+def farthest_views(camera_centers: np.ndarray, count: int, excluded: Container[int] = ()) -> list[int]:
+    """Deterministic farthest-point sampling of viewing directions (from the mean camera centre of the views it
+    chooses from), starting from the first of them. It reproduces the split files shipped with maryrose.
 
     Args:
         camera_centers: [C,3] camera centres.
-        count: how many views to choose (<= C).
+        count: how many views to choose (<= C - len(excluded)).
+        excluded: views never chosen (e.g. the test views); the others are chosen from as if they were all.
 
     Returns:
-        `count` view indices in the order chosen (each set is a prefix of the next larger one).
+        `count` view indices (of all C views) in the order chosen (each set is a prefix of the next larger one).
     """
+    candidates = [index for index in range(len(camera_centers)) if index not in excluded]
+    if len(candidates) < len(camera_centers):
+        return [candidates[pick] for pick in farthest_views(camera_centers[candidates], count)]
     directions = camera_centers - camera_centers.mean(0)
     directions = directions / np.maximum(np.linalg.norm(directions, axis=1, keepdims=True), 1e-12)
     chosen = [0]

@@ -60,12 +60,11 @@ def read_splits(
             )
         splits[key], sources[key] = list(indices), "preset"
         logger.warning("%s: sparse_%s.txt missing, using the published split %s", scene.name, key, indices)
-    candidates = [index for index in range(scene.num_views) if index not in test]
-    centers = scene.camera_centers().double().numpy()[candidates]
+    centers = scene.camera_centers().double().numpy()
     for size in DEFAULT_SPLIT_SIZES:
-        if str(size) in splits or size > len(candidates):
+        if str(size) in splits or size > scene.num_views - len(test):
             continue
-        splits[str(size)] = sorted(candidates[pick] for pick in farthest_views(centers, size))
+        splits[str(size)] = sorted(farthest_views(centers, size, excluded=test))
         sources[str(size)] = "farthest-point"
         logger.warning("%s: sparse_%d.txt missing, farthest-point views %s", scene.name, size, splits[str(size)])
     if "test" not in splits:
