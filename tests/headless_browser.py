@@ -13,7 +13,9 @@ from __future__ import annotations
 import base64
 import itertools
 import json
+import os
 import shutil
+import signal
 import subprocess
 import sys
 import tempfile
@@ -84,6 +86,23 @@ def _devtools_port(profile: Path, process: subprocess.Popen, timeout: float) -> 
     return int(port_file.read_text().split()[0])
 
 
+def _stop_process_group(process: subprocess.Popen, timeout: float = 10.0) -> None:
+    """Terminate the process group `process` leads and wait until none of its processes is left."""
+    os.killpg(process.pid, signal.SIGTERM)
+    try:
+        process.wait(timeout=timeout)
+    except subprocess.TimeoutExpired:
+        os.killpg(process.pid, signal.SIGKILL)
+        process.wait()
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        try:
+            os.killpg(process.pid, signal.SIGKILL)  # helpers that ignored SIGTERM
+        except ProcessLookupError:
+            return
+        time.sleep(0.05)
+
+
 def screenshot(url: str, out: Path, ready: Callable[[], bool], shown: str, size: tuple[int, int] = (800, 600),
                timeout: float = 60.0, script: str | None = None) -> Path:
     """Open `url` at `size`, wait until both `ready()` (the server's side) and the JavaScript expression `shown`
@@ -96,9 +115,11 @@ def screenshot(url: str, out: Path, ready: Callable[[], bool], shown: str, size:
     chromium = find_chromium()
     if chromium is None:
         raise RuntimeError("chromium is not installed (apt-get install chromium)")
+    # Chromium's helper processes (renderer, GPU, crash handler) outlive the browser process by a moment and keep
+    # writing to the profile: the whole process group is stopped before the profile is removed.
     with tempfile.TemporaryDirectory(prefix="chromium-") as profile:
         process = subprocess.Popen([chromium, *CHROMIUM_FLAGS, f"--user-data-dir={profile}", "about:blank"],
-                                   stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+                                   stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
         try:
             port = _devtools_port(Path(profile), process, timeout)
             pages = json.load(urllib.request.urlopen(f"http://127.0.0.1:{port}/json/list", timeout=10))
@@ -119,8 +140,7 @@ def screenshot(url: str, out: Path, ready: Callable[[], bool], shown: str, size:
             finally:
                 page.close()
         finally:
-            process.terminate()
-            process.wait(timeout=10)
+            _stop_process_group(process)
     out.write_bytes(base64.b64decode(data))
     return out
 
