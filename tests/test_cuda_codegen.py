@@ -1,7 +1,7 @@
 """Every Warp kernel module builds for a CUDA architecture through NVRTC, with no GPU present.
 
 The kernels are generic over float32/float64; their overloads are instantiated by rendering once on the CPU in
-both precisions (with SH and pose deltas, and the photometric loss on the render, so every kernel runs), then each module is compiled ahead of time for
+both precisions (with SH and pose deltas, the photometric loss on the render and a nearest-point search, so every kernel runs), then each module is compiled ahead of time for
 sm_80. Same source as the CPU path: what passes here is what a CUDA machine runs.
 """
 
@@ -17,8 +17,9 @@ from conftest import random_scene
 
 import warpbags
 from warpbags.losses import photometric_loss
+from warpbags.wrapper import nearest_points
 
-KERNEL_MODULES = ["pose", "project", "sh", "bin", "rasterize", "loss"]
+KERNEL_MODULES = ["pose", "project", "sh", "bin", "rasterize", "loss", "nearest"]
 # Kernels checked by name to be in their module's CUDA code in both precisions: the render instantiates them (a
 # kernel it does not launch is not compiled here).
 NAMED_KERNELS = {"project": ("project_gaussians_kernel", "project_gaussians_backward_kernel"),
@@ -34,6 +35,7 @@ def test_kernel_module_compiles_for_sm80(module_name, tmp_path):
         loss, _ = photometric_loss(out, torch.rand_like(out))
         loss.backward()
         assert means.grad is not None
+        nearest_points(torch.rand(5, 2, dtype=dtype), torch.rand(9, 2, dtype=dtype))  # the silhouette chamfer's
 
     module = importlib.import_module(f"warpbags.kernels.{module_name}")
     try:

@@ -16,6 +16,7 @@ from warpbags.data import SyntheticOptions, ensure_synthetic_scene, load_scene
 from warpbags.lie import so3_exp
 from warpbags.losses import mask_loss
 from warpbags.silhouette import SilhouetteTargets, centroid_start, nearest_distances, rays_meeting_point
+from warpbags.wrapper import nearest_points
 
 
 @pytest.fixture(scope="module")
@@ -148,3 +149,27 @@ def test_nearest_distances_are_the_brute_force_minimum_with_its_gradient():
     expected = torch.autograd.grad((brute * weights).sum(), (queries, points))
     for got, want in zip(gradients, expected):
         torch.testing.assert_close(got, want, rtol=0, atol=1e-12)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_nearest_points_are_exact_with_ties_to_the_lowest_index(dtype):
+    generator = torch.Generator().manual_seed(1)
+    # integer coordinates: many points at equal distances from a query, and duplicates (a clone and its original)
+    points = torch.randint(0, 30, (3000, 2), generator=generator).to(dtype)
+    queries = torch.randint(-5, 35, (500, 2), generator=generator).to(dtype) + 0.5 * (torch.arange(500) % 2)[:, None]
+    # a few projections far outside the queries' box land in the grid's border cells
+    points[:20] = points[:20] * 1e4 - 5e4
+    found = nearest_points(queries, points)
+    distances = torch.cdist(queries.double(), points.double(), compute_mode="donot_use_mm_for_euclid_dist")
+    nearest = distances.min(dim=1, keepdim=True).values
+    lowest_tied = torch.where(distances == nearest, torch.arange(len(points)), len(points)).min(dim=1).values
+    assert torch.equal(found, lowest_tied)
+    assert (distances == nearest).sum() > len(queries)  # the case has ties
+
+
+def test_nearest_points_with_every_point_far_outside_or_none():
+    queries = torch.tensor([[0.0, 0.0], [10.0, 5.0], [3.0, 3.0]])
+    points = torch.tensor([[1e6, 1e6], [-2e5, 40.0], [5e3, -7e3]])
+    distances = torch.cdist(queries.double(), points.double())
+    assert torch.equal(nearest_points(queries, points), distances.argmin(dim=1))
+    assert torch.equal(nearest_points(queries, points[:0]), torch.full((3,), -1))

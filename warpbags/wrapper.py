@@ -37,6 +37,7 @@ from warpbags.kernels.bin import (
     tile_rows_kernel,
     tile_spans_kernel,
 )
+from warpbags.kernels.nearest import PointGrid, count_cells_kernel, fill_cells_kernel, nearest_in_grid_kernel
 from warpbags.kernels.pose import apply_object_deltas_kernel, apply_pose_deltas_kernel
 from warpbags.kernels.project import project_gaussians_backward_kernel, project_gaussians_kernel
 from warpbags.kernels.rasterize import BACKWARD_KERNELS, FORWARD_KERNELS, TileGeometry
@@ -670,6 +671,50 @@ def _depth_chunks(visible: list[int], per_camera: int) -> list[tuple[int, int, i
     for cam, count in enumerate(visible):
         chunks += [(cam, a, b) for a, b in _first_alone_then_equal(count, per_camera)] or [(cam, 0, 0)]
     return chunks
+
+
+# Points per grid cell the nearest-point search aims at: fewer cells cost the rings more points, more cells more
+# empty cells to step over.
+POINTS_PER_CELL = 4
+MAX_GRID_CELLS_PER_AXIS = 1024
+
+
+@torch.no_grad()
+def nearest_points(queries: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
+    """[Q] int64: the index of the nearest of [P, 2] `points` to each of [Q, 2] `queries` (kernels/nearest.py).
+
+    Exact, ties to the lowest index; -1 for every query when there are no points. The grid spans the queries'
+    bounding box, in square cells of about `POINTS_PER_CELL` points each were the points spread over it.
+    """
+    device = points.device
+    if len(queries) == 0 or len(points) == 0:
+        return torch.full((len(queries),), -1, dtype=torch.int64, device=device)
+    queries, points = queries.detach().contiguous(), points.detach().to(queries.dtype).contiguous()
+    low, high = queries.min(dim=0).values.double().cpu(), queries.max(dim=0).values.double().cpu()
+    size = (high - low).clamp_min(1e-9)
+    cell = max(math.sqrt(float(size[0] * size[1]) * POINTS_PER_CELL / len(points)),
+               float(size.max()) / MAX_GRID_CELLS_PER_AXIS, 1e-9)
+    grid = PointGrid()
+    grid.origin = wp.vec2d(float(low[0]), float(low[1]))
+    grid.cell = wp.float64(cell)
+    grid.cells_x, grid.cells_y = (max(1, math.ceil(float(extent) / cell)) for extent in size)
+    launcher = _launcher(device)
+    query_array, point_array = _to_warp(queries, "vec2"), _to_warp(points, "vec2")
+    point_cells = torch.empty(len(points), dtype=torch.int32, device=device)
+    cell_counts = torch.zeros(grid.cells_x * grid.cells_y, dtype=torch.int32, device=device)
+    launcher.launch(count_cells_kernel, len(points), points=point_array, grid=grid,
+                    point_cells=_to_warp(point_cells, "int32"), cell_counts=_to_warp(cell_counts, "int32"))
+    cell_offsets = torch.zeros(len(cell_counts) + 1, dtype=torch.int32, device=device)
+    torch.cumsum(cell_counts, 0, dtype=torch.int32, out=cell_offsets[1:])
+    cell_points = torch.empty(len(points), dtype=torch.int32, device=device)
+    launcher.launch(fill_cells_kernel, len(points), point_cells=_to_warp(point_cells, "int32"),
+                    cell_cursors=_to_warp(cell_offsets[:-1].clone(), "int32"),
+                    cell_points=_to_warp(cell_points, "int32"))
+    nearest = torch.empty(len(queries), dtype=torch.int32, device=device)
+    launcher.launch(nearest_in_grid_kernel, len(queries), queries=query_array, points=point_array, grid=grid,
+                    cell_offsets=_to_warp(cell_offsets, "int32"), cell_points=_to_warp(cell_points, "int32"),
+                    nearest=_to_warp(nearest, "int32"))
+    return nearest.long()
 
 
 def _default_cpu_threads() -> int:
