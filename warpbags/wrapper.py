@@ -925,9 +925,11 @@ class _RasterizeToPixels(torch.autograd.Function):
             v_out_depths=_to_warp(cotangent(v_out_depths, pixels), "scalar"),
             v_out_alphas=_to_warp(cotangent(v_out_alphas, pixels), "scalar"),
         )
-        # One range per worker, balanced by the forward's exact visits (a buffer set per range costs a zero fill and
-        # a sum of every splat gradient, so not more ranges than workers).
-        ranges = _raster_ranges(tile_offsets.numel() - 1, ctx.blocks_per_tile, workers, 1,
+        # Two ranges per worker, balanced by the forward's exact visits. Each range costs a buffer set (a zero fill
+        # and a sum of every splat gradient, ~1 ms at 100k Gaussians), but one range per worker left a thread idle
+        # for a tenth of the backward (79.5 against 91.4 ms at 100k): a paper-preset step at 100k Gaussians took
+        # 194 / 188 ms with two per worker, 200 / 197 with one, 197 with three (`bench/run_steps.py`, alternating).
+        ranges = _raster_ranges(tile_offsets.numel() - 1, ctx.blocks_per_tile, workers, 2,
                                 lambda: _visits_per_tile(tile_offsets, isect_end, ctx.geometry["tiles"]))
         # One private set of gradient buffers per range (CPU atomics are plain adds), summed in range order: the
         # gradients do not depend on which thread ran which range. The first range, which runs alone before the
