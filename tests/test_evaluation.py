@@ -15,7 +15,7 @@ from typer.testing import CliRunner
 
 from warpbags.cli.main import app
 from warpbags.data import SyntheticOptions, ensure_synthetic_scene
-from warpbags.evaluation import FlipMetric, LpipsMetric, image_metrics, load_run, pose_accuracy
+from warpbags.evaluation import FlipMetric, LpipsMetric, comparison_file_names, image_metrics, load_run, pose_accuracy
 from warpbags.gaussians import read_ply, write_ply
 from warpbags.losses import load_lpips
 
@@ -345,3 +345,9 @@ def test_atomic_output_replaces_only_on_success(tmp_path):
         assert temporary.suffix == ".json"
         temporary.write_text("new")
     assert target.read_text() == "new" and sorted(p.name for p in tmp_path.iterdir()) == ["table.json"]
+
+
+def test_comparison_file_names_never_collide():
+    assert comparison_file_names(["images/r_0.png", "images/r_10.png"]) == ["r_0.png", "r_10.png"]
+    assert comparison_file_names(["a/x.png", "b/x.png", "y.jpg"]) == ["000_x.png", "001_x.png", "002_y.png"]
+    assert comparison_file_names(["x.jpg", "x.png"]) == ["000_x.png", "001_x.png"]

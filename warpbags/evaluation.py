@@ -226,6 +226,15 @@ def image_metrics(images: torch.Tensor, targets: torch.Tensor, lpips_metric: Lpi
     return {"mean": mean, "per_view": per_view}
 
 
+def comparison_file_names(image_names: list[str]) -> list[str]:
+    """One PNG name per test image: its stem, or, where two images share a stem (a/x.png and b/x.png, x.jpg and
+    x.png), its position and stem for all of them, so that no comparison overwrites another."""
+    stems = [Path(name).stem for name in image_names]
+    if len(set(stems)) == len(stems):
+        return [f"{stem}.png" for stem in stems]
+    return [f"{index:03d}_{stem}.png" for index, stem in enumerate(stems)]
+
+
 def _save_comparison(path: Path, target: torch.Tensor, image: torch.Tensor) -> None:
     """truth | render | 4x absolute error, side by side, as PNG."""
     write_image_grid(path, [[target, image, (image - target).abs() * 4]])
@@ -302,8 +311,8 @@ def evaluate_run(path: str | Path, *, alignment: str = "procrustes", refine_iter
     out.mkdir(exist_ok=True)
     for stale in out.glob("*.png"):  # comparisons of an earlier evaluation (another split) must not stay
         stale.unlink()
-    for name, target, image in zip(test.image_names, targets, images):
-        _save_comparison(out / f"{Path(name).stem}.png", target, image)
+    for file_name, target, image in zip(comparison_file_names(test.image_names), targets, images):
+        _save_comparison(out / file_name, target, image)
     with atomic_output(run.path / "eval.json") as temporary:
         temporary.write_text(json.dumps(result, indent=2, default=_json_default))
     write_run_report(run.path, result)
