@@ -13,7 +13,6 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 from warpbags.cli.common import clean_errors
 from warpbags.cli.train_options import resumed_config, train_config, with_train_options
 from warpbags.errors import WarpbagsError
-from warpbags.run_folder import RunFolder
 from warpbags.trainer import default_run_dir, saved_run_config, start_or_resume, training_scene
 
 stdout = Console(highlight=False)
@@ -45,10 +44,6 @@ def train(
     config = (resumed_config(saved_run_config(out), preset, config_options, settings or []) if resume else
               train_config(preset or "quick", config_options, settings or []))
     scene_data = training_scene(scene, config, data_root, log=stdout.print)
-    scene_root = str(Path(scene_data.root).resolve())
-    resumed_root = RunFolder(out).read_info().get("scene_root") if resume else scene_root
-    if resumed_root != scene_root:
-        raise WarpbagsError(f"--resume: {out} holds a run of the scene in {resumed_root}, not of {scene_root}")
     views = config.views
     out = out or default_run_dir(scene_data.name, views)
     trainer = start_or_resume(scene_data, config, out, device=device, resume=resume, log=stdout.print)

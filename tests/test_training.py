@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+import shutil
 import signal
 
 import numpy as np
@@ -20,7 +21,7 @@ from warpbags.losses import depth_loss, ssim
 from warpbags.pose_history import read_pose_history
 from warpbags.strategy import replace_rows
 from warpbags.schedule import Schedule
-from warpbags.trainer import Trainer, training_scene
+from warpbags.trainer import Trainer, saved_run_config, start_or_resume, training_scene
 
 TINY = SyntheticOptions(views=16, width=96, height=96)
 
@@ -439,6 +440,14 @@ def test_cli_resume_goes_on_with_the_runs_config(scene_dir, tmp_path):
         result = runner.invoke(app, [*command, "--resume", *extra])
         lines = [line for line in result.output.splitlines() if line.strip()]
         assert result.exit_code == 2 and len(lines) == 1 and message in lines[0], result.output
+    # another scene folder (a copy of the run's): refused, by the CLI and by the Python API alike
+    other = tmp_path / "other-scene"
+    shutil.copytree(scene_dir, other)
+    result = runner.invoke(app, [*command[:1], str(other), *command[2:], "--resume"])
+    lines = [line for line in result.output.splitlines() if line.strip()]
+    assert result.exit_code == 2 and len(lines) == 1 and "holds a run of the scene in" in lines[0], result.output
+    with pytest.raises(WarpbagsError, match="holds a run of the scene in"):
+        start_or_resume(training_scene(load_scene(other), saved_run_config(out)), saved_run_config(out), out, resume=True)
 
 
 @pytest.mark.parametrize(

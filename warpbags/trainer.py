@@ -483,11 +483,15 @@ def start_or_resume(scene: Scene, config: TrainConfig, out_dir: str | Path, devi
     (with the config saved in the run folder).
 
     Raises:
-        WarpbagsError: `resume` without a checkpoint in `out_dir`, or a fresh run into a folder that has one.
+        WarpbagsError: `resume` without a checkpoint in `out_dir` or with another scene folder than the run's, or a
+            fresh run into a folder that has one.
     """
     run_folder = RunFolder(out_dir)
     if resume:
         config = saved_run_config(out_dir)
+        run_root, scene_root = run_folder.read_info().get("scene_root"), str(Path(scene.root).resolve())
+        if run_root != scene_root:
+            raise WarpbagsError(f"--resume: {out_dir} holds a run of the scene in {run_root}, not of {scene_root}")
     elif run_folder.has_checkpoint():
         raise WarpbagsError(f"{out_dir} already holds a run; pass --resume to continue it or choose another --out")
     trainer = Trainer(scene, config, out_dir, device=device, log=log)
