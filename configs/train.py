@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import typing
 from dataclasses import dataclass, field
 from typing import Any, Literal
 
@@ -559,9 +560,14 @@ def _typed(value: Any, default: Any, name: str, any_length: bool = False) -> Any
     return value
 
 
+def _any_length_tuple(declared: Any) -> bool:
+    """Whether a field's declared type is `tuple[T, ...]`."""
+    return typing.get_origin(declared) is tuple and typing.get_args(declared)[-1:] == (Ellipsis,)
+
+
 def _replaced(base: Any, overrides: dict[str, Any], prefix: str = "") -> Any:
     """`base` (a config dataclass) with fields replaced, nested groups given as partial dicts, types checked."""
-    fields = {f.name: f.type for f in dataclasses.fields(base)}
+    fields = typing.get_type_hints(type(base))  # the declared types, resolved (annotations are strings here)
     unknown = set(overrides) - set(fields)
     if unknown:
         raise WarpbagsError(f"unknown training option(s): {', '.join(prefix + key for key in sorted(unknown))}")
@@ -573,7 +579,7 @@ def _replaced(base: Any, overrides: dict[str, Any], prefix: str = "") -> Any:
                 raise WarpbagsError(f"{prefix}{key} must be a group of fields, got {value!r}")
             changes[key] = _replaced(current, value, f"{prefix}{key}.")
         else:
-            changes[key] = _typed(value, current, prefix + key, any_length=", ...]" in str(fields[key]))
+            changes[key] = _typed(value, current, prefix + key, any_length=_any_length_tuple(fields[key]))
     return dataclasses.replace(base, **changes)
 
 

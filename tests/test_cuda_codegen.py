@@ -1,8 +1,9 @@
 """Every Warp kernel module builds for a CUDA architecture through NVRTC, with no GPU present.
 
 The kernels are generic over float32/float64; their overloads are instantiated by rendering once on the CPU in
-both precisions (with SH and pose deltas, the photometric loss on the render and a nearest-point search, so every kernel runs), then each module is compiled ahead of time for
-sm_80. Same source as the CPU path: what passes here is what a CUDA machine runs.
+both precisions (with SH and pose deltas, the photometric loss on the render and a nearest-point search, so every
+kernel runs), then each module is compiled ahead of time for sm_80. Same source as the CPU path: what passes here is
+what a CUDA machine runs.
 """
 
 from __future__ import annotations

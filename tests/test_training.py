@@ -447,7 +447,8 @@ def test_cli_resume_goes_on_with_the_runs_config(scene_dir, tmp_path):
     lines = [line for line in result.output.splitlines() if line.strip()]
     assert result.exit_code == 2 and len(lines) == 1 and "holds a run of the scene in" in lines[0], result.output
     with pytest.raises(WarpbagsError, match="holds a run of the scene in"):
-        start_or_resume(training_scene(load_scene(other), saved_run_config(out)), saved_run_config(out), out, resume=True)
+        config = saved_run_config(out)
+        start_or_resume(training_scene(load_scene(other), config), config, out, resume=True)
 
 
 @pytest.mark.parametrize(

@@ -684,7 +684,8 @@ def nearest_points(queries: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
     """[Q] int64: the index of the nearest of [P, 2] `points` to each of [Q, 2] `queries` (kernels/nearest.py).
 
     Exact, ties to the lowest index; -1 for every query when there are no points. The grid spans the queries'
-    bounding box, in square cells of about `POINTS_PER_CELL` points each were the points spread over it.
+    bounding box, in square cells that would hold `POINTS_PER_CELL` points each if the points were spread evenly
+    over it.
     """
     device = points.device
     if len(queries) == 0 or len(points) == 0:
