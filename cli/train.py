@@ -69,8 +69,10 @@ def train(
     poses = (f"pose error {initial['rot_err_deg']:.3f} -> {final['rot_err_deg']:.3f} deg, {initial['trans_err']:.4f} -> "
              f"{final['trans_err']:.4f}" if noisy else
              f"cameras moved {final['rot_err_deg']:.3f} deg / {final['trans_err']:.4f} from the scene's poses")
-    stdout.print(f"done: loss {last.get('loss', float('nan')):.4f}, {len(trainer.params['means'])} Gaussians, {poses}; "
-                 f"wrote {out}")
+    # a resumed run that had already finished trains nothing and has no loss to show
+    trained = (f"loss {last['loss']:.4f}" if "loss" in last else
+               f"the run had already finished its {trainer.config.total_iters} iterations, nothing trained")
+    stdout.print(f"done: {trained}, {len(trainer.params['means'])} Gaussians, {poses}; wrote {out}")
 
 
 def register(app: typer.Typer) -> None:

@@ -431,6 +431,7 @@ def test_cli_resume_goes_on_with_the_runs_config(scene_dir, tmp_path):
     # the command line that started the run, given again: accepted (the run is finished, nothing trains)
     again = runner.invoke(app, [*command, "--resume"])
     assert again.exit_code == 0, again.output
+    assert "already finished its 4 iterations" in again.output and "nan" not in again.output
     assert len((out / "log.jsonl").read_text().splitlines()) == 4
     # anything that would change the run half-way is refused, before the scene is loaded at another size
     for extra, message in [(["--views", "5"], "trained with views=4, not 5"),
