@@ -1,11 +1,13 @@
 """Nearest neighbours in the image plane: for each query point, the index of the nearest of a set of 2-D points.
 
 The silhouette chamfer asks, every step, which projected Gaussian centre (up to ~100k) is nearest to each of a few
-hundred mask-edge pixels. The points are bucketed in a uniform grid over the queries' bounding box by a counting
-sort (a count, a prefix sum, a fill), and each query visits rings of cells around its own, outwards, until no cell
-further out can hold a nearer point: a point in a cell k rings away lies at least (k - 1) cell edges away from any
-query inside the centre cell. Points outside the grid are clamped into its border cells, which keeps that bound
-(a clamped point is further away than its cell, never nearer), so the grid never grows with a stray projection.
+hundred mask-edge pixels. The points are bucketed in a uniform grid by a counting sort (a count, a prefix sum, a
+fill), and each query visits rings of cells around its own, outwards, until no cell further out can hold a nearer
+point: a point in a cell k rings away lies at least (k - 1) cell edges away from any query inside the centre cell.
+The grid holds every query; points outside it are clamped into its border cells, which keeps that bound (a clamped
+point is further away than its cell, never nearer), so a stray projection far away does not stretch the grid. The
+one slow case is every point far outside the grid: each query then scans every cell (100k points, 300 queries: 0.2-0.3
+s on this CPU, against 0.08 for a k-d tree), which takes a camera whose render lies nowhere near its mask.
 
 Exact: squared distances are compared in float64 and a tie goes to the lowest point index, so the order in which
 points sit inside a cell (the fill's, which on CUDA depends on the atomics) never changes the answer.
@@ -51,8 +53,12 @@ def squared_distance(a: Any, b: Any):
 @wp.kernel
 def count_cells_kernel(points: wp.array(dtype=Any), grid: PointGrid, point_cells: wp.array(dtype=wp.int32),
                        cell_counts: wp.array(dtype=wp.int32)):
-    """Each point's cell (row-major index), and the number of points per cell."""
+    """Each point's cell (row-major index; -1 for a point that is not finite, which no query finds), and the
+    number of points per cell."""
     i = wp.tid()
+    if not (wp.isfinite(points[i][0]) and wp.isfinite(points[i][1])):
+        point_cells[i] = -1
+        return
     cx, cy = cell_coordinates(points[i], grid)
     cell = cy * grid.cells_x + cx
     point_cells[i] = cell
@@ -64,6 +70,8 @@ def fill_cells_kernel(point_cells: wp.array(dtype=wp.int32), cell_cursors: wp.ar
                       cell_points: wp.array(dtype=wp.int32)):
     """Every point's index into its cell's slots (`cell_cursors` starts at each cell's offset)."""
     i = wp.tid()
+    if point_cells[i] < 0:
+        return
     slot = wp.atomic_add(cell_cursors, point_cells[i], 1)
     cell_points[slot] = i
 

@@ -88,7 +88,11 @@ def _devtools_port(profile: Path, process: subprocess.Popen, timeout: float) -> 
 
 def _stop_process_group(process: subprocess.Popen, timeout: float = 10.0) -> None:
     """Terminate the process group `process` leads and wait until none of its processes is left."""
-    os.killpg(process.pid, signal.SIGTERM)
+    try:
+        os.killpg(process.pid, signal.SIGTERM)
+    except ProcessLookupError:  # the browser exited on its own, its helpers with it
+        process.wait()
+        return
     try:
         process.wait(timeout=timeout)
     except subprocess.TimeoutExpired:

@@ -167,9 +167,21 @@ def test_nearest_points_are_exact_with_ties_to_the_lowest_index(dtype):
     assert (distances == nearest).sum() > len(queries)  # the case has ties
 
 
-def test_nearest_points_with_every_point_far_outside_or_none():
+def test_nearest_points_with_every_point_far_outside_not_finite_or_none():
     queries = torch.tensor([[0.0, 0.0], [10.0, 5.0], [3.0, 3.0]])
-    points = torch.tensor([[1e6, 1e6], [-2e5, 40.0], [5e3, -7e3]])
+    points = torch.tensor([[1e6, 1e6], [-2e5, 40.0], [5e3, -7e3], [30.0, -25.0]])
     distances = torch.cdist(queries.double(), points.double())
     assert torch.equal(nearest_points(queries, points), distances.argmin(dim=1))
+    # a point that is not finite is never the nearest; without a finite point a query gets -1
+    broken = torch.cat([torch.tensor([[math.nan, 0.0], [math.inf, 1.0]]), points])
+    assert torch.equal(nearest_points(queries, broken), distances.argmin(dim=1) + 2)
+    assert torch.equal(nearest_points(queries, broken[:2]), torch.full((3,), -1))
     assert torch.equal(nearest_points(queries, points[:0]), torch.full((3,), -1))
+    with pytest.raises(ValueError, match="every query must be finite"):
+        nearest_points(torch.tensor([[math.nan, 0.0]]), points)
+
+
+def test_nearest_points_compare_in_the_wider_dtype():
+    queries = torch.tensor([[1.0, 0.0]])  # float32
+    points = torch.tensor([[1 + 2e-8, 0.0], [1 + 1e-8, 0.0]], dtype=torch.float64)
+    assert nearest_points(queries, points).tolist() == [1]

@@ -677,21 +677,37 @@ def _depth_chunks(visible: list[int], per_camera: int) -> list[tuple[int, int, i
 # empty cells to step over.
 POINTS_PER_CELL = 4
 MAX_GRID_CELLS_PER_AXIS = 1024
+# How far past the queries' box, in multiples of its extent, the grid follows the points: a projection shifted off
+# the mask keeps cells of its own (clamped into one border row, every query would scan all of it), while one far
+# away, such as a point just in front of the camera, does not stretch the grid.
+GRID_REACH = 2.0
 
 
 @torch.no_grad()
 def nearest_points(queries: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
     """[Q] int64: the index of the nearest of [P, 2] `points` to each of [Q, 2] `queries` (kernels/nearest.py).
 
-    Exact, ties to the lowest index; -1 for every query when there are no points. The grid spans the queries'
-    bounding box, in square cells that would hold `POINTS_PER_CELL` points each if the points were spread evenly
-    over it.
+    Exact (in the wider of the two dtypes), ties to the lowest index; points that are not finite are never
+    nearest, and a query without a finite point gets -1. The grid spans the queries' bounding box and the points'
+    within `GRID_REACH` times the queries' extent of it, in square cells that would hold `POINTS_PER_CELL` points
+    each if the points were spread evenly over it.
+
+    Raises:
+        ValueError: a query is not finite.
     """
     device = points.device
+    if len(queries) and not torch.isfinite(queries).all():
+        raise ValueError("nearest_points: every query must be finite")
     if len(queries) == 0 or len(points) == 0:
         return torch.full((len(queries),), -1, dtype=torch.int64, device=device)
-    queries, points = queries.detach().contiguous(), points.detach().to(queries.dtype).contiguous()
+    dtype = torch.promote_types(queries.dtype, points.dtype)
+    queries, points = queries.detach().to(dtype).contiguous(), points.detach().to(dtype).contiguous()
     low, high = queries.min(dim=0).values.double().cpu(), queries.max(dim=0).values.double().cpu()
+    finite = points[torch.isfinite(points).all(dim=1)].double()
+    if len(finite):
+        reach = GRID_REACH * float((high - low).max())
+        low = torch.minimum(low, finite.min(dim=0).values.cpu().clamp(min=low - reach))
+        high = torch.maximum(high, finite.max(dim=0).values.cpu().clamp(max=high + reach))
     size = (high - low).clamp_min(1e-9)
     cell = max(math.sqrt(float(size[0] * size[1]) * POINTS_PER_CELL / len(points)),
                float(size.max()) / MAX_GRID_CELLS_PER_AXIS, 1e-9)
