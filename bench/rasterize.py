@@ -3,6 +3,7 @@
     python bench/rasterize.py            # full grid (a few minutes on 2 cores)
     python bench/rasterize.py --quick    # 128^2 only
     python bench/rasterize.py --quick --blocks 1x1,default   # CPU pixel blocks side by side, ratios to the first
+    python bench/rasterize.py --device cuda                  # the same grid on a GPU (no dense reference there)
 
 Scene: N Gaussians in a ball of radius 1 seen from C cameras at distance 3.5 (the ball fills about 60% of the
 image width), scales shrinking with N^(-1/3). Measured depth complexity (Gaussians within 3 sigma of a covered
@@ -35,9 +36,13 @@ from conftest import look_at  # noqa: E402
 from reference import composite_reference, pixel_centers, project_reference  # noqa: E402
 
 import warpbags  # noqa: E402
+from warpbags.cli.common import clean_errors  # noqa: E402
+from warpbags.devices import torch_device  # noqa: E402
+from warpbags.errors import WarpbagsError  # noqa: E402
 
 
-def bench_scene(n: int, cams: int, size: int, seed: int = 0) -> dict:
+def bench_scene(n: int, cams: int, size: int, seed: int = 0, device: torch.device = torch.device("cpu")) -> dict:
+    """The scene, drawn on the CPU (the same numbers on every device), then moved to `device`."""
     g = torch.Generator().manual_seed(seed)
     direction = torch.randn(n, 3, generator=g)
     radius = torch.rand(n, 1, generator=g) ** (1 / 3)
@@ -50,11 +55,19 @@ def bench_scene(n: int, cams: int, size: int, seed: int = 0) -> dict:
         viewmats.append(look_at(eye, torch.zeros(3)))
         focal = 1.05 * size
         Ks.append(torch.tensor([[focal, 0, size / 2], [0, focal, size / 2], [0, 0, 1]]))
-    return dict(
+    scene = dict(
         means=means, quats=torch.randn(n, 4, generator=g), scales=scales,
         opacities=0.1 + 0.8 * torch.rand(n, generator=g), colors=torch.rand(n, 3, generator=g),
         viewmats=torch.stack(viewmats), Ks=torch.stack(Ks), width=size, height=size,
     )
+    return {k: v.to(device) if isinstance(v, torch.Tensor) else v for k, v in scene.items()}
+
+
+def _synchronize(device: torch.device) -> None:
+    """Wait for the device's queued work, so that a clock read after it times the work (CUDA launches return at
+    once)."""
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
 
 
 def _leaves(scene: dict) -> dict:
@@ -69,16 +82,20 @@ def time_warpbags(scene: dict, repeats: int, tile_size: int | None,
     from warpbags.wrapper import DEFAULT_PIXEL_BLOCK
 
     default = DEFAULT_PIXEL_BLOCK["cpu"]
+    device = scene["means"].device
     times = {block: ([], []) for block in blocks}
     try:
         for i in range(repeats + 1):  # the first run compiles / warms caches
             for block in blocks:
                 DEFAULT_PIXEL_BLOCK["cpu"] = block if block is not None else default
                 leaves = _leaves(scene)
+                _synchronize(device)
                 t0 = time.perf_counter()
                 out, alpha, meta = warpbags.rasterization(**leaves, tile_size=tile_size)
+                _synchronize(device)
                 t1 = time.perf_counter()
                 (out.sum() + alpha.sum()).backward()
+                _synchronize(device)
                 t2 = time.perf_counter()
                 if i:
                     times[block][0].append(t1 - t0)
@@ -125,13 +142,17 @@ def main() -> None:
     parser.add_argument("--sizes", default=None, help="comma-separated image sizes (default 128,256,432)")
     parser.add_argument("--gaussians", default="1000,10000,50000", help="comma-separated N")
     parser.add_argument("--cameras", default="1,4", help="comma-separated C")
+    parser.add_argument("--device", default="cpu", help="cpu or cuda (the dense reference runs on the CPU only)")
     args = parser.parse_args()
+    device = torch_device(args.device)
+    if args.blocks and device.type != "cpu":
+        raise WarpbagsError("--blocks compares CPU pixel blocks: it needs --device cpu")
     torch.set_num_threads(1)  # Warp uses its own host threads; idle torch OpenMP workers would spin against them
 
     sizes = [int(v) for v in args.sizes.split(",")] if args.sizes else [128] if args.quick else [128, 256, 432]
     blocks = args.blocks or [None]
-    print(f"warpbags {warpbags.__version__}, torch {torch.__version__}, threads {torch.get_num_threads()} (torch) / "
-          f"default (Warp), tile size {args.tile_size or 'default'}")
+    print(f"warpbags {warpbags.__version__}, torch {torch.__version__}, device {device}, threads "
+          f"{torch.get_num_threads()} (torch) / default (Warp), tile size {args.tile_size or 'default'}")
     if args.blocks:
         names = [f"{b[0]}x{b[1]}" if b else "default" for b in blocks]
         header = (f"{'image':>7} {'N':>6} {'C':>2} {'visits/px':>9} "
@@ -144,7 +165,7 @@ def main() -> None:
     for size in sizes:
         for n in (int(v) for v in args.gaussians.split(",")):
             for cams in (int(v) for v in args.cameras.split(",")):
-                scene = bench_scene(n, cams, size)
+                scene = bench_scene(n, cams, size, device=device)
                 results = time_warpbags(scene, args.repeats, args.tile_size, blocks)
                 visits = results[blocks[0]][2]
                 if args.blocks:
@@ -156,11 +177,12 @@ def main() -> None:
                 fwd, bwd, _ = results[blocks[0]]
                 # dense cost ~ pixels x Gaussians x cameras: ~300 ns per pixel-Gaussian pair for fwd+bwd here
                 dense_estimate_s = 300e-9 * size * size * n * cams
-                dense = time_dense(scene) if cams == 1 and dense_estimate_s < args.dense_budget_s else None
+                dense = (time_dense(scene) if device.type == "cpu" and cams == 1
+                         and dense_estimate_s < args.dense_budget_s else None)
                 dense_text = f"{dense:13.0f} {dense / (fwd + bwd):6.0f}x" if dense else f"{'-':>13} {'-':>7}"
                 print(f"{size:>4}^2 {n:>6} {cams:>2} {visits:>9.1f} {fwd:>8.1f} {bwd:>8.1f} {fwd + bwd:>8.1f} {dense_text}",
                       flush=True)
 
 
 if __name__ == "__main__":
-    main()
+    clean_errors(main)()
