@@ -7,7 +7,8 @@ point: a point in a cell k rings away lies at least (k - 1) cell edges away from
 The grid holds every query; points outside it are clamped into its border cells, which keeps that bound (a clamped
 point is further away than its cell, never nearer), so a stray projection far away does not stretch the grid. The
 one slow case is every point far outside the grid: each query then scans every cell (100k points, 300 queries: 0.2-0.3
-s on this CPU, against 0.08 for a k-d tree), which takes a camera whose render lies nowhere near its mask.
+s on this CPU, against 0.08 for a k-d tree), which happens only for a camera whose render lies nowhere near its
+mask.
 
 Exact: squared distances are compared in float64 and a tie goes to the lowest point index, so the order in which
 points sit inside a cell (the fill's, which on CUDA depends on the atomics) never changes the answer.

@@ -688,9 +688,9 @@ def nearest_points(queries: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
     """[Q] int64: the index of the nearest of [P, 2] `points` to each of [Q, 2] `queries` (kernels/nearest.py).
 
     Exact (in the wider of the two dtypes), ties to the lowest index; points that are not finite are never
-    nearest, and a query without a finite point gets -1. The grid spans the queries' bounding box and the points'
-    within `GRID_REACH` times the queries' extent of it, in square cells that would hold `POINTS_PER_CELL` points
-    each if the points were spread evenly over it.
+    nearest, and a query without a finite point gets -1. The grid spans the queries' bounding box, grown to hold
+    the points up to `GRID_REACH` times the box's extent beyond it, in square cells that would hold
+    `POINTS_PER_CELL` points each if the points were spread evenly over it.
 
     Raises:
         ValueError: a query is not finite.
@@ -703,11 +703,11 @@ def nearest_points(queries: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
     dtype = torch.promote_types(queries.dtype, points.dtype)
     queries, points = queries.detach().to(dtype).contiguous(), points.detach().to(dtype).contiguous()
     low, high = queries.min(dim=0).values.double().cpu(), queries.max(dim=0).values.double().cpu()
-    finite = points[torch.isfinite(points).all(dim=1)].double()
+    finite = points[torch.isfinite(points).all(dim=1)]
     if len(finite):
         reach = GRID_REACH * float((high - low).max())
-        low = torch.minimum(low, finite.min(dim=0).values.cpu().clamp(min=low - reach))
-        high = torch.maximum(high, finite.max(dim=0).values.cpu().clamp(max=high + reach))
+        low = torch.minimum(low, finite.min(dim=0).values.double().cpu().clamp(min=low - reach))
+        high = torch.maximum(high, finite.max(dim=0).values.double().cpu().clamp(max=high + reach))
     size = (high - low).clamp_min(1e-9)
     cell = max(math.sqrt(float(size[0] * size[1]) * POINTS_PER_CELL / len(points)),
                float(size.max()) / MAX_GRID_CELLS_PER_AXIS, 1e-9)
