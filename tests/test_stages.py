@@ -423,6 +423,26 @@ def test_binning_matches_brute_force_per_tile(dtype, tile_size):
         assert (flat_depths[ids].diff() >= 0).all(), "front to back"
 
 
+def test_binning_breaks_depth_ties_by_index_in_every_precision():
+    """Gaussians at equal depths are listed in index order, whichever sort puts them front to back (float32: Warp's
+    radix sort of (depth, index) pairs; float64: torch's stable argsort): with depths rounded to a few values,
+    the float32 and float64 lists are the same, and each tie runs in increasing index."""
+    scene = projection_scene(n=120, cams=2, seed=9)
+    width, height = scene["width"], scene["height"]
+    means2d, conics, depths, radii = project_gaussians(*(scene[name] for name in PROJECTION_INPUTS), width, height)
+    tied = depths.round()  # a handful of depth values for 120 Gaussians
+    assert len(tied.unique()) < 10
+    lists = [bin_gaussians(means2d.to(dtype), conics.to(dtype), scene["opacities"].to(dtype), radii, tied.to(dtype),
+                           width, height, 8) for dtype in (torch.float32, torch.float64)]
+    assert torch.equal(lists[0].tile_offsets, lists[1].tile_offsets)
+    assert torch.equal(lists[0].isect_ids, lists[1].isect_ids)
+    _, per_tile = _listed(lists[0], *radii.shape)
+    flat_depths = tied.reshape(-1)
+    for ids in per_tile:
+        same_depth = flat_depths[ids].diff() == 0
+        assert (ids.diff()[same_depth] > 0).all(), "ties in index order"
+
+
 def test_binning_lists_no_tile_reached_only_beyond_the_image():
     """A unit-covariance Gaussian (reach 3.3 px) centred 2 px right of a 29 px wide image, and one 2 px below a 23 px
     high one: each reaches one tile of 8 px through pixel centres inside the image, and is listed there alone."""

@@ -24,7 +24,6 @@ import os
 from concurrent.futures import ThreadPoolExecutor
 from typing import NamedTuple, Sequence
 
-import numpy as np
 import torch
 import torch.nn.functional as F
 import warp as wp
@@ -652,15 +651,22 @@ def _bin_by_counting(splats: dict, tiles: TileGeometry, radii: torch.Tensor, dep
 
 def _depth_order(depths: torch.Tensor, radii: torch.Tensor) -> torch.Tensor:
     """[C, N] int32: each camera's Gaussians front to back, culled ones last, equal depths in index order (so the
-    lists are deterministic). float32 depths sort as one int64 key per Gaussian, depth bits over index (a positive
-    float's bits order like its value), with numpy's vectorized sort: 1.1 ms for 100k keys against 10 ms for
-    torch's stable argsort on one thread; float64 (the reference tests) keeps torch's stable argsort."""
+    lists are deterministic). float32 depths go through Warp's radix sort of (depth, index) pairs, which is stable:
+    1.4 ms for 100k keys against 4.2-4.7 for numpy's sort of packed int64 keys and 10 for torch's stable argsort
+    on one thread; float64 (the reference tests) keeps torch's stable argsort."""
     keys = torch.where(radii > 0, depths.detach(), torch.full_like(depths, math.inf))
     if keys.dtype != torch.float32:
         return torch.argsort(keys, dim=1, stable=True).to(torch.int32)
-    index = torch.arange(keys.shape[1], dtype=torch.int64)
-    packed = (keys.contiguous().view(torch.int32).to(torch.int64) << 32) | index
-    return torch.from_numpy(np.sort(packed.numpy(), axis=1) & 0xFFFFFFFF).to(torch.int32)
+    cams, n = keys.shape
+    # radix_sort_pairs sorts in place and needs room for twice the pairs it sorts
+    sort_keys = torch.empty(2 * n, dtype=torch.float32)
+    order = torch.empty(cams, 2 * n, dtype=torch.int32)
+    keys_wp = _to_warp(sort_keys, "scalar")
+    for cam in range(cams):
+        sort_keys[:n] = keys[cam]
+        torch.arange(n, dtype=torch.int32, out=order[cam, :n])
+        wp.utils.radix_sort_pairs(keys_wp, _to_warp(order[cam], "int32"), n)
+    return order[:, :n]
 
 
 def _depth_chunks(visible: list[int], per_camera: int) -> list[tuple[int, int, int]]:
