@@ -388,7 +388,7 @@ def _backward_over_ranges(stage: _Stage, kernel, *, gaussians: dict, cameras: di
     pairs = {**{name: t.detach().contiguous() for name, t in pairs.items()},
              **{"v_" + name: t.contiguous() for name, t in cotangents.items()}}
     kinds.update(("v_" + name, kinds[name]) for name in cotangents)
-    v_gaussians = {name: torch.zeros_like(t) for name, t in gaussians.items()}
+    v_gaussians = {name: torch.empty_like(t) for name, t in gaussians.items()}  # each range zeroes its own slice
     some = next(iter(pairs.values()))
     cuts = _GaussianRanges.of(stage, tuple(some.shape[:2]), some.device)
     # The first range, which runs alone before the others start, shares the second one's camera gradients.
@@ -399,6 +399,8 @@ def _backward_over_ranges(stage: _Stage, kernel, *, gaussians: dict, cameras: di
     launcher = _launcher(some.device)
 
     def work(i, cut):
+        for buffer in v_gaussians.values():
+            _cut(buffer, cut, 0).zero_()
         launcher.launch(kernel, cuts.launch_dim(cut), **common, **views(gaussians, cut, 0), **views(pairs, cut, 1),
                         **views(v_gaussians, cut, 0, "v_"), **wp_cameras[max(i - 1, 0)])
 
@@ -957,20 +959,28 @@ class _RasterizeToPixels(torch.autograd.Function):
         # One private set of gradient buffers per range (CPU atomics are plain adds), summed in range order: the
         # gradients do not depend on which thread ran which range. The first range, which runs alone before the
         # others start, shares the second one's set.
-        buffers = [{name: torch.zeros_like(t) for name, t in splats.items()} for _ in range(max(len(ranges) - 1, 1))]
+        # Each set but the shared one is zeroed by its range, on its worker thread (torch releases the GIL): at 100k
+        # Gaussians a set is ~1M floats, and zeroing them all up front kept one core idle.
+        buffers = [{name: (torch.zeros_like if set_ == 0 else torch.empty_like)(t) for name, t in splats.items()}
+                   for set_ in range(max(len(ranges) - 1, 1))]
         wp_buffers = [{"v_" + name: _to_warp(t, _SPLAT_KINDS[name]) for name, t in b.items()} for b in buffers]
 
         kernel = BACKWARD_KERNELS[ctx.lanes, v_out_depths is not None]
         launcher = _launcher(device)
 
         def work(i, start, stop):
+            if i >= 2:
+                for buffer in buffers[i - 1].values():
+                    buffer.zero_()
             launcher.launch(kernel, stop - start, **common, first_block=start, **saved, **wp_buffers[max(i - 1, 0)])
 
         _run_ranges(work, ranges, workers)
 
-        v_means2d, v_conics, v_colors, v_opacities, v_depths = (
-            sum(parts[1:], parts[0]) for parts in zip(*(b.values() for b in buffers))
-        )
+        # summed into the first set in range order, in place
+        for later in buffers[1:]:
+            for name, buffer in later.items():
+                buffers[0][name].add_(buffer)
+        v_means2d, v_conics, v_colors, v_opacities, v_depths = buffers[0].values()
         cams, n = final_transmittance.shape[0], ctx.geometry["tiles"].num_gaussians
         return (
             v_means2d.view(cams, n, 2), v_conics.view(cams, n, 3), v_colors.view(cams, n, 3), v_opacities,
