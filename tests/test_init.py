@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import pytest
 import torch
 from conftest import look_at
 
@@ -46,3 +47,33 @@ def test_mean_neighbour_distance_is_the_brute_force_mean():
         found = mean_neighbour_distance(points, k)
         assert found.dtype == torch.float64
         torch.testing.assert_close(found, brute, rtol=0, atol=1e-12)
+
+
+def _brute_mean_distances(points: torch.Tensor, k: int) -> torch.Tensor:
+    return torch.cdist(points.double(), points.double()).sort(dim=1).values[:, 1:k + 1].mean(1)
+
+
+def test_mean_neighbour_distance_is_exact_on_a_surface_with_far_floaters_and_duplicates():
+    """The floater removal's case: points on a sphere's surface (most grid cells empty), a few floaters hundreds of
+    radii away (clamped into the grid's border cells), and duplicated points (distance 0); k = sqrt(P) as the
+    removal takes it, 1, and every other point. float32 points are measured in float64 as well."""
+    generator = torch.Generator().manual_seed(3)
+    surface = torch.randn(600, 3, generator=generator)
+    surface = surface / surface.norm(dim=1, keepdim=True)
+    floaters = torch.tensor([[300.0, 0.0, 0.0], [-250.0, 80.0, 5.0], [0.5, 0.5, 400.0]])
+    points = torch.cat([surface, floaters, surface[:20]]).float()
+    for k in (1, int(len(points) ** 0.5), len(points) - 1):
+        found = mean_neighbour_distance(points, k)
+        assert found.dtype == torch.float32
+        torch.testing.assert_close(found.double(), _brute_mean_distances(points, k), rtol=1e-6, atol=0)
+    assert (mean_neighbour_distance(points, 1)[-20:] == 0).all()  # each duplicate's nearest is its twin
+
+
+def test_mean_neighbour_distance_rejects_what_it_cannot_measure():
+    points = torch.rand(10, 3)
+    for k in (0, 10):
+        with pytest.raises(ValueError, match=f"k must be in \\[1, 9\\] for 10 points, got {k}"):
+            mean_neighbour_distance(points, k)
+    points[4, 1] = float("nan")
+    with pytest.raises(ValueError, match="every point must be finite"):
+        mean_neighbour_distance(points, 3)
