@@ -120,6 +120,8 @@ def test_fixed_gauge_camera_keeps_its_pose_and_state_round_trips():
         cameras.zero_grad()
     torch.testing.assert_close(cameras.viewmats()[0], cameras.viewmats_init[0], rtol=0, atol=0)
     assert (cameras.viewmats()[1:] - cameras.viewmats_init[1:]).abs().max() > 1e-4
+    assert cameras.movable_cameras() == list(range(1, cameras.num_cameras))
+    assert _optimizer(CameraOptimizerSettings(lr=1e-2)).movable_cameras() == list(range(cameras.num_cameras))
     restored = _optimizer(settings)
     restored.load_state(cameras.state())
     torch.testing.assert_close(restored.viewmats(), cameras.viewmats(), rtol=0, atol=0)

@@ -160,6 +160,10 @@ class CameraOptimizer(torch.nn.Module):
     def num_cameras(self) -> int:
         return self.viewmats_init.shape[0]
 
+    def movable_cameras(self) -> list[int]:
+        """The cameras the optimizer may move: all but a gauge camera held at its given pose."""
+        return [camera for camera in range(self.num_cameras) if self.gauge[camera, 0] != 0]
+
     def params(self) -> torch.Tensor:
         """[C, 6] the real parameters, P @ latent, zero for the gauge camera and in held rows."""
         latent = torch.cat([self.rotations, self.translations], dim=1)

@@ -305,7 +305,7 @@ class Trainer:
         among the cameras that may move (not a gauge camera held at its given pose)."""
         settings = self.schedule.at(self.iteration - 1)
         viewmats = self.current_viewmats()
-        movable = [camera for camera in range(self.num_cameras) if self.cameras.gauge[camera, 0] != 0]
+        movable = self.cameras.movable_cameras()
         losses = {camera: self.model.loss(torch.tensor([camera], device=self.device), viewmats[[camera]],
                                           settings)[0].item() for camera in movable}
         return max(movable, key=losses.__getitem__)
