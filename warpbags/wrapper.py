@@ -770,8 +770,9 @@ def mean_neighbour_distances(points: torch.Tensor, k: int) -> torch.Tensor:
     device = points.device
     points = points.detach().contiguous()
     coordinates = points.double()
-    low = torch.quantile(coordinates, KNN_BOX_QUANTILE, dim=0).cpu()
-    high = torch.quantile(coordinates, 1 - KNN_BOX_QUANTILE, dim=0).cpu()
+    # order statistics by kthvalue: torch.quantile refuses inputs of more than 16M values
+    low = coordinates.kthvalue(1 + int(KNN_BOX_QUANTILE * (count - 1)), dim=0).values.cpu()
+    high = coordinates.kthvalue(count - int(KNN_BOX_QUANTILE * (count - 1)), dim=0).values.cpu()
     margin = 0.5 * (high - low)
     low, high = low - margin, high + margin
     size = (high - low).clamp_min(1e-9)
