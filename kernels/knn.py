@@ -6,7 +6,9 @@ fill pass). Each point then visits shells of cells around its own, outwards, kee
 max-heap of squared distances (its own row of a scratch array), until no cell further out can hold a nearer point
 than the heap's largest: a point in a cell r + 1 shells away lies at least r cell edges away. Points outside the grid
 are clamped into its border cells, which keeps that bound (a clamped point is further away than its cell, never
-nearer), so a few far floaters do not stretch the grid.
+nearer), so a few far floaters do not stretch the grid. They are the slow case: a query outside the grid's box
+meets the bound only when its shells have covered every cell (warpbags.wrapper.mean_neighbour_distances gives the
+numbers).
 
 Squared distances are taken in float64; the k kept are the k smallest whatever the order of the points in a cell
 (on CUDA the fill's order depends on the atomics), so only the final sum's rounding depends on it.
