@@ -6,9 +6,9 @@ fill pass). Each point then visits shells of cells around its own, outwards, kee
 max-heap of squared distances (its own row of a scratch array), until no cell further out can hold a nearer point
 than the heap's largest: a point in a cell r + 1 shells away lies at least r cell edges away. Points outside the grid
 are clamped into its border cells, which keeps that bound (a clamped point is further away than its cell, never
-nearer), so a few far floaters do not stretch the grid. They are the slow case: a query outside the grid's box
-meets the bound only when its shells have covered every cell (warpbags.wrapper.mean_neighbour_distances gives the
-numbers).
+nearer), so a few far floaters do not stretch the grid. A floater itself, outside the grid's box, would meet the
+bound only when its shells had covered every cell, so it takes every point in turn instead
+(warpbags.wrapper.mean_neighbour_distances gives the numbers).
 
 Squared distances are taken in float64; the k kept are the k smallest whatever the order of the points in a cell
 (on CUDA the fill's order depends on the atomics), so only the final sum's rounding depends on it.
@@ -89,44 +89,70 @@ def heap_replace_top(heap: wp.array2d(dtype=wp.float64), row: int, size: int, va
     heap[row, parent] = value
 
 
+@wp.func
+def offer(heaps: wp.array2d(dtype=wp.float64), row: int, size: int, k: int, d: wp.float64):
+    """Keep squared distance `d` among the k smallest in heap row `row` of `size` entries; returns the new size."""
+    if size < k:
+        heap_push(heaps, row, size, d)
+        return size + 1
+    if d < heaps[row, 0]:
+        heap_replace_top(heaps, row, size, d)
+    return size
+
+
+@wp.func
+def squared_distance_3d(a: Any, b: Any):
+    dx = wp.float64(a[0]) - wp.float64(b[0])
+    dy = wp.float64(a[1]) - wp.float64(b[1])
+    dz = wp.float64(a[2]) - wp.float64(b[2])
+    return dx * dx + dy * dy + dz * dz
+
+
+@wp.func
+def inside_grid(point: Any, grid: PointGrid3):
+    """Whether `point` lies in the grid's box (not clamped into it)."""
+    upper = grid.origin + wp.vec3d(wp.float64(grid.cells_x), wp.float64(grid.cells_y), wp.float64(grid.cells_z)) * grid.cell
+    return (wp.float64(point[0]) >= grid.origin[0] and wp.float64(point[0]) < upper[0]
+            and wp.float64(point[1]) >= grid.origin[1] and wp.float64(point[1]) < upper[1]
+            and wp.float64(point[2]) >= grid.origin[2] and wp.float64(point[2]) < upper[2])
+
+
 @wp.kernel(enable_backward=False)
 def mean_knn_distance_kernel(points: wp.array(dtype=Any), grid: PointGrid3, cell_offsets: wp.array(dtype=wp.int32),
                              cell_points: wp.array(dtype=wp.int32), k: int, first_point: int,
                              heaps: wp.array2d(dtype=wp.float64), mean_distances: wp.array(dtype=wp.float64)):
     """Mean distance from point first_point + tid to its k nearest other points (k < the number of points), shell
-    by shell of cells; heaps[tid, :k] is the thread's scratch."""
+    by shell of cells; heaps[tid, :k] is the thread's scratch. A point outside the grid's box (a floater) takes
+    every point in turn instead: its shells would meet the bound only after covering the whole grid, whose cells
+    outnumber the points."""
     row = wp.tid()
     q = first_point + row
     query = points[q]
-    qx, qy, qz = grid_cell(query, grid)
     size = int(0)
-    last_shell = wp.max(wp.max(grid.cells_x, grid.cells_y), grid.cells_z)
-    for shell in range(last_shell + 1):
-        for cz in range(wp.max(qz - shell, 0), wp.min(qz + shell, grid.cells_z - 1) + 1):
-            for cy in range(wp.max(qy - shell, 0), wp.min(qy + shell, grid.cells_y - 1) + 1):
-                # on the shell's two z faces and two y faces every cell of the row, between them only its two ends
-                step = 1
-                if shell > 0 and wp.abs(cz - qz) != shell and wp.abs(cy - qy) != shell:
-                    step = 2 * shell
-                for cx in range(qx - shell, qx + shell + 1, step):
-                    if cx >= 0 and cx < grid.cells_x:
-                        cell = (cz * grid.cells_y + cy) * grid.cells_x + cx
-                        for slot in range(cell_offsets[cell], cell_offsets[cell + 1]):
-                            j = cell_points[slot]
-                            if j != q:
-                                other = points[j]
-                                dx = wp.float64(other[0]) - wp.float64(query[0])
-                                dy = wp.float64(other[1]) - wp.float64(query[1])
-                                dz = wp.float64(other[2]) - wp.float64(query[2])
-                                d = dx * dx + dy * dy + dz * dz
-                                if size < k:
-                                    heap_push(heaps, row, size, d)
-                                    size += 1
-                                elif d < heaps[row, 0]:
-                                    heap_replace_top(heaps, row, size, d)
-        reach = (wp.float64(shell) - wp.float64(RING_SLACK)) * grid.cell  # the least distance to the next shell
-        if size == k and reach > wp.float64(0.0) and heaps[row, 0] <= reach * reach:
-            break
+    if not inside_grid(query, grid):
+        for j in range(points.shape[0]):
+            if j != q:
+                size = offer(heaps, row, size, k, squared_distance_3d(query, points[j]))
+    else:
+        qx, qy, qz = grid_cell(query, grid)
+        last_shell = wp.max(wp.max(grid.cells_x, grid.cells_y), grid.cells_z)
+        for shell in range(last_shell + 1):
+            for cz in range(wp.max(qz - shell, 0), wp.min(qz + shell, grid.cells_z - 1) + 1):
+                for cy in range(wp.max(qy - shell, 0), wp.min(qy + shell, grid.cells_y - 1) + 1):
+                    # on the shell's two z faces and two y faces every cell of the row, between them only its ends
+                    step = 1
+                    if shell > 0 and wp.abs(cz - qz) != shell and wp.abs(cy - qy) != shell:
+                        step = 2 * shell
+                    for cx in range(qx - shell, qx + shell + 1, step):
+                        if cx >= 0 and cx < grid.cells_x:
+                            cell = (cz * grid.cells_y + cy) * grid.cells_x + cx
+                            for slot in range(cell_offsets[cell], cell_offsets[cell + 1]):
+                                j = cell_points[slot]
+                                if j != q:
+                                    size = offer(heaps, row, size, k, squared_distance_3d(query, points[j]))
+            reach = (wp.float64(shell) - wp.float64(RING_SLACK)) * grid.cell  # the least distance to the next shell
+            if size == k and reach > wp.float64(0.0) and heaps[row, 0] <= reach * reach:
+                break
     total = wp.float64(0.0)
     for i in range(size):
         total += wp.sqrt(heaps[row, i])
