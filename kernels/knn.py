@@ -18,7 +18,7 @@ from typing import Any
 
 import warp as wp
 
-from warpbags.kernels.nearest import RING_SLACK
+from warpbags.kernels.nearest import RING_SLACK, clamped_cell
 
 
 @wp.struct
@@ -30,14 +30,6 @@ class PointGrid3:
     cells_x: int
     cells_y: int
     cells_z: int
-
-
-@wp.func
-def clamped_cell(value: wp.float64, origin: wp.float64, cell: wp.float64, cells: int):
-    """The cell index along one axis of the coordinate `value`, clamped into [0, cells)."""
-    # clamped in floating point first: a point far outside would overflow the int conversion
-    index = int(wp.floor(wp.clamp((value - origin) / cell, wp.float64(-1.0), wp.float64(cells))))
-    return wp.clamp(index, 0, cells - 1)
 
 
 @wp.func
@@ -111,7 +103,8 @@ def squared_distance_3d(a: Any, b: Any):
 @wp.func
 def inside_grid(point: Any, grid: PointGrid3):
     """Whether `point` lies in the grid's box (not clamped into it)."""
-    upper = grid.origin + wp.vec3d(wp.float64(grid.cells_x), wp.float64(grid.cells_y), wp.float64(grid.cells_z)) * grid.cell
+    cells = wp.vec3d(wp.float64(grid.cells_x), wp.float64(grid.cells_y), wp.float64(grid.cells_z))
+    upper = grid.origin + cells * grid.cell
     return (wp.float64(point[0]) >= grid.origin[0] and wp.float64(point[0]) < upper[0]
             and wp.float64(point[1]) >= grid.origin[1] and wp.float64(point[1]) < upper[1]
             and wp.float64(point[2]) >= grid.origin[2] and wp.float64(point[2]) < upper[2])

@@ -34,14 +34,18 @@ class PointGrid:
 
 
 @wp.func
+def clamped_cell(value: wp.float64, origin: wp.float64, cell: wp.float64, cells: int):
+    """The cell index along one axis of the coordinate `value`, clamped into [0, cells)."""
+    # clamped in floating point first: a point far outside would overflow the int conversion
+    index = int(wp.floor(wp.clamp((value - origin) / cell, wp.float64(-1.0), wp.float64(cells))))
+    return wp.clamp(index, 0, cells - 1)
+
+
+@wp.func
 def cell_coordinates(point: Any, grid: PointGrid):
     """The (column, row) of the cell holding `point`, clamped into the grid."""
-    x = (wp.float64(point[0]) - grid.origin[0]) / grid.cell
-    y = (wp.float64(point[1]) - grid.origin[1]) / grid.cell
-    # clamped in floating point first: a projection far outside would overflow the int conversion
-    cx = int(wp.floor(wp.clamp(x, wp.float64(-1.0), wp.float64(grid.cells_x))))
-    cy = int(wp.floor(wp.clamp(y, wp.float64(-1.0), wp.float64(grid.cells_y))))
-    return wp.clamp(cx, 0, grid.cells_x - 1), wp.clamp(cy, 0, grid.cells_y - 1)
+    return (clamped_cell(wp.float64(point[0]), grid.origin[0], grid.cell, grid.cells_x),
+            clamped_cell(wp.float64(point[1]), grid.origin[1], grid.cell, grid.cells_y))
 
 
 @wp.func

@@ -683,6 +683,25 @@ def _depth_chunks(visible: list[int], per_camera: int) -> list[tuple[int, int, i
     return chunks
 
 
+def _points_by_cell(count_kernel, points: wp.array, grid, num_cells: int, device: torch.device
+                    ) -> tuple[torch.Tensor, torch.Tensor]:
+    """Counting sort of `points` into the cells of `grid` (kernels/nearest.py's count and fill passes; `count_kernel`
+    the grid's own count pass): ([num_cells + 1] int32 offsets, [P] int32 point indices), cell c's points at
+    indices[offsets[c]:offsets[c + 1]]."""
+    launcher = _launcher(device)
+    point_cells = torch.empty(len(points), dtype=torch.int32, device=device)
+    cell_counts = torch.zeros(num_cells, dtype=torch.int32, device=device)
+    launcher.launch(count_kernel, len(points), points=points, grid=grid, point_cells=_to_warp(point_cells, "int32"),
+                    cell_counts=_to_warp(cell_counts, "int32"))
+    cell_offsets = torch.zeros(num_cells + 1, dtype=torch.int32, device=device)
+    torch.cumsum(cell_counts, 0, dtype=torch.int32, out=cell_offsets[1:])
+    cell_points = torch.empty(len(points), dtype=torch.int32, device=device)
+    launcher.launch(fill_cells_kernel, len(points), point_cells=_to_warp(point_cells, "int32"),
+                    cell_cursors=_to_warp(cell_offsets[:-1].clone(), "int32"),
+                    cell_points=_to_warp(cell_points, "int32"))
+    return cell_offsets, cell_points
+
+
 # Points per grid cell the nearest-point search aims at: fewer cells cost the rings more points, more cells more
 # empty cells to step over.
 POINTS_PER_CELL = 4
@@ -727,16 +746,8 @@ def nearest_points(queries: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
     grid.cells_x, grid.cells_y = (max(1, math.ceil(float(extent) / cell)) for extent in size)
     launcher = _launcher(device)
     query_array, point_array = _to_warp(queries, "vec2"), _to_warp(points, "vec2")
-    point_cells = torch.empty(len(points), dtype=torch.int32, device=device)
-    cell_counts = torch.zeros(grid.cells_x * grid.cells_y, dtype=torch.int32, device=device)
-    launcher.launch(count_cells_kernel, len(points), points=point_array, grid=grid,
-                    point_cells=_to_warp(point_cells, "int32"), cell_counts=_to_warp(cell_counts, "int32"))
-    cell_offsets = torch.zeros(len(cell_counts) + 1, dtype=torch.int32, device=device)
-    torch.cumsum(cell_counts, 0, dtype=torch.int32, out=cell_offsets[1:])
-    cell_points = torch.empty(len(points), dtype=torch.int32, device=device)
-    launcher.launch(fill_cells_kernel, len(points), point_cells=_to_warp(point_cells, "int32"),
-                    cell_cursors=_to_warp(cell_offsets[:-1].clone(), "int32"),
-                    cell_points=_to_warp(cell_points, "int32"))
+    cell_offsets, cell_points = _points_by_cell(count_cells_kernel, point_array, grid, grid.cells_x * grid.cells_y,
+                                                device)
     nearest = torch.empty(len(queries), dtype=torch.int32, device=device)
     launcher.launch(nearest_in_grid_kernel, len(queries), queries=query_array, points=point_array, grid=grid,
                     cell_offsets=_to_warp(cell_offsets, "int32"), cell_points=_to_warp(cell_points, "int32"),
@@ -750,6 +761,7 @@ def nearest_points(queries: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
 # cells are empty: at 100k Gaussians and k = 316, 0.25 took 1.4-1.5 s, 2 took 2.0-2.1, 8 took 2.9, 32 took 4.0-4.3.
 KNN_POINTS_PER_CELL = 0.25
 KNN_BOX_QUANTILE = 0.01
+KNN_MAX_CELLS_PER_AXIS = 256
 # Queries per launch: each keeps its k nearest in a scratch row of k float64s (4096 x 316 neighbours: 10 MB), and a
 # launch's rows stay within KNN_SCRATCH_BYTES for any k; many chunks, so that the host threads finish together.
 KNN_CHUNK = 4096
@@ -784,23 +796,16 @@ def mean_neighbour_distances(points: torch.Tensor, k: int) -> torch.Tensor:
     margin = 0.5 * (high - low)
     low, high = low - margin, high + margin
     size = (high - low).clamp_min(1e-9)
-    cell = max(float(size.prod() * KNN_POINTS_PER_CELL / count) ** (1 / 3), float(size.max()) / 256, 1e-9)
+    cell = max(float(size.prod() * KNN_POINTS_PER_CELL / count) ** (1 / 3),
+               float(size.max()) / KNN_MAX_CELLS_PER_AXIS, 1e-9)
     grid = PointGrid3()
     grid.origin = wp.vec3d(*(float(v) for v in low))
     grid.cell = wp.float64(cell)
     grid.cells_x, grid.cells_y, grid.cells_z = (max(1, math.ceil(float(extent) / cell)) for extent in size)
     launcher = _launcher(device)
     point_array = _to_warp(points, "vec3")
-    point_cells = torch.empty(count, dtype=torch.int32, device=device)
-    cell_counts = torch.zeros(grid.cells_x * grid.cells_y * grid.cells_z, dtype=torch.int32, device=device)
-    launcher.launch(count_cells_3d_kernel, count, points=point_array, grid=grid,
-                    point_cells=_to_warp(point_cells, "int32"), cell_counts=_to_warp(cell_counts, "int32"))
-    cell_offsets = torch.zeros(len(cell_counts) + 1, dtype=torch.int32, device=device)
-    torch.cumsum(cell_counts, 0, dtype=torch.int32, out=cell_offsets[1:])
-    cell_points = torch.empty(count, dtype=torch.int32, device=device)
-    launcher.launch(fill_cells_kernel, count, point_cells=_to_warp(point_cells, "int32"),
-                    cell_cursors=_to_warp(cell_offsets[:-1].clone(), "int32"),
-                    cell_points=_to_warp(cell_points, "int32"))
+    cell_offsets, cell_points = _points_by_cell(count_cells_3d_kernel, point_array, grid,
+                                                grid.cells_x * grid.cells_y * grid.cells_z, device)
     means = torch.empty(count, dtype=torch.float64, device=device)
     arguments = dict(points=point_array, grid=grid, cell_offsets=_to_warp(cell_offsets, "int32"),
                      cell_points=_to_warp(cell_points, "int32"), k=k, mean_distances=_to_warp(means, "scalar"))
