@@ -15,7 +15,8 @@ Procrustes alignment. Variants:
     fixed-noisy   the same pipeline with the noisy poses frozen (GaussianObject's baseline)
     truth-start   bags started at the reference poses (no noise): where the method's own optimum sits on the scene
     frozen-orbit  bags with the orbit about the object centre held in every round (`camera.orbit_from_round`)
-    --ablations   bags with one part switched off in turn: no-centroid-start, no-silhouette (mask distance and
+    --ablations   bags with one part switched off in turn: no-centroid-start, no-coherence (no silhouette-
+                  coherence solve of the starting poses), no-silhouette (mask distance and
                   chamfer terms), no-precondition, camera-param (se(3) about the camera centre, no preconditioner),
                   poses-whole-round and poses-first-half (the pose window of each round, instead of from a quarter
                   of the round to its end), no-hypotheses (no turns of the worst-fit camera tried in round 2)
@@ -54,6 +55,7 @@ VARIANTS = {
     "bags": {},
     "fixed-noisy": dict(pose_opt=False),
     "no-centroid-start": dict(camera={"centroid_start": False}),
+    "no-coherence": dict(camera={"coherence_iters": 0}),
     "no-silhouette": dict(lambda_mask_distance=0.0, lambda_chamfer=0.0),
     "no-precondition": dict(camera={"precondition": False}),
     "camera-param": dict(camera={"parameterization": "camera", "precondition": False}),
@@ -66,7 +68,7 @@ VARIANTS = {
     # no search over turns of the worst-fit camera (`camera.hypotheses_round`)
     "no-hypotheses": dict(camera={"hypotheses_round": 0}),
 }
-ABLATIONS = ["no-centroid-start", "no-silhouette", "no-precondition", "camera-param", "poses-whole-round",
+ABLATIONS = ["no-centroid-start", "no-coherence", "no-silhouette", "no-precondition", "camera-param", "poses-whole-round",
              "poses-first-half", "no-hypotheses"]
 
 

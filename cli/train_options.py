@@ -64,6 +64,7 @@ TRAIN_OPTIONS = (
     ConfigOption("--fix-first-camera", "camera.fix_first_camera", sets=True,
                  help="Keep camera 0 at its given pose as the gauge (default: every camera is optimized; errors "
                       "after sim(3) alignment)."),
+    ConfigOption("--coherence-iters", "camera.coherence_iters"),
     ConfigOption("--camera-param", "camera.parameterization"),
     ConfigOption("--orbit-from-round", "camera.orbit_from_round"),
     ConfigOption("--round-anchor", "camera.round_anchor"),

@@ -100,6 +100,9 @@ class CameraConfig:
         precondition_reg: its damping r (CamP: 0.01-0.1).
         centroid_start: before anything else, turn each camera about its centre so that the ray through its mask
             centroid passes through the object centre (least-squares meeting point of those rays). Needs masks.
+        coherence_iters: after the mask-centroid start, L-BFGS iterations that solve the cameras for silhouette
+            coherence (every mask pixel's ray passes through the other views' silhouettes; `warpbags.silhouette`),
+            before any Gaussian is fitted; 0 = off. Needs masks and pose optimization.
         fix_first_camera: gauge; keep camera 0 at its starting pose (False: every camera is optimized and errors are
             measured after sim(3) alignment, the BAGS protocol).
         orbit_from_round: the object-centric orbit (wx, wy: the camera turned about the object centre, which stays
@@ -144,6 +147,7 @@ class CameraConfig:
     precondition: bool = True
     precondition_reg: float = 0.1
     centroid_start: bool = True
+    coherence_iters: int = 100
     fix_first_camera: bool = False
     orbit_from_round: int = 0
     round_anchor: float = 0.0
@@ -392,6 +396,8 @@ class TrainConfig:
             (0 <= self.camera.hypothesis_margin < 1,
              f"camera.hypothesis_margin must be in [0, 1), got {self.camera.hypothesis_margin}"),
             (self.camera.lbfgs_iters >= 1, f"camera.lbfgs_iters must be >= 1, got {self.camera.lbfgs_iters}"),
+            (self.camera.coherence_iters >= 0,
+             f"camera.coherence_iters must be >= 0, got {self.camera.coherence_iters}"),
             (self.pose_opt_start >= 0, f"--pose-opt-start must be >= 0, got {self.pose_opt_start}"),
             (_is_window(self.pose_round_window),
              f"pose_round_window must be (start, end) with 0 <= start < end <= 1, got {self.pose_round_window}"),

@@ -1,5 +1,6 @@
-"""Mask-based pose signals: the centroid start recovers pan/tilt errors, and the silhouette losses pull a camera whose
-render misses the mask entirely (where a per-pixel mask loss has no gradient)."""
+"""Mask-based pose signals: the centroid start recovers pan/tilt errors, silhouette coherence charges poses whose
+silhouettes disagree and its solve brings noisy cameras in, and the silhouette losses pull a camera whose render
+misses the mask entirely (where a per-pixel mask loss has no gradient)."""
 
 from __future__ import annotations
 
@@ -11,8 +12,10 @@ import torch
 import warpbags
 from warpbags.alignment import pose_errors
 from warpbags.camera_optimizer import CameraOptimizer, CameraOptimizerSettings, corrected_viewmats
+from warpbags.camera_setup import coherent_start
 from warpbags.cameras import project_points
 from warpbags.data import SyntheticOptions, ensure_synthetic_scene, load_scene
+from warpbags.data.noise import perturb_viewmats
 from warpbags.lie import so3_exp
 from warpbags.losses import mask_loss
 from warpbags.silhouette import SilhouetteTargets, centroid_start, nearest_distances, rays_meeting_point
@@ -60,6 +63,61 @@ def test_centroid_start_recovers_an_off_axis_camera(scene):
     assert after[2] < 0.35 * before[2], after
     assert after.max() < 4.5
     assert center.norm() < 0.3  # the synthetic object sits at the origin of the normalized world
+
+
+def _coherence_case(scene, count=4):
+    views = scene.subset(scene.train_views(count))
+    truth, Ks = views.viewmats.double(), views.Ks.double()
+    targets = SilhouetteTargets(views.masks)
+    center = torch.zeros(3, dtype=torch.float64)  # the synthetic object sits at the origin
+    return views, truth, Ks, targets, center, targets.object_radius(truth, Ks, center)
+
+
+def _turned(viewmats, camera, rotation_deg):
+    """Camera `camera` turned about the object centre (the origin) by [3] degrees in its own frame (z: roll)."""
+    turn = torch.zeros(len(viewmats), 6, dtype=torch.float64)
+    turn[camera, :3] = torch.deg2rad(torch.tensor(rotation_deg, dtype=torch.float64))
+    return corrected_viewmats("object", viewmats, turn, torch.zeros(len(viewmats), 3, dtype=torch.float64))
+
+
+def test_coherence_is_zero_at_the_true_poses_and_charges_a_rolled_camera(scene):
+    views, truth, Ks, targets, center, radius = _coherence_case(scene)
+    at_truth = targets.coherence_loss(truth, Ks, center, radius).item()
+    rolled = targets.coherence_loss(_turned(truth, 2, [0.0, 0.0, 10.0]), Ks, center, radius).item()
+    # Measured 3.0e-5 (masks rasterized at 96 px) against 7.8e-4 with one camera rolled by 10 deg.
+    assert at_truth < 6e-5
+    assert rolled > 10 * at_truth
+
+
+def test_coherence_pulls_a_camera_whose_rays_miss_the_other_silhouettes(scene):
+    views, truth, Ks, targets, center, radius = _coherence_case(scene)
+    # Camera 1 moved 1.5 units sideways (its x axis), not turned: no ray through its mask meets the object's region
+    # inside the other views' cones, so a per-pixel loss has nothing to say; the distances outside the masks do.
+    moved = truth.clone()
+    moved[1, 0, 3] -= 1.5
+    moved.requires_grad_(True)
+    loss = targets.coherence_loss(moved, Ks, center, radius)
+    loss.backward()
+    assert loss.item() > 0.05  # every ray misses by a good part of the image (measured 0.12)
+    assert moved.grad[1, 0, 3] < 0  # and descent pulls it back the way it came (t_x up again)
+    with torch.no_grad():
+        step = moved - 0.5 * moved.grad / moved.grad[1].norm()
+        assert targets.coherence_loss(step, Ks, center, radius) < loss
+
+
+def test_coherent_start_brings_noisy_cameras_in_before_any_gaussian_is_fitted(scene):
+    views, truth, Ks, targets, center, radius = _coherence_case(scene, count=6)
+    noisy = perturb_viewmats(truth, 15.0, 0.3, seed=1)
+    start, center = centroid_start(views.masks, noisy, views.Ks)
+    cameras = CameraOptimizer(start.float(), CameraOptimizerSettings(precondition=False), center.float())
+    before, after = coherent_start(cameras, views.masks, views.Ks, center.float(), iterations=100)
+    error = lambda viewmats: pose_errors(viewmats.double(), truth, alignment="procrustes")["rotation_error_deg_mean"]  # noqa: E731
+    assert after < 0.1 * before
+    # Every camera perturbed (15 deg / 0.3, free gauge): measured 6.87 deg after the centroid start and 2.79 after
+    # the coherence solve; the photometric terms take it from there.
+    assert error(start) > 6.0
+    assert error(cameras.viewmats()) < 0.6 * error(start)
+    assert torch.equal(cameras.rotations, torch.zeros_like(cameras.rotations))  # solved into the starting poses
 
 
 def _two_blobs(offset_px: float):

@@ -1,11 +1,12 @@
 """Where a fit's cameras start: the given poses (with the config's noise injected for experiments), the
-mask-centroid start, the object centre, and the `CameraOptimizer` built on them.
+mask-centroid start, the object centre, the `CameraOptimizer` built on them and its silhouette-coherence solve.
 
 The trainer starts every run here; the repair stage's leave-one-out fits build their (frozen) cameras the same way.
 """
 
 from __future__ import annotations
 
+import copy
 from collections.abc import Callable
 
 import torch
@@ -15,7 +16,7 @@ from warpbags.cameras import camera_centers
 from warpbags.configs.train import TrainConfig
 from warpbags.data.noise import PoseNoise, noisy_viewmats
 from warpbags.data.scene import Scene
-from warpbags.silhouette import centroid_start, rays_meeting_point
+from warpbags.silhouette import SilhouetteTargets, centroid_start, rays_meeting_point
 
 
 def given_viewmats(scene: Scene, config: TrainConfig) -> torch.Tensor:
@@ -54,3 +55,35 @@ def training_cameras(config: TrainConfig, viewmats: torch.Tensor, object_center:
     settings = CameraOptimizerSettings.from_config(config.camera, lr=config.lr.pose,
                                                    translation_scale=config.lr.pose_translation_scale)
     return CameraOptimizer(viewmats, settings, object_center, Ks, width, height, points)
+
+
+def coherent_start(cameras: CameraOptimizer, masks: torch.Tensor, Ks: torch.Tensor, object_center: torch.Tensor,
+                   iterations: int) -> tuple[float, float]:
+    """Solve every camera of `cameras` for silhouette coherence with the others (`SilhouetteTargets.coherence_loss`)
+    by L-BFGS, and make that its starting pose (`CameraOptimizer.rebase`: corrections and moments at zero).
+
+    The mask-centroid start leaves each camera's roll and centre where the noise put them; the masks of the other
+    views still constrain them, before any Gaussian is fitted. The solve runs on a float64 copy (L-BFGS's line
+    search on a loss of ~1e-4 needs the digits).
+
+    Args:
+        cameras: the fit's camera optimizer (its parameterization, gauge and preconditioner are used).
+        masks: [C, H, W] in [0, 1]. Ks: [C, 3, 3] at the masks' resolution. object_center: [3].
+        iterations: L-BFGS iterations.
+
+    Returns:
+        (the coherence loss before, after), in image sizes.
+    """
+    targets = SilhouetteTargets(masks).to(masks.device)
+    solver = copy.deepcopy(cameras).double()
+    Ks, center = Ks.double(), object_center.double()
+    radius = targets.object_radius(solver.viewmats(), Ks, center)
+    with torch.no_grad():
+        before = float(targets.coherence_loss(solver.viewmats(), Ks, center, radius))
+    solver.refine(lambda viewmats: targets.coherence_loss(viewmats, Ks, center, radius), iterations)
+    solved = solver.viewmats()
+    with torch.no_grad():
+        after = float(targets.coherence_loss(solved, Ks, center, radius))
+        cameras.viewmats_init.copy_(solved.to(cameras.viewmats_init))
+    cameras.rebase()
+    return before, after

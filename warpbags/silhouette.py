@@ -11,6 +11,10 @@ degrees off can miss the object entirely. These terms reach further:
 - `SilhouetteTargets.chamfer_loss`: a two-sided chamfer between projected object points (Gaussian centres) and the
   mask's edge pixels, in image sizes: points outside the mask are pulled in, and every edge pixel pulls the nearest
   point, so the projection comes to fill the silhouette. It needs no rasterization at all.
+- `SilhouetteTargets.coherence_loss`: silhouette coherence, a property of the poses and masks alone: the ray
+  through every mask pixel of one view must pass through the other views' silhouette cones somewhere, as it does
+  at the true poses (the visual hull of all views then projects onto each mask). Each ray is charged the least,
+  over points along it, of the summed distances outside the other masks, so it pulls from any distance.
 """
 
 from __future__ import annotations
@@ -25,6 +29,8 @@ from warpbags.lie import so3_exp
 from warpbags.wrapper import nearest_points
 
 EDGE_POINTS = 300  # mask edge pixels per view for the chamfer (NeRS's count)
+COHERENCE_GRID = 64  # silhouette coherence: rays through mask pixels of a grid of about this many per image side
+COHERENCE_SAMPLES = 96  # points per ray, spread over the object's depth range
 
 
 def nearest_distances(queries: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
@@ -124,7 +130,7 @@ class SilhouetteTargets:
     def __init__(self, masks: torch.Tensor):
         self.height, self.width = masks.shape[1:]
         self.size = float(max(self.width, self.height))
-        outside, edges = [], []
+        outside, edges, foreground = [], [], []
         for mask in (masks.detach().cpu().numpy() > 0.5).astype(np.uint8):
             # Distance (pixels) from each pixel outside the mask to the nearest mask pixel; 0 inside.
             outside.append(cv2.distanceTransform(1 - mask, cv2.DIST_L2, 5))
@@ -133,12 +139,17 @@ class SilhouetteTargets:
             pick = np.linspace(0, len(xs) - 1, min(EDGE_POINTS, len(xs))).astype(int) if len(xs) else []
             edges.append(torch.tensor(np.stack([xs[pick] + 0.5, ys[pick] + 0.5], -1) if len(xs) else np.zeros((0, 2)),
                                       dtype=torch.float32))
+            step = max(1, round(self.size / COHERENCE_GRID))
+            ys, xs = np.nonzero(mask[::step, ::step])
+            foreground.append(torch.tensor(np.stack([xs * step + 0.5, ys * step + 0.5], -1), dtype=torch.float32))
         self.outside_distance = torch.from_numpy(np.stack(outside)).float() / self.size  # [C, H, W], image sizes
         self.edges = edges  # per view [E, 2] pixel coordinates
+        self.foreground = foreground  # per view [F, 2] pixel coordinates of mask pixels on a coarse grid
 
     def to(self, device: torch.device) -> SilhouetteTargets:
         self.outside_distance = self.outside_distance.to(device)
         self.edges = [edge.to(device) for edge in self.edges]
+        self.foreground = [pixels.to(device) for pixels in self.foreground]
         return self
 
     def distance_loss(self, alphas: torch.Tensor, views: torch.Tensor) -> torch.Tensor:
@@ -185,3 +196,69 @@ class SilhouetteTargets:
             nearest = nearest_distances(edge.to(projected), projected) / self.size
             losses.append(point_to_mask[b] + nearest.mean())
         return torch.stack(losses).mean()
+
+    def object_radius(self, viewmats: torch.Tensor, Ks: torch.Tensor, center: torch.Tensor) -> float:
+        """A radius about the [3] object `center` that holds the object: 1.5 times the largest half-extent of a
+        mask's bounding box, turned into scene units at that camera's distance from the centre."""
+        distances = (camera_centers(viewmats) - center).norm(dim=-1)
+        radii = [0.0]
+        for view, pixels in enumerate(self.foreground):
+            if len(pixels):
+                half_extent = float((pixels.max(0).values - pixels.min(0).values).max()) / 2
+                radii.append(half_extent / float(Ks[view, 0, 0]) * float(distances[view]))
+        return 1.5 * max(radii)
+
+    def coherence_loss(self, viewmats: torch.Tensor, Ks: torch.Tensor, center: torch.Tensor,
+                       radius: float) -> torch.Tensor:
+        """Silhouette coherence of all C cameras: the mean, over views and their mask pixels, of how far the pixel's
+        ray misses the other views' silhouette cones (image sizes; 0 where it passes through all of them).
+
+        A ray is sampled at `COHERENCE_SAMPLES` depths within `radius` of the [3] object `center`; each point is
+        charged the sum over the other views of its distance outside their masks (the distance transform; beyond
+        the image border, plus the distance to it), and the ray the least of those. With exact masks it is 0 at
+        the true poses. It is one-sided, so it fixes fewer degrees of freedom than a pose has (four views 90 deg
+        apart leave a set of coherent poses a few degrees wide): a start for the photometric terms, not an answer.
+
+        Args:
+            viewmats: [C, 4, 4] world-to-camera of every view (differentiable). Ks: [C, 3, 3].
+            center: [3] object centre. radius: the depth range's half-width about it (`object_radius`).
+        """
+        cams = len(viewmats)
+        dtype, device = viewmats.dtype, viewmats.device
+        Ks = Ks.to(dtype)
+        centers = camera_centers(viewmats)
+        offsets = torch.linspace(-radius, radius, COHERENCE_SAMPLES, dtype=dtype, device=device)
+        misses = []
+        for view in range(cams):
+            pixels = self.foreground[view].to(dtype)
+            if len(pixels) == 0 or cams < 2:
+                continue
+            K = Ks[view]
+            camera_rays = torch.stack([(pixels[:, 0] - K[0, 2]) / K[0, 0], (pixels[:, 1] - K[1, 2]) / K[1, 1],
+                                       torch.ones_like(pixels[:, 0])], dim=-1)
+            depths = (center.to(dtype) - centers[view]).norm() + offsets  # along the optical axis
+            with torch.no_grad():  # where along the ray the least is: min's gradient reaches that point alone
+                rays = (camera_rays @ viewmats[view, :3, :3]).float()
+                points = centers[view].float() + rays[:, None] * depths.float()[None, :, None]  # [F, S, 3]
+                outside = self._outside_other_views(points.reshape(-1, 3), view, viewmats.float(), Ks.float())
+                least = outside.reshape(points.shape[:2]).argmin(dim=1)
+            # the samples' depths move with the camera centre, and so does the chosen one (the gradient of the min)
+            points = centers[view] + (camera_rays @ viewmats[view, :3, :3]) * depths[least][:, None]
+            misses.append(self._outside_other_views(points, view, viewmats, Ks).mean())
+        if not misses:
+            return viewmats.sum() * 0
+        return torch.stack(misses).mean()
+
+    def _outside_other_views(self, points: torch.Tensor, view: int, viewmats: torch.Tensor,
+                             Ks: torch.Tensor) -> torch.Tensor:
+        """[N] the sum over every view but `view` of the distance of [N, 3] world points outside its mask, in image
+        sizes (beyond the image border: the border's distance plus the distance to it)."""
+        scale = torch.tensor([self.width, self.height], dtype=points.dtype, device=points.device) / 2
+        others = [other for other in range(len(viewmats)) if other != view]
+        projected, _ = project_points(viewmats[others], Ks[others], points)  # [C-1, N, 2]
+        grid = projected / scale - 1
+        inside_grid = grid.clamp(-1, 1)
+        sampled = F.grid_sample(self.outside_distance[others][:, None].to(points.dtype), inside_grid[:, :, None],
+                                mode="bilinear", align_corners=False)[:, 0, :, 0]
+        beyond = ((grid - inside_grid) * scale).norm(dim=-1) / self.size
+        return (sampled + beyond).sum(0)

@@ -31,7 +31,7 @@ import torch
 
 from warpbags.alignment import alignment_for, pose_errors
 from warpbags.camera_optimizer import hypothesis_turns
-from warpbags.camera_setup import given_viewmats, starting_poses, training_cameras
+from warpbags.camera_setup import coherent_start, given_viewmats, starting_poses, training_cameras
 from warpbags.configs.train import TrainConfig
 from warpbags.data.scene import Scene
 from warpbags.devices import torch_device
@@ -91,6 +91,12 @@ class Trainer:
         views = self.model.training_views
         self.cameras = training_cameras(config, self.viewmats_start, self.object_center, views.Ks, views.scene.width,
                                         views.scene.height, self.model.params["means"].detach())
+        if config.pose_opt and full.masks is not None and config.camera.coherence_iters > 0:
+            before, after = coherent_start(self.cameras, full.masks, full.Ks, self.object_center,
+                                           config.camera.coherence_iters)
+            self.log(f"silhouette coherence of the starting poses: {before:.2e} -> {after:.2e}")
+            self.viewmats_start = self.cameras.viewmats()
+            self.model = self._fresh_model(self.viewmats_start)  # carved again, with the coherent poses
         self.repair_stage: RepairStage | None = None  # built when the repair stage first uses pseudo views
         self._repair_state: dict | None = None  # its checkpointed state, applied when it is built
         self._stop_requested = False
