@@ -63,8 +63,8 @@ def coherent_start(cameras: CameraOptimizer, masks: torch.Tensor, Ks: torch.Tens
     by L-BFGS, and make that its starting pose (`CameraOptimizer.rebase`: corrections and moments at zero).
 
     The mask-centroid start leaves each camera's roll and centre where the noise put them; the masks of the other
-    views still constrain them, before any Gaussian is fitted. The solve runs on a float64 copy (L-BFGS's line
-    search on a loss of ~1e-4 needs the digits).
+    views still constrain them, before any Gaussian is fitted. The solve runs on a float64 copy: the loss falls to
+    1e-5 of an image size, and L-BFGS's line search compares such values.
 
     Args:
         cameras: the fit's camera optimizer (its parameterization, gauge and preconditioner are used).
