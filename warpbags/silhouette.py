@@ -229,21 +229,20 @@ class SilhouetteTargets:
         centers = camera_centers(viewmats)
         offsets = torch.linspace(-radius, radius, COHERENCE_SAMPLES, dtype=dtype, device=device)
         misses = []
-        for view in range(cams):
+        for view in range(cams if cams > 1 else 0):
             pixels = self.foreground[view].to(dtype)
-            if len(pixels) == 0 or cams < 2:
+            if len(pixels) == 0:
                 continue
             K = Ks[view]
-            camera_rays = torch.stack([(pixels[:, 0] - K[0, 2]) / K[0, 0], (pixels[:, 1] - K[1, 2]) / K[1, 1],
-                                       torch.ones_like(pixels[:, 0])], dim=-1)
+            rays = torch.stack([(pixels[:, 0] - K[0, 2]) / K[0, 0], (pixels[:, 1] - K[1, 2]) / K[1, 1],
+                                torch.ones_like(pixels[:, 0])], dim=-1) @ viewmats[view, :3, :3]  # world, unit depth
             depths = (center.to(dtype) - centers[view]).norm() + offsets  # along the optical axis
             with torch.no_grad():  # where along the ray the least is: min's gradient reaches that point alone
-                rays = (camera_rays @ viewmats[view, :3, :3]).float()
-                points = centers[view].float() + rays[:, None] * depths.float()[None, :, None]  # [F, S, 3]
+                points = centers[view].float() + rays.float()[:, None] * depths.float()[None, :, None]  # [F, S, 3]
                 outside = self._outside_other_views(points.reshape(-1, 3), view, viewmats.float(), Ks.float())
                 least = outside.reshape(points.shape[:2]).argmin(dim=1)
             # the samples' depths move with the camera centre, and so does the chosen one (the gradient of the min)
-            points = centers[view] + (camera_rays @ viewmats[view, :3, :3]) * depths[least][:, None]
+            points = centers[view] + rays * depths[least][:, None]
             misses.append(self._outside_other_views(points, view, viewmats, Ks).mean())
         if not misses:
             return viewmats.sum() * 0
