@@ -27,11 +27,13 @@ def evaluate(
     ),
     refine_iters: int = typer.Option(
         100, "--refine-iters", help="Test-time pose refinement: L-BFGS iterations per held-out view (0 = off)."),
+    device: str = typer.Option("cpu", "--device", help="cpu or cuda: where held-out views are rendered and refined."),
 ) -> None:
     """Render held-out views, compare with ground truth (PSNR/SSIM/FLIP/LPIPS) and measure camera-pose errors."""
     run_dir = run_dir or latest_run()
     alignment = "procrustes" if procrustes else "pairwise"
-    result = evaluate_run(run_dir, alignment=alignment, refine_iters=refine_iters, log=stdout.print)
+    result = evaluate_run(run_dir, alignment=alignment, refine_iters=refine_iters, device=device,
+                          log=stdout.print)
 
     title = (f"training-camera pose error ({result['views']} views)" if result["pose_noise_injected"] else
              f"training cameras against the scene's own poses ({result['views']} views; no noise was injected, so "

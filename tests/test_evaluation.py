@@ -253,6 +253,22 @@ def test_eval_of_a_folder_that_is_not_a_run_is_one_line(tmp_path):
     assert len(result.output.strip().splitlines()) == 1 and "not a training run" in result.output
 
 
+@pytest.mark.parametrize("device, message", [("tpu", "--device must be cpu or cuda, got 'tpu'"),
+                                             ("cuda", "--device cuda: no CUDA device is available")])
+def test_eval_on_a_device_it_cannot_use_is_one_line_and_writes_nothing(finished_run, tmp_path, device, message):
+    if device == "cuda" and torch.cuda.is_available():
+        pytest.skip("this machine has a CUDA device")
+    run = tmp_path / "run"
+    shutil.copytree(finished_run, run)
+    for earlier in ("eval.json", "report.md"):
+        (run / earlier).unlink(missing_ok=True)
+    shutil.rmtree(run / "eval", ignore_errors=True)
+    result = runner.invoke(app, ["eval", str(run), "--device", device])
+    assert result.exit_code == 2
+    assert result.output.strip().splitlines() == [f"error: {message}"]
+    assert not (run / "eval.json").exists() and not (run / "eval").exists()
+
+
 def test_eval_of_an_unfinished_run_names_the_missing_file(finished_run, tmp_path):
     partial = tmp_path / "partial"
     partial.mkdir()

@@ -32,6 +32,7 @@ from warpbags.alignment import align_viewmats, alignment_for, centre_floor_error
 from warpbags.camera_optimizer import CameraOptimizer, CameraOptimizerSettings
 from warpbags.configs.train import TrainConfig
 from warpbags.data import ORBIT_RADIUS, Scene, SceneNormalization, load_scene
+from warpbags.devices import torch_device
 from warpbags.errors import WarpbagsError
 from warpbags.files import atomic_output
 from warpbags.gaussians import read_ply, render_gaussians, sh_degree_of
@@ -155,7 +156,7 @@ def refine_poses(params, viewmats, Ks, targets, width, height, sh_degree, iters:
     weights = torch.sigmoid(frozen["opacities"])[:, None]
     center = (frozen["means"] * weights).sum(0) / weights.sum().clamp_min(1e-12)
     cameras = CameraOptimizer(viewmats, settings, center, Ks, width, height, frozen["means"])
-    background = torch.ones(1, 3)
+    background = torch.ones(1, 3, device=viewmats.device)
 
     def loss_of_view(view: int):
         def loss(corrected: torch.Tensor) -> torch.Tensor:
@@ -241,7 +242,7 @@ def _save_comparison(path: Path, target: torch.Tensor, image: torch.Tensor) -> N
 
 
 @torch_threads(1)  # Warp's host threads render; torch's OpenMP workers would fight them
-def evaluate_run(path: str | Path, *, alignment: str = "procrustes", refine_iters: int = 100,
+def evaluate_run(path: str | Path, *, alignment: str = "procrustes", refine_iters: int = 100, device: str = "cpu",
                  log=print) -> dict:
     """Evaluate a run folder; writes eval.json, eval/<view>.png (truth | render | error) and report.md into it.
 
@@ -249,6 +250,8 @@ def evaluate_run(path: str | Path, *, alignment: str = "procrustes", refine_iter
         path: the run folder.
         alignment: how test cameras are mapped into the model's frame: "procrustes" or "pairwise".
         refine_iters: test-time pose refinement iterations per held-out view (0 = none).
+        device: where the held-out views are rendered and their poses refined: "cpu" or "cuda" (the metrics are
+            computed on the CPU).
 
     Returns:
         The eval.json content.
@@ -257,6 +260,7 @@ def evaluate_run(path: str | Path, *, alignment: str = "procrustes", refine_iter
         raise WarpbagsError(f"alignment must be one of {', '.join(ALIGNMENTS)}, got {alignment!r}")
     if refine_iters < 0:
         raise WarpbagsError(f"--refine-iters must be >= 0, got {refine_iters}")
+    on = torch_device(device)
     run = load_run(path)
     test = held_out_views(run)
     if alignment_for(len(run.poses_final), alignment) != alignment:  # as the trainer's pose errors do
@@ -279,11 +283,13 @@ def evaluate_run(path: str | Path, *, alignment: str = "procrustes", refine_iter
     if flip_metric.unavailable:
         log(f"FLIP unavailable ({flip_metric.unavailable}); reported as null")
 
+    params, Ks = {name: value.to(on) for name, value in run.params.items()}, test.Ks.to(on)
+
     def render(viewmats):
         with torch.no_grad():
-            images, _, _ = render_gaussians(run.params, viewmats, test.Ks, test.width, test.height,
-                                            sh_degree=sh_degree, backgrounds=torch.ones(len(viewmats), 3))
-        return images
+            images, _, _ = render_gaussians(params, viewmats.to(on), Ks, test.width, test.height,
+                                            sh_degree=sh_degree, backgrounds=torch.ones(len(viewmats), 3, device=on))
+        return images.cpu()
 
     images = render(test_viewmats)
     result = {
@@ -302,7 +308,7 @@ def evaluate_run(path: str | Path, *, alignment: str = "procrustes", refine_iter
     }
     if refine_iters > 0:
         settings = CameraOptimizerSettings.from_config(run.config.camera)
-        refined = refine_poses(run.params, test_viewmats, test.Ks, targets, test.width, test.height, sh_degree,
+        refined = refine_poses(params, test_viewmats.to(on), Ks, targets.to(on), test.width, test.height, sh_degree,
                                refine_iters, settings=settings)
         images = render(refined)
         result["images_after_test_pose_refinement"] = {"iters": refine_iters,

@@ -1,0 +1,57 @@
+"""scripts/demo.sh passes its extra arguments to `warpbags train` and evaluates the run that training wrote, on the
+device it trained on (the warpbags commands replaced by a stub that records them)."""
+
+from __future__ import annotations
+
+import shutil
+import subprocess
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _demo_commands(tmp_path: Path, *args: str) -> list[list[str]]:
+    """Run a copy of demo.sh whose setup puts a stub `warpbags` first on PATH; returns the commands it ran."""
+    scripts = tmp_path / "scripts"
+    scripts.mkdir()
+    shutil.copy(ROOT / "scripts" / "demo.sh", scripts / "demo.sh")
+    stub_bin = tmp_path / "bin"
+    stub_bin.mkdir()
+    log = tmp_path / "commands.txt"
+    stub = stub_bin / "warpbags"
+    stub.write_text(f'#!/usr/bin/env bash\nprintf "%s\\t" "$@" >> "{log}"\necho >> "{log}"\n')
+    stub.chmod(0o755)
+    (scripts / "setup.sh").write_text(f'set -euo pipefail\nexport PATH="{stub_bin}:$PATH"\n')
+    subprocess.run(["bash", str(scripts / "demo.sh"), *args], check=True, cwd=tmp_path, timeout=60)
+    return [line.rstrip("\t").split("\t") for line in log.read_text().splitlines()]
+
+
+def _last_out(arguments: list[str]) -> str | None:
+    """The --out value a command line ends up with (the last one given, as click takes it)."""
+    value = None
+    for index, argument in enumerate(arguments):
+        if argument == "--out":
+            value = arguments[index + 1]
+        elif argument.startswith("--out="):
+            value = argument.removeprefix("--out=")
+    return value
+
+
+@pytest.mark.parametrize("extra, out, device", [
+    ((), None, "cpu"),
+    (("--out", "elsewhere", "--device", "cuda"), "elsewhere", "cuda"),
+    (("--out=elsewhere", "--device=cuda", "--iters", "10"), "elsewhere", "cuda"),
+])
+def test_demo_evaluates_the_folder_and_device_training_used(tmp_path, extra, out, device):
+    train, evaluate = _demo_commands(tmp_path, *extra)
+    assert train[:2] == ["train", "maryrose"]
+    assert train[len(train) - len(extra):] == list(extra)
+    trained_into = _last_out(train)
+    if out is None:
+        assert trained_into.startswith("runs/maryrose-4v-demo-")
+    else:
+        assert trained_into == out
+    assert evaluate[:2] == ["eval", trained_into]
+    assert evaluate[evaluate.index("--device") + 1] == device
