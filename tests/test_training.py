@@ -226,6 +226,22 @@ def test_resume_equals_uninterrupted(scene_dir, tmp_path, rounds):
     np.testing.assert_allclose(resumed_history.viewmats[[0, 2]], full_history.viewmats, rtol=0, atol=1e-6)
 
 
+def test_a_resumed_run_does_not_solve_its_starting_poses_again(scene_dir, tmp_path):
+    """The checkpoint holds the solved starting poses: resuming neither repeats the silhouette-coherence solve nor
+    changes the poses it restores."""
+    config = tiny_config(iters=8, checkpoint_every=4)
+    scene = training_scene(load_scene(scene_dir, name="tiny"), config)
+    lines = []
+    first = start_or_resume(scene, config, tmp_path, log=lines.append)
+    assert sum("silhouette coherence of the starting poses" in line for line in lines) == 1
+    first.train(stop_at=4)
+    lines.clear()
+    resumed = start_or_resume(scene, config, tmp_path, resume=True, log=lines.append)
+    assert resumed.iteration == 4 and not any("silhouette coherence" in line for line in lines), lines
+    torch.testing.assert_close(resumed.viewmats_start, first.viewmats_start, rtol=0, atol=0)
+    torch.testing.assert_close(resumed.current_viewmats(), first.current_viewmats(), rtol=0, atol=0)
+
+
 def test_a_checkpoint_at_a_rounds_start_resumes_at_the_last_rounds_resolution(scene_dir, tmp_path):
     """With a pyramid over the rounds, the Gaussians saved at a round's start were trained at the round before's
     level: a resumed trainer holds them with those training views until the next step starts the round (which is

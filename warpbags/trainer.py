@@ -55,10 +55,13 @@ class Trainer:
         device: "cpu" or "cuda".
         viewmats_init: [C,4,4] starting poses; default: the true poses with the config's noise injected.
         log: callable receiving a one-line notice (e.g. "no depth maps: depth term skipped").
+        resuming: the state comes from a checkpoint next (`resume`): the silhouette-coherence solve of the starting
+            poses, whose result the checkpoint holds, is skipped.
     """
 
     def __init__(self, scene: Scene, config: TrainConfig, out_dir: str | Path, device: str = "cpu",
-                 viewmats_init: torch.Tensor | None = None, log: Callable[[str], None] = print):
+                 viewmats_init: torch.Tensor | None = None, log: Callable[[str], None] = print,
+                 resuming: bool = False):
         self.device = torch_device(device)
         if config.repair.iters > 0:
             repairer_factory(config.repair.repairer)  # a bad --repairer fails now, not after the coarse stage
@@ -91,7 +94,7 @@ class Trainer:
         views = self.model.training_views
         self.cameras = training_cameras(config, self.viewmats_start, self.object_center, views.Ks, views.scene.width,
                                         views.scene.height, self.model.params["means"].detach())
-        if config.pose_opt and full.masks is not None and config.camera.coherence_iters > 0:
+        if config.pose_opt and full.masks is not None and config.camera.coherence_iters > 0 and not resuming:
             before, after = coherent_start(self.cameras, full.masks, full.Ks, self.object_center,
                                            config.camera.coherence_iters)
             self.log(f"silhouette coherence of the starting poses: {before:.2e} -> {after:.2e}")
@@ -500,7 +503,7 @@ def start_or_resume(scene: Scene, config: TrainConfig, out_dir: str | Path, devi
             raise WarpbagsError(f"--resume: {out_dir} holds a run of the scene in {run_root}, not of {scene_root}")
     elif run_folder.has_checkpoint():
         raise WarpbagsError(f"{out_dir} already holds a run; pass --resume to continue it or choose another --out")
-    trainer = Trainer(scene, config, out_dir, device=device, log=log)
+    trainer = Trainer(scene, config, out_dir, device=device, log=log, resuming=resume)
     if resume:
         trainer.resume()
     else:
