@@ -176,15 +176,8 @@ class SilhouetteTargets:
         """
         pixels, depths = project_points(viewmats, Ks, points)
         in_front = (depths > 1e-3).to(points.dtype)
-        grid = torch.stack([pixels[..., 0] / self.width * 2 - 1, pixels[..., 1] / self.height * 2 - 1], dim=-1)
-        # Points beyond the image border get the border's distance plus their distance to it.
-        inside_grid = grid.clamp(-1, 1)
-        sampled = F.grid_sample(self.outside_distance[views][:, None].to(points.dtype), inside_grid[:, :, None],
-                                mode="bilinear", align_corners=False)[:, 0, :, 0]
-        beyond = ((grid - inside_grid) * torch.tensor([self.width, self.height], dtype=points.dtype,
-                                                      device=points.device) / 2).norm(dim=-1) / self.size
         weight = weights[None] * in_front
-        point_to_mask = ((sampled + beyond) * weight).sum(-1) / weight.sum(-1).clamp_min(1e-12)
+        point_to_mask = (self._outside_mask(pixels, views) * weight).sum(-1) / weight.sum(-1).clamp_min(1e-12)
         solid = (weights > 0.1)
         losses = []
         for b, view in enumerate(views.tolist()):
@@ -251,13 +244,19 @@ class SilhouetteTargets:
     def _outside_other_views(self, points: torch.Tensor, view: int, viewmats: torch.Tensor,
                              Ks: torch.Tensor) -> torch.Tensor:
         """[N] the sum over every view but `view` of the distance of [N, 3] world points outside its mask, in image
-        sizes (beyond the image border: the border's distance plus the distance to it)."""
-        scale = torch.tensor([self.width, self.height], dtype=points.dtype, device=points.device) / 2
+        sizes (`_outside_mask`)."""
         others = [other for other in range(len(viewmats)) if other != view]
         projected, _ = project_points(viewmats[others], Ks[others], points)  # [C-1, N, 2]
-        grid = projected / scale - 1
+        return self._outside_mask(projected, torch.tensor(others, device=points.device)).sum(0)
+
+    def _outside_mask(self, pixels: torch.Tensor, views: torch.Tensor) -> torch.Tensor:
+        """[B, N] the distance (image sizes) of [B, N, 2] pixel positions outside the masks of views [B], bilinear in
+        the distance transform; beyond the image border, the border's distance plus the distance to it, so that a
+        projection off the image is still pulled back."""
+        scale = torch.tensor([self.width, self.height], dtype=pixels.dtype, device=pixels.device) / 2
+        grid = pixels / scale - 1
         inside_grid = grid.clamp(-1, 1)
-        sampled = F.grid_sample(self.outside_distance[others][:, None].to(points.dtype), inside_grid[:, :, None],
+        sampled = F.grid_sample(self.outside_distance[views][:, None].to(pixels.dtype), inside_grid[:, :, None],
                                 mode="bilinear", align_corners=False)[:, 0, :, 0]
         beyond = ((grid - inside_grid) * scale).norm(dim=-1) / self.size
-        return (sampled + beyond).sum(0)
+        return sampled + beyond
