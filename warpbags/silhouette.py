@@ -251,8 +251,10 @@ class SilhouetteTargets:
 
     def _outside_mask(self, pixels: torch.Tensor, views: torch.Tensor) -> torch.Tensor:
         """[B, N] the distance (image sizes) of [B, N, 2] pixel positions outside the masks of views [B], bilinear in
-        the distance transform; beyond the image border, the border's distance plus the distance to it, so that a
-        projection off the image is still pulled back."""
+        the distance transform; beyond the image border, the distance sampled at the clamped border plus the
+        distance to it, so that a projection off the image is still pulled back. (At the clamped border
+        `grid_sample`'s zero padding halves the border pixel's distance; the chamfer's measured results rest on
+        that, docs/pose-recovery.md.)"""
         scale = torch.tensor([self.width, self.height], dtype=pixels.dtype, device=pixels.device) / 2
         grid = pixels / scale - 1
         inside_grid = grid.clamp(-1, 1)
