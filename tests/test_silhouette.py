@@ -195,6 +195,23 @@ def test_chamfer_term_brings_a_missed_mask_into_view():
     assert case.overlap(case.cameras.viewmats()) > 0.5  # the render now covers most of the mask
 
 
+def test_distance_outside_a_mask_beyond_the_frame_adds_the_way_back_to_the_border():
+    # A mask whose left edge is 20 px from the image's left border: a point 8 px beyond that border is 28 px from
+    # it (the border pixel's distance, 20 px, plus 8 to the border), and the distance runs on continuously from
+    # inside the image. Zero padding charged it 18 px (half the border pixel's distance, plus 8).
+    mask = torch.zeros(1, 40, 64)
+    mask[:, 10:30, 20:44] = 1
+    targets = SilhouetteTargets(mask)
+    border_distance = float(targets.outside_distance[0, 20, 0]) * targets.size
+    pixels = torch.tensor([[[-8.0, 20.5], [0.0, 20.5], [0.5, 20.5], [2.5, 20.5]]])
+    distances = targets._outside_mask(pixels, torch.tensor([0]))[0] * targets.size
+    assert border_distance == pytest.approx(20, abs=0.1)
+    assert distances[0].item() == pytest.approx(border_distance + 8, abs=1e-3)
+    assert distances[1].item() == pytest.approx(border_distance, abs=1e-3)  # the edge itself: not halved
+    assert distances[2].item() == pytest.approx(border_distance, abs=1e-3)  # the border pixel's centre
+    assert distances[3].item() == pytest.approx(border_distance - 2, abs=0.1)
+
+
 def test_nearest_distances_are_the_brute_force_minimum_with_its_gradient():
     generator = torch.Generator().manual_seed(0)
     queries = (100 * torch.rand(40, 2, generator=generator, dtype=torch.float64)).requires_grad_()

@@ -251,14 +251,15 @@ class SilhouetteTargets:
 
     def _outside_mask(self, pixels: torch.Tensor, views: torch.Tensor) -> torch.Tensor:
         """[B, N] the distance (image sizes) of [B, N, 2] pixel positions outside the masks of views [B], bilinear in
-        the distance transform; beyond the image border, the distance sampled at the clamped border plus the
-        distance to it, so that a projection off the image is still pulled back. (At the clamped border
-        `grid_sample`'s zero padding halves the border pixel's distance; the chamfer's measured results rest on
-        that, docs/pose-recovery.md.)"""
+        the distance transform; beyond the image border, the distance at the nearest point of the border plus the
+        distance to it, so that a projection off the image is still pulled back.
+
+        Border padding: between the outermost pixel centres and the image edge (and so at every clamped point) the
+        distance is the outermost pixel's; zero padding would blend in a zero there (half of it at the edge)."""
         scale = torch.tensor([self.width, self.height], dtype=pixels.dtype, device=pixels.device) / 2
         grid = pixels / scale - 1
         inside_grid = grid.clamp(-1, 1)
         sampled = F.grid_sample(self.outside_distance[views][:, None].to(pixels.dtype), inside_grid[:, :, None],
-                                mode="bilinear", align_corners=False)[:, 0, :, 0]
+                                mode="bilinear", padding_mode="border", align_corners=False)[:, 0, :, 0]
         beyond = ((grid - inside_grid) * scale).norm(dim=-1) / self.size
         return sampled + beyond
