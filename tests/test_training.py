@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import shutil
@@ -18,6 +19,7 @@ from warpbags.data import SyntheticOptions, ensure_synthetic_scene, load_scene
 from warpbags.errors import WarpbagsError
 from warpbags import run_folder
 from warpbags.losses import depth_loss, ssim
+from warpbags.model import camera_viewmats
 from warpbags.pose_history import read_pose_history
 from warpbags.strategy import replace_rows
 from warpbags.schedule import Schedule
@@ -173,6 +175,27 @@ def test_round_anchor_holds_later_rounds_near_their_start(scene_dir, tmp_path):
         moved[anchor] = (trainer.current_viewmats() - start).abs().max().item()
     assert moved[0.0] > 0
     assert moved[1e4] < 0.2 * moved[0.0]
+
+
+def test_the_chamfer_computed_beside_the_render_is_the_steps_own(scene_dir, tmp_path):
+    # GaussianModel.loss computes the silhouette chamfer on a side thread while it renders: the term must be the
+    # chamfer of the step's poses and Gaussians, with its gradient in the poses.
+    trainer = make_trainer(scene_dir, tmp_path / "run", lambda_chamfer=1.0)
+    model, views = trainer.model, torch.tensor([1])
+    settings = trainer.schedule.at(trainer.config.pose_opt_start)
+    assert settings.silhouette and settings.pose_active
+    viewmats = camera_viewmats(trainer.cameras, views, pose_grad=True)
+    loss, terms, _ = model.loss(views, viewmats, settings)
+    data = model.training_views
+    inline = data.silhouettes.chamfer_loss(model.params["means"], torch.sigmoid(model.params["opacities"]), viewmats,
+                                           data.Ks[views], views)
+    assert terms["chamfer"] == inline.item() > 0
+    loss.backward()
+    with_chamfer = trainer.cameras.rotations.grad.clone()
+    trainer.cameras.zero_grad()
+    model.config = dataclasses.replace(model.config, lambda_chamfer=0.0)
+    model.loss(views, camera_viewmats(trainer.cameras, views, pose_grad=True), settings)[0].backward()
+    assert not torch.equal(trainer.cameras.rotations.grad, with_chamfer)
 
 
 @pytest.mark.parametrize("init, note", [("sfm", "SfM points"), ("random", "random points"), ("hull", "visual hull")])

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+from concurrent.futures import ThreadPoolExecutor
 from contextlib import contextmanager
 from typing import Iterator
 
@@ -27,3 +28,14 @@ def torch_threads(count: int) -> Iterator[None]:
         yield
     finally:
         torch.set_num_threads(previous)
+
+
+_SIDE_THREADS: dict[int, ThreadPoolExecutor] = {}
+
+
+def side_thread() -> ThreadPoolExecutor:
+    """This process's one extra host thread, for work that can run beside the render (whose host threads leave a
+    core idle between their stages). Made once per process id: a forked child inherits the object, not its thread."""
+    if os.getpid() not in _SIDE_THREADS:
+        _SIDE_THREADS[os.getpid()] = ThreadPoolExecutor(max_workers=1, thread_name_prefix="warpbags-side")
+    return _SIDE_THREADS[os.getpid()]
