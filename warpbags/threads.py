@@ -1,4 +1,5 @@
-"""How many threads torch may use while Warp renders, set for a block of work and restored after it."""
+"""Host threads beside Warp's: how many torch may use while Warp renders, and one side thread for work that can run
+beside a render."""
 
 from __future__ import annotations
 
