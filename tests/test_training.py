@@ -394,10 +394,12 @@ POSE_TEST = dict(iters=600, rounds=3, rot_noise_deg=15.0, trans_noise=0.3, pose_
 
 
 def test_a_camera_left_rolled_off_is_turned_back_by_the_hypotheses(scene_dir, tmp_path):
-    """camera.hypotheses_round: without depth maps, a camera started 20 deg off in roll (which the mask-centroid
-    start does not fix) is still 11.0 deg off after two rounds of 100 iterations with the search off (measured). With
-    it, the camera is the worst fit after round 1, a turn back about its line of sight wins round 2 by ~10% of the
-    loss, and the camera ends about 2 deg off (measured 1.80 and 2.08 deg with one and two render threads)."""
+    """camera.hypotheses_round: without depth maps, a camera started 25 deg off in roll (which the mask-centroid
+    start does not fix) is still 19.4 deg off after two rounds of 100 iterations with the search off (measured). With
+    it, the camera is the worst fit after round 1 (22.5 deg off), a turn back by 20 deg about its line of sight wins
+    round 2 by 14% of the loss, and the camera ends 0.1 deg off (measured). Started 20 deg off, it is 16.6 deg off
+    after round 1 and the best turn (10 deg) wins by 3%, under the 5% margin (6.7% before the distance outside a mask
+    at the image border was corrected): on this 96 px scene the loss tells turns apart only from about 20 deg."""
     import dataclasses
     from warpbags.alignment import pose_errors
     from warpbags.camera_optimizer import corrected_viewmats
@@ -409,7 +411,7 @@ def test_a_camera_left_rolled_off_is_turned_back_by_the_hypotheses(scene_dir, tm
                                        "coherence_iters": 0}})
     scene = dataclasses.replace(training_scene(load_scene(scene_dir, name="tiny"), config), depths=None)
     viewmats = scene.viewmats.clone().float()
-    roll = torch.tensor([[0.0, 0.0, math.radians(20.0), 0.0, 0.0, 0.0]])
+    roll = torch.tensor([[0.0, 0.0, math.radians(25.0), 0.0, 0.0, 0.0]])
     viewmats[2] = corrected_viewmats("object", viewmats[2:3], roll, torch.zeros(1, 3))[0]
     messages = []
     trainer = Trainer(scene, config, tmp_path, viewmats_init=viewmats, log=messages.append)
