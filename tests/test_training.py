@@ -400,7 +400,6 @@ def test_a_camera_left_rolled_off_is_turned_back_by_the_hypotheses(scene_dir, tm
     round 2 by 14% of the loss, and the camera ends 0.1 deg off (measured). Started 20 deg off, it is 16.6 deg off
     after round 1 and the best turn (10 deg) wins by 3%, under the 5% margin (6.7% before the distance outside a mask
     at the image border was corrected): on this 96 px scene the loss tells turns apart only from about 20 deg."""
-    import dataclasses
     from warpbags.alignment import pose_errors
     from warpbags.camera_optimizer import corrected_viewmats
 

@@ -31,12 +31,20 @@ def torch_threads(count: int) -> Iterator[None]:
         torch.set_num_threads(previous)
 
 
-_SIDE_THREADS: dict[int, ThreadPoolExecutor] = {}
+_POOLS: dict[tuple[int, str, int], ThreadPoolExecutor] = {}
+
+
+def thread_pool(name: str, workers: int) -> ThreadPoolExecutor:
+    """This process's pool `name` of `workers` host threads, made once: a pool per call cost 2-8 ms of thread
+    start-up and hand-over per rasterizer pass. Keyed by process id too, since a forked child inherits the pool
+    object but not its threads."""
+    key = (os.getpid(), name, workers)
+    if key not in _POOLS:
+        _POOLS[key] = ThreadPoolExecutor(max_workers=workers, thread_name_prefix=name)
+    return _POOLS[key]
 
 
 def side_thread() -> ThreadPoolExecutor:
-    """This process's one extra host thread, for work that can run beside the render (whose host threads leave a
-    core idle between their stages). Made once per process id: a forked child inherits the object, not its thread."""
-    if os.getpid() not in _SIDE_THREADS:
-        _SIDE_THREADS[os.getpid()] = ThreadPoolExecutor(max_workers=1, thread_name_prefix="warpbags-side")
-    return _SIDE_THREADS[os.getpid()]
+    """One extra host thread, for work that can run beside the render (whose host threads leave a core idle between
+    their stages); apart from the render's pool, so that neither waits for the other's threads."""
+    return thread_pool("warpbags-side", 1)

@@ -21,7 +21,6 @@ from __future__ import annotations
 import contextlib
 import math
 import os
-from concurrent.futures import ThreadPoolExecutor
 from typing import NamedTuple, Sequence
 
 import torch
@@ -42,6 +41,7 @@ from warpbags.kernels.pose import apply_object_deltas_kernel, apply_pose_deltas_
 from warpbags.kernels.project import project_gaussians_backward_kernel, project_gaussians_kernel
 from warpbags.kernels.rasterize import BACKWARD_KERNELS, FORWARD_KERNELS, TileGeometry
 from warpbags.kernels.sh import sh_to_colors_backward_kernel, sh_to_colors_kernel
+from warpbags.threads import thread_pool
 
 _WP_SCALARS = {torch.float32: wp.float32, torch.float64: wp.float64}
 
@@ -860,19 +860,6 @@ def _raster_ranges(num_tiles: int, blocks_per_tile: int, workers: int, parts_per
     return _cost_balanced_ranges(tile_costs().cpu(), blocks_per_tile, parts_per_worker * workers)
 
 
-_POOLS: dict[tuple[int, int], ThreadPoolExecutor] = {}
-
-
-def _worker_pool(workers: int) -> ThreadPoolExecutor:
-    """This process's pool of `workers` host threads, made once: a pool per call cost 2-8 ms of thread start-up
-    and hand-over per rasterizer pass. Keyed by process id too, since a forked child inherits the pool object but
-    not its threads."""
-    key = (os.getpid(), workers)
-    if key not in _POOLS:
-        _POOLS[key] = ThreadPoolExecutor(max_workers=workers, thread_name_prefix="warpbags")
-    return _POOLS[key]
-
-
 def _run_ranges(work, ranges: list[tuple[int, int]], workers: int) -> None:
     """Run work(i, start, stop) for every range i, on `workers` host threads that each take the next range when
     they are free (dynamic scheduling: a static share left one thread idle while the other binned every camera).
@@ -889,7 +876,7 @@ def _run_ranges(work, ranges: list[tuple[int, int]], workers: int) -> None:
         for i in range(1, len(ranges)):
             work(i, *ranges[i])
         return
-    list(_worker_pool(workers).map(lambda i: work(i, *ranges[i]), range(1, len(ranges))))
+    list(thread_pool("warpbags", workers).map(lambda i: work(i, *ranges[i]), range(1, len(ranges))))
 
 
 def _visits_per_tile(tile_offsets: torch.Tensor, isect_end: torch.Tensor, tiles: TileGeometry) -> torch.Tensor:
