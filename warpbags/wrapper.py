@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import contextlib
 import math
-import os
 from typing import NamedTuple, Sequence
 
 import torch
@@ -41,7 +40,7 @@ from warpbags.kernels.pose import apply_object_deltas_kernel, apply_pose_deltas_
 from warpbags.kernels.project import project_gaussians_backward_kernel, project_gaussians_kernel
 from warpbags.kernels.rasterize import BACKWARD_KERNELS, FORWARD_KERNELS, TileGeometry
 from warpbags.kernels.sh import sh_to_colors_backward_kernel, sh_to_colors_kernel
-from warpbags.threads import thread_pool
+from warpbags.threads import thread_pool, usable_cores
 
 _WP_SCALARS = {torch.float32: wp.float32, torch.float64: wp.float64}
 
@@ -824,7 +823,8 @@ def mean_neighbour_distances(points: torch.Tensor, k: int) -> torch.Tensor:
 
 
 def _default_cpu_threads() -> int:
-    return max(1, len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1))
+    """Host threads for CPU launches when the caller names none: every usable core."""
+    return usable_cores()
 
 
 def _cost_balanced_ranges(tile_costs: torch.Tensor, items_per_tile: int, parts: int) -> list[tuple[int, int]]:
