@@ -3,7 +3,7 @@ true-pose model, plus an ablation of each part of the pose pipeline, in one run.
 
     python bench/pose_recovery.py SCENE [SCENE ...] [--rot 5,10,15,20,30] [--trans 0.3] [--views 4,6,9]
         [--seeds 0,1,2] [--variants bags,fixed-noisy] [--ablations] [--preset quick] [--set NAME=VALUE ...]
-        [--depth true|monocular|none] [--json bench/results/pose_recovery.json]
+        [--depth true|monocular|none] [--start-only] [--json bench/results/pose_recovery.json]
 
 SCENE: a preset (maryrose, synthetic, synthetic-tele), a scene folder, `synthetic-small` (16 views, 96 px, cached) or
 `synthetic-tele-small` (16 views, 128 px, maryrose's 18.6 deg field of view and framing, cached; `synthetic-tele-256`:
@@ -25,10 +25,12 @@ has); `monocular`: those degraded once per scene as a monocular network's would 
 20% of the object's relief, soft edges: `warpbags.data.noise.monocular_like_depths`); `none`: no depth maps, as a
 capture without them (maryrose ships none). The depth term is GaussianObject's, invariant to scale and shift.
 A true-pose model (poses frozen at the truth) is trained once per scene, view count and seed, for the PSNR/SSIM it
-reaches. Per row, means over the seeds: mean and max rotation error (deg), mean translation error (% of the orbit
-radius), the share of cameras ending under 1 deg, the rotation error the camera centres alone force (the centre
+reaches. Per row, means over the seeds: the rotation error of the poses training starts from (after the
+mask-centroid start and the silhouette-coherence solve), mean and max rotation error (deg) at the end, mean
+translation error (% of the orbit radius), the share of cameras ending under 1 deg, the rotation error the camera centres alone force (the centre
 floor, at the start and at the end), held-out PSNR/SSIM (test cameras aligned by the same sim(3)) and
-PSNR* after 50 iterations of test-pose refinement, and minutes per run.
+PSNR* after 50 iterations of test-pose refinement, and minutes per run. `--start-only` trains nothing and reports
+the starting poses alone (seconds a run): what the silhouettes give before any Gaussian is fitted.
 """
 
 from __future__ import annotations
@@ -43,6 +45,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from warpbags.alignment import pose_errors
 from warpbags.configs.train import load_preset, parse_settings
 from warpbags.data import ORBIT_RADIUS, SyntheticOptions, ensure_synthetic_scene, load_scene, open_scene
 from warpbags.data.noise import monocular_like_depths
@@ -79,10 +82,20 @@ def _merge(base: dict, extra: dict) -> dict:
     return merged
 
 
-def run_once(scene, settings: dict, preset: str, root: Path) -> dict:
-    """Train and evaluate one configuration; returns its pose errors, image metrics and minutes."""
+def run_once(scene, settings: dict, preset: str, root: Path, train: bool = True) -> dict:
+    """Train and evaluate one configuration; returns its pose errors, image metrics and minutes. The poses training
+    starts from (after the mask-centroid start and the silhouette-coherence solve) are measured too; with `train`
+    False only those, without training."""
     config = load_preset(preset, **settings)
     trainer = Trainer(training_scene(scene, config), config, root, log=lambda message: None)
+    truth = trainer.viewmats_true.double().cpu()
+    start = pose_errors(trainer.viewmats_start.double().cpu(), truth, alignment="procrustes")
+    if not train:
+        initial = pose_errors(trainer.viewmats_init.double().cpu(), truth, alignment="procrustes")
+        return {"rotation_initial": initial["rotation_errors_deg"].tolist(),
+                "rotation_start": start["rotation_errors_deg"].tolist(),
+                "translation_initial": initial["translation_errors"].tolist(),
+                "translation_start": start["translation_errors"].tolist()}
     trainer.write_run_files()
     started = time.perf_counter()
     trainer.train()
@@ -90,8 +103,10 @@ def run_once(scene, settings: dict, preset: str, root: Path) -> dict:
     report = evaluate_run(root, refine_iters=50, log=lambda message: None)
     poses = report["poses"]["procrustes"]
     return {
-        "rotation_initial": poses["initial"]["rotation_deg"], "rotation_final": poses["final"]["rotation_deg"],
-        "translation_initial": poses["initial"]["translation"], "translation_final": poses["final"]["translation"],
+        "rotation_initial": poses["initial"]["rotation_deg"], "rotation_start": start["rotation_errors_deg"].tolist(),
+        "rotation_final": poses["final"]["rotation_deg"],
+        "translation_initial": poses["initial"]["translation"], "translation_start": start["translation_errors"].tolist(),
+        "translation_final": poses["final"]["translation"],
         "floor_initial": poses["initial"]["rotation_deg_centre_floor"],
         "floor_final": poses["final"]["rotation_deg_centre_floor"],
         "psnr": report["images"]["mean"]["psnr"], "ssim": report["images"]["mean"]["ssim"],
@@ -100,17 +115,25 @@ def run_once(scene, settings: dict, preset: str, root: Path) -> dict:
 
 
 def summarize(runs: list[dict]) -> dict:
-    """Means over noise seeds of the per-run statistics."""
+    """Means over noise seeds of the per-run statistics (of the starting poses only, for runs not trained)."""
     def mean(values):
         return float(np.mean(values))
-    return {
+    row = {
         "rot_init": mean([np.mean(r["rotation_initial"]) for r in runs]),
+        "rot_start": mean([np.mean(r["rotation_start"]) for r in runs]),
+        "rot_start_per_seed": [float(np.mean(r["rotation_start"])) for r in runs],
+        "trans_init_pct": mean([100 * np.mean(r["translation_initial"]) / ORBIT_RADIUS for r in runs]),
+        "trans_start_pct": mean([100 * np.mean(r["translation_start"]) / ORBIT_RADIUS for r in runs]),
+    }
+    if "rotation_final" not in runs[0]:
+        return row
+    return {
+        **row,
         "rot_mean": mean([np.mean(r["rotation_final"]) for r in runs]),
         "rot_per_seed": [float(np.mean(r["rotation_final"])) for r in runs],
         "rot_max": mean([np.max(r["rotation_final"]) for r in runs]),
         "floor_init": mean([np.mean(r["floor_initial"]) for r in runs]),
         "floor": mean([np.mean(r["floor_final"]) for r in runs]),
-        "trans_init_pct": mean([100 * np.mean(r["translation_initial"]) / ORBIT_RADIUS for r in runs]),
         "trans_pct": mean([100 * np.mean(r["translation_final"]) / ORBIT_RADIUS for r in runs]),
         "under_1deg": mean([np.mean(np.array(r["rotation_final"]) < 1.0) for r in runs]),
         "psnr": mean([r["psnr"] for r in runs]), "ssim": mean([r["ssim"] for r in runs]),
@@ -163,6 +186,9 @@ def main() -> None:
     parser.add_argument("--variants", default="bags", help=f"comma-separated, of {', '.join(VARIANTS)}")
     parser.add_argument("--ablations", action="store_true", help="add " + ", ".join(ABLATIONS))
     parser.add_argument("--no-true-pose", action="store_true", help="skip the true-pose reference model")
+    parser.add_argument("--start-only", action="store_true",
+                        help="no training: only the poses training would start from (after the mask-centroid start "
+                             "and the silhouette-coherence solve), in seconds a run")
     parser.add_argument("--preset", default="quick")
     parser.add_argument("--set", dest="settings", action="append", default=[], metavar="NAME=VALUE",
                         help="a TrainConfig field for every run (repeatable), as `warpbags train --set`")
@@ -181,9 +207,13 @@ def main() -> None:
     results: dict = {"preset": args.preset, "overrides": overrides, "trans_noise": args.trans, "depth": args.depth,
                      "rows": []}
     per_seed_width = max(len("per seed"), 6 * len(_numbers(args.seeds, int)) - 1)
-    header = (f"{'scene':<20} {'views':>5} {'noise':>9} {'variant':<18} {'rot init':>8} {'rot mean':>8} "
-              f"{'per seed':<{per_seed_width}} {'rot max':>8} "
-              f"{'<1 deg':>6} {'floor':>13} {'t init %':>8} {'t %':>6} {'PSNR':>6} {'SSIM':>6} {'PSNR*':>6} {'true PSNR':>9} {'min':>5}")
+    if args.start_only:
+        header = (f"{'scene':<20} {'views':>5} {'noise':>9} {'variant':<18} {'rot init':>8} {'rot start':>9} "
+                  f"{'per seed':<{per_seed_width}} {'t init %':>8} {'t start %':>9}")
+    else:
+        header = (f"{'scene':<20} {'views':>5} {'noise':>9} {'variant':<18} {'rot init':>8} {'start':>6} {'rot mean':>8} "
+                  f"{'per seed':<{per_seed_width}} {'rot max':>8} {'<1 deg':>6} {'floor':>13} {'t init %':>8} {'t %':>6} "
+                  f"{'PSNR':>6} {'SSIM':>6} {'PSNR*':>6} {'true PSNR':>9} {'min':>5}")
     print(f"preset {args.preset}, overrides {overrides}, seeds {args.seeds}, translation noise {args.trans} "
           f"({100 * args.trans / ORBIT_RADIUS:.1f}% of the orbit radius per axis), depth maps: {args.depth}")
     print(header + "\n" + "-" * len(header), flush=True)
@@ -191,7 +221,7 @@ def main() -> None:
         for scene_name, scene in scenes.items():
             for views in _numbers(args.views, int):
                 true_pose = {}
-                if not args.no_true_pose:
+                if not (args.no_true_pose or args.start_only):
                     for seed in _numbers(args.seeds, int):
                         settings = _merge(overrides, dict(views=views, seed=seed, pose_opt=False, repair={"iters": 0}))
                         true_pose[seed] = run_once(scene, settings, args.preset,
@@ -205,24 +235,30 @@ def main() -> None:
                                                               noise_seed=seed, seed=seed, repair={"iters": 0}))
                             settings = _merge(settings, VARIANTS[variant])
                             folder = Path(root) / f"{scene_name}-{views}-{rot}-{variant}-{seed}"
-                            runs.append(run_once(scene, settings, args.preset, folder))
+                            runs.append(run_once(scene, settings, args.preset, folder, train=not args.start_only))
                         row = summarize(runs)
                         results["rows"].append({"scene": scene_name, "views": views, "rot_noise": rot, "variant": variant,
                                                 "true_psnr": true_psnr, **row, "runs": runs})
-                        floor = f"{row['floor_init']:.2f} -> {row['floor']:.2f}"
-                        print(f"{scene_name:<20} {views:>5} {f'{rot:g}/{args.trans:g}':>9} {variant:<18} "
-                              f"{row['rot_init']:>8.2f} {row['rot_mean']:>8.3f} "
-                              f"{' '.join(f'{v:5.2f}' for v in row['rot_per_seed']):<{per_seed_width}} "
-                              f"{row['rot_max']:>8.3f} "
-                              f"{100 * row['under_1deg']:>5.0f}% {floor:>13} "
-                              f"{row['trans_init_pct']:>8.2f} {row['trans_pct']:>6.2f} "
-                              f"{row['psnr']:>6.2f} {row['ssim']:>6.3f} {row['psnr_refined']:>6.2f} {true_psnr:>9.2f} "
-                              f"{row['minutes']:>5.1f}", flush=True)
+                        label = f"{scene_name:<20} {views:>5} {f'{rot:g}/{args.trans:g}':>9} {variant:<18} "
+                        if args.start_only:
+                            print(label + f"{row['rot_init']:>8.2f} {row['rot_start']:>9.3f} "
+                                  f"{' '.join(f'{v:5.2f}' for v in row['rot_start_per_seed']):<{per_seed_width}} "
+                                  f"{row['trans_init_pct']:>8.2f} {row['trans_start_pct']:>9.2f}", flush=True)
+                        else:
+                            floor = f"{row['floor_init']:.2f} -> {row['floor']:.2f}"
+                            print(label + f"{row['rot_init']:>8.2f} {row['rot_start']:>6.2f} {row['rot_mean']:>8.3f} "
+                                  f"{' '.join(f'{v:5.2f}' for v in row['rot_per_seed']):<{per_seed_width}} "
+                                  f"{row['rot_max']:>8.3f} "
+                                  f"{100 * row['under_1deg']:>5.0f}% {floor:>13} "
+                                  f"{row['trans_init_pct']:>8.2f} {row['trans_pct']:>6.2f} "
+                                  f"{row['psnr']:>6.2f} {row['ssim']:>6.3f} {row['psnr_refined']:>6.2f} {true_psnr:>9.2f} "
+                                  f"{row['minutes']:>5.1f}", flush=True)
                         if args.json:
                             args.json.parent.mkdir(parents=True, exist_ok=True)
                             args.json.write_text(json.dumps(results, indent=1))
     print("rotation in degrees and translation in % of the orbit radius, after sim(3) Procrustes alignment, means over\n"
-          "noise seeds (per seed: each seed's mean, in the order given; rot max: the worst camera of a run); floor: the\n"
+          "noise seeds (per seed: each seed's mean, in the order given; rot max: the worst camera of a run); start: the\n"
+          "poses training starts from, after the mask-centroid start and the silhouette-coherence solve; floor: the\n"
           "rotation error the camera centres alone force (alignment.centre_floor_errors), at the start and at the end;\n"
           "PSNR/SSIM on held-out views with aligned test cameras, PSNR* after 50 test-pose refinement iterations; true\n"
           "PSNR: the same schedule on the true poses, frozen.")
