@@ -81,7 +81,8 @@ def pose_only_optimum(trainer: Trainer, steps: int, lr: float, start_noise: tupl
 def run_scene(name: str, scene, views: int, fit_iters: list[int], pose_iters: int, lr: float, preset: str,
               overrides: dict, start_noises: list[tuple[float, float]], optimizer: str = "adam") -> list[dict]:
     settings = dict(views=views, rot_noise_deg=0.0, trans_noise=0.0, rounds=1, iters=max(fit_iters) + 1,
-                    pose_opt=True, pose_opt_start=10**9, repair={"iters": 0}, camera={"centroid_start": False})
+                    pose_opt=True, pose_opt_start=10**9, repair={"iters": 0},
+                    camera={"centroid_start": False, "coherence_iters": 0})
     for key, value in overrides.items():
         settings[key] = {**settings.get(key, {}), **value} if isinstance(value, dict) else value
     config = load_preset(preset, **settings)
