@@ -29,7 +29,9 @@ from warpbags.data import (
     object_center,
     open_scene,
 )
+from warpbags.data import loaders
 from warpbags.data.colmap import read_model, write_model
+from warpbags.data.images import read_image, read_masks, scene_bytes
 from warpbags.data.synthetic import OBJECT_CENTER, dome_viewmats, intrinsics
 from warpbags.errors import WarpbagsError
 
@@ -335,6 +337,50 @@ def test_downsampled_resolution_scales_intrinsics(synthetic_dir, synthetic):
     # the object centre comes from the masks' centroids, so it moves slightly with the mask resolution
     torch.testing.assert_close(half.viewmats[:, :3, :3], synthetic.viewmats[:, :3, :3])
     torch.testing.assert_close(half.viewmats, synthetic.viewmats, atol=0.02, rtol=0)
+
+
+def test_photographs_too_large_for_memory_are_read_at_a_factor_that_fits(synthetic_dir, synthetic, monkeypatch,
+                                                                        caplog):
+    """A folder of full-size photographs whose float32 images and masks would pass the memory budget (119 photographs
+    of 3648 px take 25 GiB) is read at the finest factor that fits, said in one warning; asked for a factor, the
+    loader reads that one."""
+    monkeypatch.setattr(loaders, "IMAGE_MEMORY_BUDGET", scene_bytes(12, 64, 64, 2))
+    with caplog.at_level("WARNING", logger="warpbags.data"):
+        scene = load_scene(synthetic_dir)
+    assert (scene.width, scene.height) == (32, 32) and scene.resolution == 2
+    assert "12 images of 64x64 px: read at 1/2 (32x32)" in caplog.text
+    torch.testing.assert_close(scene.images, load_scene(synthetic_dir, resolution=2).images)
+    assert load_scene(synthetic_dir, resolution=1).width == 64
+    monkeypatch.setattr(loaders, "IMAGE_MEMORY_BUDGET", scene_bytes(12, 64, 64, 1))
+    assert load_scene(synthetic_dir).width == 64
+
+
+def test_a_factor_whose_images_exceed_the_machines_memory_is_refused(scene_copy, monkeypatch):
+    monkeypatch.setattr(loaders, "physical_memory", lambda: scene_bytes(12, 64, 64, 2))
+    _expect_error(scene_copy, r"12 images of 64x64 px at resolution 1 take 0\.0 GiB, more than this machine's .*: "
+                  r"choose a coarser --resolution", resolution=1)
+    assert load_scene(scene_copy, resolution=2).width == 32
+
+
+def test_jpeg_photographs_and_masks_are_decoded_reduced(synthetic_dir, tmp_path):
+    """JPEGs read at 1/2, 1/4 or 1/8 are decoded at that size by libjpeg (8x faster for 1/8) and agree with a full
+    decode resized by area."""
+    image = np.kron(cv2.imread(str(synthetic_dir / "images" / "view_000.png")), np.ones((4, 4, 1), np.uint8))
+    path = tmp_path / "photo.jpg"
+    cv2.imwrite(str(path), image, [cv2.IMWRITE_JPEG_QUALITY, 98])
+    for factor in (2, 4, 8):
+        reduced = read_image(path, factor)
+        full = cv2.resize(read_image(path), reduced.shape[1::-1], interpolation=cv2.INTER_AREA)
+        assert reduced.shape == (256 // factor, 256 // factor, 3)
+        assert np.abs(reduced - full).mean() < 0.01, factor
+    mask = np.kron(cv2.imread(str(synthetic_dir / "masks" / "view_000.png"), cv2.IMREAD_GRAYSCALE),
+                   np.ones((4, 4), np.uint8))
+    masks = tmp_path / "masks"
+    masks.mkdir()
+    cv2.imwrite(str(masks / "photo.jpg"), mask, [cv2.IMWRITE_JPEG_QUALITY, 98])
+    read = read_masks(tmp_path, ["photo.jpg"], 64, 64, 4)[0]
+    expected = cv2.resize(mask.astype(np.float32) / 255, (64, 64), interpolation=cv2.INTER_AREA) >= 0.5
+    assert np.mean(read == expected) > 0.99
 
 
 def test_opencv_camera_is_undistorted_and_exotic_model_refused(scene_copy):

@@ -22,8 +22,10 @@ import numpy as np
 import torch
 
 from warpbags.cameras import camera_centers
-from warpbags.data.images import default_resolution, read_depths, read_images, read_masks, resolution_path, undistort
-from warpbags.data.layouts import colmap_cameras, llff_cameras, transforms_cameras
+from warpbags.data.images import (FACTORS, IMAGE_MEMORY_BUDGET, default_resolution, factor_within_budget, image_size,
+                                  physical_memory, read_depths, read_images, read_masks, resolution_path, scene_bytes,
+                                  undistort)
+from warpbags.data.layouts import LayoutCameras, colmap_cameras, llff_cameras, transforms_cameras
 from warpbags.data.scene import ORBIT_RADIUS, Scene, SceneNormalization
 from warpbags.data.splits import read_splits
 from warpbags.errors import WarpbagsError
@@ -72,11 +74,7 @@ def load_scene(
         raise WarpbagsError(
             f"no cameras in {root}: expected sparse/0/cameras.bin (COLMAP), poses_bounds.npy (LLFF) or transforms.json"
         )
-    if resolution is None and cameras.layout != "transforms":
-        resolution = default_resolution(root)
-    resolution = resolution or 1
-    if resolution not in (1, 2, 4, 8):
-        raise WarpbagsError(f"resolution must be 1, 2, 4 or 8, got {resolution}")
+    resolution = _resolution(root, cameras, resolution)
 
     image_folders = (f"images_{resolution}", "images")
     if cameras.layout != "transforms" and not any((root / folder).is_dir() for folder in image_folders):
@@ -138,6 +136,36 @@ def load_scene(
     )
     scene.splits, scene.split_sources = read_splits(root, scene, default_splits, cameras.test_names)
     return scene
+
+
+def _resolution(root: Path, cameras: LayoutCameras, asked: int | None) -> int:
+    """The factor to read `cameras`' images at: `asked`, else the scene's default (`images_2|4|8/` when only that
+    exists) coarsened until every view fits `IMAGE_MEMORY_BUDGET`, so that a folder of full-size photographs loads
+    at a fraction of its size instead of exhausting memory.
+
+    Raises:
+        WarpbagsError: a factor other than 1, 2, 4, 8, or one whose images would not fit this machine's memory.
+    """
+    if asked is not None and asked not in FACTORS:
+        raise WarpbagsError(f"resolution must be 1, 2, 4 or 8, got {asked}")
+    factor = asked or (1 if cameras.layout == "transforms" else default_resolution(root))
+    first = resolution_path(root, cameras.image_paths[0], factor)
+    width, height = image_size(first)
+    if first != cameras.image_paths[0]:  # read from images_{factor}/: the full size is factor times its own
+        width, height = width * factor, height * factor
+    count = len(cameras.image_paths)
+    if asked is None and scene_bytes(count, width, height, factor) > IMAGE_MEMORY_BUDGET:
+        fitting = max(factor, factor_within_budget(count, width, height, IMAGE_MEMORY_BUDGET))
+        logger.warning("%s: %d images of %dx%d px: read at 1/%d (%dx%d), as at full size they would take %.1f GiB "
+                       "(--resolution sets the factor)", root, count, width, height, fitting, round(width / fitting),
+                       round(height / fitting), scene_bytes(count, width, height, 1) / 1024**3)
+        factor = fitting
+    memory = physical_memory()
+    if memory is not None and scene_bytes(count, width, height, factor) > memory:
+        raise WarpbagsError(f"{root}: {count} images of {width}x{height} px at resolution {factor} take "
+                            f"{scene_bytes(count, width, height, factor) / 1024**3:.1f} GiB, more than this machine's "
+                            f"{memory / 1024**3:.1f} GiB: choose a coarser --resolution (2, 4 or 8)")
+    return factor
 
 
 def object_center(
