@@ -58,6 +58,17 @@ SCENES: dict[str, ScenePreset] = {
             resolution=8,
             how_to_get="it ships inside the warpbags package (warpbags/assets/maryrose); reinstall warpbags",
         ),
+        # A second real capture from the NeRD datasets: the Mold Gold Cape (British Museum), gold and specular, 119
+        # photographs of 3648 px with masks and NeRD's poses (LLFF), read at 1/8 (456 px) as maryrose's images_8.
+        # Not shipped (CC BY-NC-SA); its repository is read as it is cloned.
+        ScenePreset(
+            name="moldgoldcape",
+            source="data_root",
+            folders=("moldGoldCape", "moldgoldcape"),
+            resolution=8,
+            how_to_get="git clone https://github.com/vork/moldGoldCape into a folder and pass that folder as "
+                       "--data-root (or set WARPBAGS_DATA)",
+        ),
         ScenePreset(
             name="synthetic",
             source="synthetic",

@@ -575,6 +575,8 @@ def test_unknown_scene_and_missing_dataset(tmp_path):
         open_scene(str(tmp_path / "missing"))
     with pytest.raises(WarpbagsError, match=r"scene kitchen not found \(looked in .*360_v2.zip"):
         open_scene("kitchen", root=tmp_path)
+    with pytest.raises(WarpbagsError, match=r"scene moldgoldcape not found .*git clone https://github.com/vork/mold"):
+        open_scene("moldgoldcape", root=tmp_path)
 
 
 # ---------------------------------------------------------------------------------------------------------------
