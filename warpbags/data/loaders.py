@@ -148,6 +148,8 @@ def _resolution(root: Path, cameras: LayoutCameras, asked: int | None) -> int:
     """
     if asked is not None and asked not in FACTORS:
         raise WarpbagsError(f"resolution must be 1, 2, 4 or 8, got {asked}")
+    if not cameras.image_paths:
+        raise WarpbagsError(f"no images in {root}: its {cameras.layout} cameras name none")
     factor = asked or (1 if cameras.layout == "transforms" else default_resolution(root))
     first = resolution_path(root, cameras.image_paths[0], factor)
     width, height = image_size(first)
