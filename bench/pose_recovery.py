@@ -6,8 +6,9 @@ true-pose model, plus an ablation of each part of the pose pipeline, in one run.
         [--depth true|monocular|none] [--start-only] [--json bench/results/pose_recovery.json]
 
 SCENE: a preset (maryrose, moldgoldcape: a clone under WARPBAGS_DATA, synthetic, synthetic-tele), a scene folder,
-`synthetic-small` (16 views, 96 px, cached) or `synthetic-tele-small` (16 views, 128 px, maryrose's 18.6 deg field of view and framing, cached; `synthetic-tele-256`:
-the same at 256 px; `synthetic-tele-lit`: the same with the light and the colour gains changing from view to view). Every
+`synthetic-small` (16 views, 96 px, cached) or `synthetic-tele-small` (16 views, 128 px, maryrose's 18.6 deg field of
+view and framing, cached; `synthetic-tele-256`: the same at 256 px; `synthetic-tele-lit`: the same with the light and
+the colour gains changing from view to view). Every
 training camera is perturbed (rotation angle ~ N(0, rot^2) deg about a random axis, each camera-centre coordinate
 ~ N(0, trans^2) in scene units, orbit radius 4) and optimized (free gauge); errors are measured after sim(3)
 Procrustes alignment. Variants:
