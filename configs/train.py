@@ -488,7 +488,9 @@ def quick() -> TrainConfig:
       they move from a round's first iteration, and stay within 0.5 deg once the Gaussians have fitted the images
       for 200 iterations. Measured windows (synthetic / maryrose): the first half 0.81 / 17.0 deg, the second
       half 12.2 / 3.47, from a quarter on 1.39 / 7.75 (kept: the only one that helps both; the BAGS report too
-      starts its poses a fifth into training);
+      starts its poses a fifth into training). With the coherence solve in front (eighteenth session, seeds 0-2),
+      from half-way: synthetic 0.84 (exact maps) / 2.11 (none), maryrose 7.44, moldgoldcape 7.21, against 0.67 /
+      1.64, 8.85, 8.86 from a quarter: better on both real captures, worse on the synthetic scene, so not changed;
     - the depth term (where the scene has depth maps) for the first half of each round, half of it while the poses
       move (depth_until 100; 60 before): synthetic 1.33 -> 0.65 deg with its exact depth maps, 1.74 -> 1.17 with them
       degraded as a monocular network's (`bench/pose_recovery.py --depth monocular`; the whole round: 0.60 and 1.56,
