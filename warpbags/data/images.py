@@ -22,6 +22,10 @@ FACTORS = (1, 2, 4, 8)
 # What a scene read at its default factor may hold as float32 images and masks. A folder of full-size photographs
 # (phone or DSLR) exceeds it: 119 images of 3648 x 3648 px take 25 GiB, so they are read at a reduced factor instead.
 IMAGE_MEMORY_BUDGET = 2 * 1024**3
+# OpenCV's flags that have libjpeg decode a JPEG at 1/2, 1/4 or 1/8 of its size: (colour, grayscale).
+JPEG_REDUCED_FLAGS = {2: (cv2.IMREAD_REDUCED_COLOR_2, cv2.IMREAD_REDUCED_GRAYSCALE_2),
+                      4: (cv2.IMREAD_REDUCED_COLOR_4, cv2.IMREAD_REDUCED_GRAYSCALE_4),
+                      8: (cv2.IMREAD_REDUCED_COLOR_8, cv2.IMREAD_REDUCED_GRAYSCALE_8)}
 
 
 def default_resolution(root: Path) -> int:
@@ -83,14 +87,16 @@ def resolution_path(root: Path, full_path: Path, resolution: int) -> Path:
     return full_path
 
 
+def _decoded_reduced(path: Path, reduction: int) -> bool:
+    """Whether libjpeg decodes `path` at 1/`reduction` itself (a JPEG, and a reduction of 2, 4 or 8)."""
+    return reduction in JPEG_REDUCED_FLAGS and path.suffix.lower() in JPEG_EXTENSIONS
+
+
 def read_image(path: Path, reduction: int = 1) -> np.ndarray:
     """The image at `path` as float32 RGB(A) in [0, 1]; a JPEG is decoded at 1/`reduction` (2, 4 or 8) of its size
     by libjpeg's own scaling, 8x faster than a full decode for 1/8."""
-    if reduction > 1 and path.suffix.lower() in JPEG_EXTENSIONS:
-        flag = {2: cv2.IMREAD_REDUCED_COLOR_2, 4: cv2.IMREAD_REDUCED_COLOR_4, 8: cv2.IMREAD_REDUCED_COLOR_8}[reduction]
-        image = cv2.imread(str(path), flag) if path.is_file() else None
-    else:
-        image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED) if path.is_file() else None
+    flag = JPEG_REDUCED_FLAGS[reduction][0] if _decoded_reduced(path, reduction) else cv2.IMREAD_UNCHANGED
+    image = cv2.imread(str(path), flag) if path.is_file() else None
     if image is None:
         if path.is_file():
             raise WarpbagsError(f"image {path} is unreadable")
@@ -112,11 +118,12 @@ def read_images(
     images = alphas = None
     width = height = 0
     for index, (path, full_path) in enumerate(zip(files, full_paths)):
-        reduced = path == full_path and resolution > 1
-        image = read_image(path, resolution if reduced else 1)
-        if reduced:
-            full_width, full_height = image_size(path)
-            target = (round(full_width / resolution), round(full_height / resolution))
+        reduction = resolution if path == full_path else 1  # a full-size file read for a downsampled folder
+        image = read_image(path, reduction)
+        if reduction > 1:
+            # libjpeg's reduced decode is ceil(size / reduction); the full size comes from the header then
+            full_width, full_height = image_size(path) if _decoded_reduced(path, reduction) else image.shape[1::-1]
+            target = (round(full_width / reduction), round(full_height / reduction))
             if image.shape[1::-1] != target:
                 image = cv2.resize(image, target, interpolation=cv2.INTER_AREA)
         if images is None:
@@ -163,8 +170,7 @@ def _resize_to(array: np.ndarray, width: int, height: int, path: Path, what: str
 def _read_mask(path: Path, width: int) -> np.ndarray | None:
     """A mask file as uint8 grayscale; a JPEG at 2, 4 or 8 times `width` is decoded at that reduction."""
     reduction = round(image_size(path)[0] / width) if path.suffix.lower() in JPEG_EXTENSIONS else 1
-    flag = {2: cv2.IMREAD_REDUCED_GRAYSCALE_2, 4: cv2.IMREAD_REDUCED_GRAYSCALE_4,
-            8: cv2.IMREAD_REDUCED_GRAYSCALE_8}.get(reduction, cv2.IMREAD_GRAYSCALE)
+    flag = JPEG_REDUCED_FLAGS[reduction][1] if _decoded_reduced(path, reduction) else cv2.IMREAD_GRAYSCALE
     return cv2.imread(str(path), flag)
 
 
