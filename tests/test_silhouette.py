@@ -110,7 +110,7 @@ def test_coherent_start_brings_noisy_cameras_in_before_any_gaussian_is_fitted(sc
     noisy = perturb_viewmats(truth, 15.0, 0.3, seed=1)
     start, center = centroid_start(views.masks, noisy, views.Ks)
     cameras = CameraOptimizer(start.float(), CameraOptimizerSettings(precondition=False), center.float())
-    before, after = coherent_start(cameras, views.masks, views.Ks, center.float(), iterations=100)
+    before, after = coherent_start(cameras, targets, views.Ks, center.float(), iterations=100)
     error = lambda viewmats: pose_errors(viewmats.double(), truth, alignment="procrustes")["rotation_error_deg_mean"]  # noqa: E731
     assert after < 0.1 * before
     # Every camera perturbed (15 deg / 0.3, free gauge): measured 6.87 deg after the centroid start and 2.79 after

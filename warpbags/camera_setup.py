@@ -57,7 +57,7 @@ def training_cameras(config: TrainConfig, viewmats: torch.Tensor, object_center:
     return CameraOptimizer(viewmats, settings, object_center, Ks, width, height, points)
 
 
-def coherent_start(cameras: CameraOptimizer, masks: torch.Tensor, Ks: torch.Tensor, object_center: torch.Tensor,
+def coherent_start(cameras: CameraOptimizer, targets: SilhouetteTargets, Ks: torch.Tensor, object_center: torch.Tensor,
                    iterations: int) -> tuple[float, float]:
     """Solve every camera of `cameras` for silhouette coherence with the others (`SilhouetteTargets.coherence_loss`)
     by L-BFGS, and make that its starting pose (`CameraOptimizer.rebase`: corrections and moments at zero).
@@ -68,13 +68,13 @@ def coherent_start(cameras: CameraOptimizer, masks: torch.Tensor, Ks: torch.Tens
 
     Args:
         cameras: the fit's camera optimizer (its parameterization, gauge and preconditioner are used).
-        masks: [C, H, W] in [0, 1]. Ks: [C, 3, 3] at the masks' resolution. object_center: [3].
+        targets: the masks' distance transforms (the training views' `silhouettes` where the silhouette terms use
+            them). Ks: [C, 3, 3] at the masks' resolution. object_center: [3].
         iterations: L-BFGS iterations.
 
     Returns:
         (the coherence loss before, after), in image sizes.
     """
-    targets = SilhouetteTargets(masks).to(masks.device)
     solver = copy.deepcopy(cameras).double()
     Ks, center = Ks.double(), object_center.double()
     radius = targets.object_radius(solver.viewmats(), Ks, center)

@@ -41,6 +41,7 @@ from warpbags.repair import RepairStage, Repairer, repairer_factory
 from warpbags.repair.stage import pseudo_ratio
 from warpbags.run_folder import RunFolder
 from warpbags.schedule import Schedule, StepSettings
+from warpbags.silhouette import SilhouetteTargets
 from warpbags.threads import torch_threads
 
 
@@ -95,7 +96,8 @@ class Trainer:
         self.cameras = training_cameras(config, self.viewmats_start, self.object_center, views.Ks, views.scene.width,
                                         views.scene.height, self.model.params["means"].detach())
         if config.pose_opt and full.masks is not None and config.camera.coherence_iters > 0 and not resuming:
-            before, after = coherent_start(self.cameras, full.masks, full.Ks, self.object_center,
+            targets = full.silhouettes or SilhouetteTargets(full.masks).to(self.device)
+            before, after = coherent_start(self.cameras, targets, full.Ks, self.object_center,
                                            config.camera.coherence_iters)
             self.log(f"silhouette coherence of the starting poses: {before:.2e} -> {after:.2e}")
             self.viewmats_start = self.cameras.viewmats()
