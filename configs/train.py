@@ -103,6 +103,12 @@ class CameraConfig:
         coherence_iters: after the mask-centroid start, L-BFGS iterations that solve the cameras for silhouette
             coherence (every mask pixel's ray passes through the other views' silhouettes; `warpbags.silhouette`),
             before any Gaussian is fitted; 0 = off. Needs masks and pose optimization.
+        coherence_continued_from_views: with this many training views or more, the solve measures the masks as
+            continuing beyond the image border where they meet it (`SilhouetteTargets`, `continued_beyond_frame`);
+            with fewer, the frame counts as background. Silhouettes fix n poses up to a similarity by the count of
+            their epipolar tangencies from 6 views on (n (n - 1) against 6 n - 7); below that the frame's false
+            border is a constraint the solve needs, above it the border pulls cameras away from poses at which a
+            capture cut by the frame is coherent. 0 = always.
         fix_first_camera: gauge; keep camera 0 at its starting pose (False: every camera is optimized and errors are
             measured after sim(3) alignment, the BAGS protocol).
         orbit_from_round: the object-centric orbit (wx, wy: the camera turned about the object centre, which stays
@@ -148,6 +154,7 @@ class CameraConfig:
     precondition_reg: float = 0.1
     centroid_start: bool = True
     coherence_iters: int = 100
+    coherence_continued_from_views: int = 6
     fix_first_camera: bool = False
     orbit_from_round: int = 0
     round_anchor: float = 0.0
@@ -398,6 +405,8 @@ class TrainConfig:
             (self.camera.lbfgs_iters >= 1, f"camera.lbfgs_iters must be >= 1, got {self.camera.lbfgs_iters}"),
             (self.camera.coherence_iters >= 0,
              f"camera.coherence_iters must be >= 0, got {self.camera.coherence_iters}"),
+            (self.camera.coherence_continued_from_views >= 0,
+             f"camera.coherence_continued_from_views must be >= 0, got {self.camera.coherence_continued_from_views}"),
             (self.pose_opt_start >= 0, f"--pose-opt-start must be >= 0, got {self.pose_opt_start}"),
             (_is_window(self.pose_round_window),
              f"pose_round_window must be (start, end) with 0 <= start < end <= 1, got {self.pose_round_window}"),

@@ -125,15 +125,22 @@ class SilhouetteTargets:
 
     Args:
         masks: [C, H, W] in [0, 1] (threshold 0.5).
+        continued_beyond_frame: the distance outside a mask is measured as if the mask went on beyond the image
+            border where it meets it (each border pixel repeated outward, half an image size), not as if the object
+            ended at the frame. A capture whose object the frame cuts is then coherent at its true poses; without it
+            the frame counts as background, and the coherence solve moves the cameras until the object fits inside
+            every frame.
     """
 
-    def __init__(self, masks: torch.Tensor):
+    def __init__(self, masks: torch.Tensor, continued_beyond_frame: bool = False):
         self.height, self.width = masks.shape[1:]
         self.size = float(max(self.width, self.height))
+        self.margin = round(self.size / 2) if continued_beyond_frame else 0  # pixels of continued mask per side
         outside, edges, foreground = [], [], []
         for mask in (masks.detach().cpu().numpy() > 0.5).astype(np.uint8):
             # Distance (pixels) from each pixel outside the mask to the nearest mask pixel; 0 inside.
-            outside.append(cv2.distanceTransform(1 - mask, cv2.DIST_L2, 5))
+            padded = cv2.copyMakeBorder(mask, *[self.margin] * 4, cv2.BORDER_REPLICATE)
+            outside.append(cv2.distanceTransform(1 - padded, cv2.DIST_L2, 5))
             contour = mask - cv2.erode(mask, np.ones((3, 3), np.uint8))
             ys, xs = np.nonzero(contour)
             pick = np.linspace(0, len(xs) - 1, min(EDGE_POINTS, len(xs))).astype(int) if len(xs) else []
@@ -142,7 +149,8 @@ class SilhouetteTargets:
             step = max(1, round(self.size / COHERENCE_GRID))
             ys, xs = np.nonzero(mask[::step, ::step])
             foreground.append(torch.tensor(np.stack([xs * step + 0.5, ys * step + 0.5], -1), dtype=torch.float32))
-        self.outside_distance = torch.from_numpy(np.stack(outside)).float() / self.size  # [C, H, W], image sizes
+        # [C, H + 2 margin, W + 2 margin], image sizes
+        self.outside_distance = torch.from_numpy(np.stack(outside)).float() / self.size
         self.edges = edges  # per view [E, 2] pixel coordinates
         self.foreground = foreground  # per view [F, 2] pixel coordinates of mask pixels on a coarse grid
 
@@ -209,7 +217,7 @@ class SilhouetteTargets:
         A ray is sampled at `COHERENCE_SAMPLES` depths within `radius` of the [3] object `center`; each point is
         charged the sum over the other views of its distance outside their masks (the distance transform; beyond
         the image border, plus the distance to it), and the ray the least of those. With exact masks it is 0 at
-        the true poses. It is one-sided, so it fixes fewer degrees of freedom than a pose has (four views 90 deg
+        the true poses (where the frame cuts the object, only with the masks continued beyond it). It is one-sided, so it fixes fewer degrees of freedom than a pose has (four views 90 deg
         apart leave a set of coherent poses a few degrees wide): a start for the photometric terms, not an answer.
 
         Args:
@@ -251,13 +259,14 @@ class SilhouetteTargets:
 
     def _outside_mask(self, pixels: torch.Tensor, views: torch.Tensor) -> torch.Tensor:
         """[B, N] the distance (image sizes) of [B, N, 2] pixel positions outside the masks of views [B], bilinear in
-        the distance transform; beyond the image border, the distance at the nearest point of the border plus the
-        distance to it, so that a projection off the image is still pulled back.
+        the distance transform; beyond the image border (or the continued masks' margin), the distance at the
+        nearest point of the border plus the distance to it, so that a projection off the image is still pulled back.
 
         Border padding: between the outermost pixel centres and the image edge (and so at every clamped point) the
         distance is the outermost pixel's; zero padding would blend in a zero there (half of it at the edge)."""
-        scale = torch.tensor([self.width, self.height], dtype=pixels.dtype, device=pixels.device) / 2
-        grid = pixels / scale - 1
+        scale = torch.tensor([self.width + 2 * self.margin, self.height + 2 * self.margin], dtype=pixels.dtype,
+                             device=pixels.device) / 2
+        grid = (pixels + self.margin) / scale - 1
         inside_grid = grid.clamp(-1, 1)
         sampled = F.grid_sample(self.outside_distance[views][:, None].to(pixels.dtype), inside_grid[:, :, None],
                                 mode="bilinear", padding_mode="border", align_corners=False)[:, 0, :, 0]
