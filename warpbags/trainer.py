@@ -96,12 +96,14 @@ class Trainer:
         self.cameras = training_cameras(config, self.viewmats_start, self.object_center, views.Ks, views.scene.width,
                                         views.scene.height, self.model.params["means"].detach())
         if config.pose_opt and full.masks is not None and config.camera.coherence_iters > 0 and not resuming:
+            # With enough views the silhouettes fix the poses without the frame's false border (`CameraConfig`).
             continued = self.num_cameras >= config.camera.coherence_continued_from_views
             targets = (full.silhouettes if full.silhouettes is not None and not continued
                        else SilhouetteTargets(full.masks, continued_beyond_frame=continued).to(self.device))
             before, after = coherent_start(self.cameras, targets, full.Ks, self.object_center,
                                            config.camera.coherence_iters)
-            self.log(f"silhouette coherence of the starting poses: {before:.2e} -> {after:.2e}")
+            self.log(f"silhouette coherence of the starting poses: {before:.2e} -> {after:.2e}"
+                     + (" (masks continued beyond the image border)" if continued else ""))
             self.viewmats_start = self.cameras.viewmats()
             self.model = self._fresh_model(self.viewmats_start)  # carved again, with the coherent poses
         self.repair_stage: RepairStage | None = None  # built when the repair stage first uses pseudo views
