@@ -249,6 +249,16 @@ def test_resume_equals_uninterrupted(scene_dir, tmp_path, rounds):
     np.testing.assert_allclose(resumed_history.viewmats[[0, 2]], full_history.viewmats, rtol=0, atol=1e-6)
 
 
+@pytest.mark.parametrize("views, continued", [(4, False), (6, True)])
+def test_the_coherence_solve_continues_the_masks_beyond_the_frame_from_six_views_on(scene_dir, tmp_path, views,
+                                                                                     continued):
+    config = tiny_config(views=views, camera={"coherence_iters": 2})
+    lines = []
+    Trainer(training_scene(load_scene(scene_dir, name="tiny"), config), config, tmp_path, log=lines.append)
+    solve = [line for line in lines if "silhouette coherence of the starting poses" in line]
+    assert len(solve) == 1 and ("masks continued beyond the image border" in solve[0]) == continued
+
+
 def test_a_resumed_run_does_not_solve_its_starting_poses_again(scene_dir, tmp_path):
     """The checkpoint holds the solved starting poses: resuming neither repeats the silhouette-coherence solve nor
     changes the poses it restores."""

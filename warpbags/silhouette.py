@@ -217,8 +217,9 @@ class SilhouetteTargets:
         A ray is sampled at `COHERENCE_SAMPLES` depths within `radius` of the [3] object `center`; each point is
         charged the sum over the other views of its distance outside their masks (the distance transform; beyond
         the image border, plus the distance to it), and the ray the least of those. With exact masks it is 0 at
-        the true poses (where the frame cuts the object, only with the masks continued beyond it). It is one-sided, so it fixes fewer degrees of freedom than a pose has (four views 90 deg
-        apart leave a set of coherent poses a few degrees wide): a start for the photometric terms, not an answer.
+        the true poses (where the frame cuts the object, only with the masks continued beyond it). It is
+        one-sided, so it fixes fewer degrees of freedom than a pose has (four views 90 deg apart leave a set of
+        coherent poses a few degrees wide): a start for the photometric terms, not an answer.
 
         Args:
             viewmats: [C, 4, 4] world-to-camera of every view (differentiable). Ks: [C, 3, 3].
