@@ -1,9 +1,9 @@
 """Every Warp kernel module builds for a CUDA architecture through NVRTC, with no GPU present.
 
 The kernels are generic over float32/float64; their overloads are instantiated by rendering once on the CPU in
-both precisions (with SH and pose deltas, the photometric loss on the render, a nearest-point search and a k-nearest mean
-distance, so every kernel runs), then each module is compiled ahead of time for sm_80. Same source as the CPU path: what passes here is
-what a CUDA machine runs.
+both precisions (with SH and pose deltas, the photometric loss on the render, a nearest-point search, a k-nearest
+mean distance and the coherence search, so every kernel runs), then each module is compiled ahead of time for sm_80.
+Same source as the CPU path: what passes here is what a CUDA machine runs.
 """
 
 from __future__ import annotations
@@ -18,9 +18,9 @@ from conftest import random_scene
 
 import warpbags
 from warpbags.losses import photometric_loss
-from warpbags.wrapper import mean_neighbour_distances, nearest_points
+from warpbags.wrapper import least_outside_samples, mean_neighbour_distances, nearest_points
 
-KERNEL_MODULES = ["pose", "project", "sh", "bin", "rasterize", "loss", "nearest", "knn"]
+KERNEL_MODULES = ["pose", "project", "sh", "bin", "rasterize", "loss", "nearest", "knn", "coherence"]
 # Kernels checked by name to be in their module's CUDA code in both precisions: the render instantiates them (a
 # kernel it does not launch is not compiled here).
 NAMED_KERNELS = {"project": ("project_gaussians_kernel", "project_gaussians_backward_kernel"),
@@ -38,6 +38,9 @@ def test_kernel_module_compiles_for_sm80(module_name, tmp_path):
         assert means.grad is not None
         nearest_points(torch.rand(5, 2, dtype=dtype), torch.rand(9, 2, dtype=dtype))  # the silhouette chamfer's
         mean_neighbour_distances(torch.rand(9, 3, dtype=dtype), 3)  # the floater removal's
+        least_outside_samples(torch.rand(4, 3, dtype=dtype), torch.tensor([0, 0, 1, 1]), torch.rand(2, 3, dtype=dtype),
+                              torch.rand(2, 5, dtype=dtype), torch.eye(4, dtype=dtype).repeat(2, 1, 1),
+                              torch.eye(3, dtype=dtype).repeat(2, 1, 1), torch.rand(2, 8, 8), 0.0, 8.0)  # coherence
 
     module = importlib.import_module(f"warpbags.kernels.{module_name}")
     try:

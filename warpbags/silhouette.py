@@ -26,7 +26,7 @@ import torch.nn.functional as F
 
 from warpbags.cameras import camera_centers, project_points
 from warpbags.lie import so3_exp
-from warpbags.wrapper import nearest_points
+from warpbags.wrapper import least_outside_samples, nearest_points
 
 EDGE_POINTS = 300  # mask edge pixels per view for the chamfer (NeRS's count)
 COHERENCE_GRID = 64  # silhouette coherence: rays through mask pixels of a grid of about this many per image side
@@ -225,29 +225,29 @@ class SilhouetteTargets:
             viewmats: [C, 4, 4] world-to-camera of every view (differentiable). Ks: [C, 3, 3].
             center: [3] object centre. radius: the depth range's half-width about it (`object_radius`).
         """
-        cams = len(viewmats)
         dtype, device = viewmats.dtype, viewmats.device
         Ks = Ks.to(dtype)
+        views = [view for view in range(len(viewmats)) if len(self.foreground[view])] if len(viewmats) > 1 else []
+        if not views:
+            return viewmats.sum() * 0
         centers = camera_centers(viewmats)
         offsets = torch.linspace(-radius, radius, COHERENCE_SAMPLES, dtype=dtype, device=device)
+        depths = (center.to(dtype) - centers).norm(dim=-1)[:, None] + offsets  # [C, S] along each optical axis
+        rays = []  # per view [F, 3]: world directions at unit depth through its mask pixels
+        for view in views:
+            pixels, K = self.foreground[view].to(dtype), Ks[view]
+            rays.append(torch.stack([(pixels[:, 0] - K[0, 2]) / K[0, 0], (pixels[:, 1] - K[1, 2]) / K[1, 1],
+                                     torch.ones_like(pixels[:, 0])], dim=-1) @ viewmats[view, :3, :3])
+        ray_views = torch.cat([torch.full((len(r),), view, device=device) for view, r in zip(views, rays)])
+        # where along each ray the least is, searched without a graph (kernels/coherence.py): the min's gradient
+        # reaches that point alone
+        least = least_outside_samples(torch.cat(rays).detach(), ray_views, centers.detach(), depths.detach(),
+                                      viewmats.detach(), Ks, self.outside_distance, self.margin, self.size)
         misses = []
-        for view in range(cams if cams > 1 else 0):
-            pixels = self.foreground[view].to(dtype)
-            if len(pixels) == 0:
-                continue
-            K = Ks[view]
-            rays = torch.stack([(pixels[:, 0] - K[0, 2]) / K[0, 0], (pixels[:, 1] - K[1, 2]) / K[1, 1],
-                                torch.ones_like(pixels[:, 0])], dim=-1) @ viewmats[view, :3, :3]  # world, unit depth
-            depths = (center.to(dtype) - centers[view]).norm() + offsets  # along the optical axis
-            with torch.no_grad():  # where along the ray the least is: min's gradient reaches that point alone
-                points = centers[view].float() + rays.float()[:, None] * depths.float()[None, :, None]  # [F, S, 3]
-                outside = self._outside_other_views(points.reshape(-1, 3), view, viewmats.float(), Ks.float())
-                least = outside.reshape(points.shape[:2]).argmin(dim=1)
+        for view, view_rays, chosen in zip(views, rays, least.split([len(r) for r in rays])):
             # the samples' depths move with the camera centre, and so does the chosen one (the gradient of the min)
-            points = centers[view] + rays * depths[least][:, None]
+            points = centers[view] + view_rays * depths[view, chosen][:, None]
             misses.append(self._outside_other_views(points, view, viewmats, Ks).mean())
-        if not misses:
-            return viewmats.sum() * 0
         return torch.stack(misses).mean()
 
     def _outside_other_views(self, points: torch.Tensor, view: int, viewmats: torch.Tensor,

@@ -34,6 +34,7 @@ from warpbags.kernels.bin import (
     tile_rows_kernel,
     tile_spans_kernel,
 )
+from warpbags.kernels.coherence import least_outside_sample_kernel
 from warpbags.kernels.knn import PointGrid3, count_cells_3d_kernel, mean_knn_distance_kernel
 from warpbags.kernels.nearest import PointGrid, count_cells_kernel, fill_cells_kernel, nearest_in_grid_kernel
 from warpbags.kernels.pose import apply_object_deltas_kernel, apply_pose_deltas_kernel
@@ -820,6 +821,55 @@ def mean_neighbour_distances(points: torch.Tensor, k: int) -> torch.Tensor:
     workers = 1 if device.type == "cuda" else _default_cpu_threads()
     _run_ranges(work, ranges, workers)
     return means
+
+
+# Rays per host-thread range of the coherence search: ~1500 mask pixels per view, so a few ranges per view and
+# enough of them that two threads finish together.
+COHERENCE_RAYS_PER_RANGE = 512
+
+
+@torch.no_grad()
+def least_outside_samples(rays: torch.Tensor, ray_views: torch.Tensor, origins: torch.Tensor, depths: torch.Tensor,
+                          viewmats: torch.Tensor, Ks: torch.Tensor, distances: torch.Tensor, margin: float,
+                          size: float) -> torch.Tensor:
+    """[R] int64: for each ray, the index of the depth sample nearest to passing through every other view's mask
+    (kernels/coherence.py; the search of `SilhouetteTargets.coherence_loss`). Host threads over ranges of rays on
+    the CPU.
+
+    Args:
+        rays: [R, 3] world directions at unit depth. ray_views: [R] the view each ray leaves from.
+        origins: [C, 3] camera centres. depths: [C, S] each view's sample depths along its rays.
+        viewmats: [C, 4, 4] world-to-camera. Ks: [C, 3, 3].
+        distances: [C, H + 2 margin, W + 2 margin] distance transforms outside the masks (image sizes).
+        margin: pixels of continued mask around each image. size: the image size the distances are measured in.
+    """
+    device = rays.device
+    count = len(rays)
+    least = torch.empty(count, dtype=torch.int32, device=device)
+    if count == 0:
+        return least.long()
+    dtype = rays.dtype
+    scalar = _WP_SCALARS[dtype]
+    intrinsics = torch.stack([Ks[:, 0, 0], Ks[:, 1, 1], Ks[:, 0, 2], Ks[:, 1, 2]], dim=-1).to(dtype).contiguous()
+    launcher = _launcher(device)
+    arguments = dict(origins=_to_warp(origins.to(dtype).contiguous(), "vec3"),
+                     depths=_to_warp(depths.to(dtype).contiguous(), "scalar"),
+                     viewmats=_to_warp(viewmats.to(dtype).contiguous(), "mat44"),
+                     intrinsics=_to_warp(intrinsics, "vec4"),
+                     distances=_to_warp(distances.float().contiguous(), "scalar"),
+                     margin=scalar(margin), size=scalar(size))
+    rays, ray_views = rays.contiguous(), ray_views.to(torch.int32).contiguous()
+
+    def work(_, start, stop):
+        launcher.launch(least_outside_sample_kernel, stop - start, **arguments, rays=_to_warp(rays[start:stop], "vec3"),
+                        ray_views=_to_warp(ray_views[start:stop], "int32"), least=_to_warp(least[start:stop], "int32"))
+
+    if device.type == "cuda":
+        work(0, 0, count)
+    else:  # the first ray alone (`_run_ranges`: first-use compilation once), then ranges
+        step = COHERENCE_RAYS_PER_RANGE
+        _run_ranges(work, [(0, 1)] + [(a, min(a + step, count)) for a in range(1, count, step)], _default_cpu_threads())
+    return least.long()
 
 
 def _default_cpu_threads() -> int:
