@@ -208,6 +208,12 @@ def _first_alone_then_equal(count: int, parts: int) -> list[tuple[int, int]]:
     return [(a, b) for a, b in zip([0, *bounds], bounds) if b > a]
 
 
+def _first_alone_then_chunks(count: int, chunk: int) -> list[tuple[int, int]]:
+    """[start, stop) ranges of range(count) (count >= 1): the first item alone (as `_first_alone_then_equal`), then
+    ranges of `chunk` items, the last one shorter."""
+    return [(0, 1)] + [(a, min(a + chunk, count)) for a in range(1, count, chunk)]
+
+
 class _GaussianRanges(NamedTuple):
     """How a stage's launch is cut: `ranges` of the Gaussian index (None: one launch over the whole `dim`)."""
 
@@ -815,11 +821,9 @@ def mean_neighbour_distances(points: torch.Tensor, k: int) -> torch.Tensor:
         launcher.launch(mean_knn_distance_kernel, stop - start, **arguments, first_point=start,
                         heaps=wp.from_torch(heaps, dtype=wp.float64))
 
-    # the first query alone (`_run_ranges`: first-use compilation once), then chunks
     chunk = max(1, min(KNN_CHUNK, KNN_SCRATCH_BYTES // (8 * k)))
-    ranges = [(0, 1)] + [(a, min(a + chunk, count)) for a in range(1, count, chunk)]
     workers = 1 if device.type == "cuda" else _default_cpu_threads()
-    _run_ranges(work, ranges, workers)
+    _run_ranges(work, _first_alone_then_chunks(count, chunk), workers)
     return means
 
 
@@ -866,9 +870,8 @@ def least_outside_samples(rays: torch.Tensor, ray_views: torch.Tensor, origins: 
 
     if device.type == "cuda":
         work(0, 0, count)
-    else:  # the first ray alone (`_run_ranges`: first-use compilation once), then ranges
-        step = COHERENCE_RAYS_PER_RANGE
-        _run_ranges(work, [(0, 1)] + [(a, min(a + step, count)) for a in range(1, count, step)], _default_cpu_threads())
+    else:
+        _run_ranges(work, _first_alone_then_chunks(count, COHERENCE_RAYS_PER_RANGE), _default_cpu_threads())
     return least.long()
 
 
