@@ -5,7 +5,8 @@ from __future__ import annotations
 import torch
 from random_poses import F64, generator, random_rotations, random_viewmats
 
-from warpbags.cameras import camera_centers, moved_keeping_target, project_points, viewmats_from_centers
+from warpbags.cameras import (camera_centers, moved_keeping_target, pixel_directions, project_points,
+                              viewmats_from_centers)
 
 
 def test_camera_centers_map_to_camera_origin():
@@ -38,6 +39,21 @@ def test_project_points_is_the_pinhole_model():
     torch.testing.assert_close(pixels[0, 0], torch.tensor([55.0, 28.0], dtype=F64))
     torch.testing.assert_close(depths[0], torch.tensor([2.0, -1.0], dtype=F64))
     assert torch.isfinite(pixels).all()  # the point behind the camera stays finite; its depth marks it
+
+
+def test_pixel_directions_project_back_to_their_pixels():
+    """Directions at unit depth through pixels of two cameras, scaled to any depth and projected, land on the
+    pixels they came from."""
+    Ks = torch.tensor([[[100.0, 0.0, 50.0], [0.0, 120.0, 40.0], [0.0, 0.0, 1.0]],
+                       [[80.0, 0.0, 30.5], [0.0, 80.0, 20.5], [0.0, 0.0, 1.0]]], dtype=F64)
+    pixels = torch.rand(2, 5, 2, generator=generator(), dtype=F64) * 100
+    directions = pixel_directions(pixels, Ks[:, None])
+    assert torch.equal(directions[..., 2], torch.ones(2, 5, dtype=F64))
+    for camera in range(2):
+        projected, depths = project_points(torch.eye(4, dtype=F64)[None], Ks[camera:camera + 1],
+                                           directions[camera] * 3.0)
+        torch.testing.assert_close(projected[0], pixels[camera])
+        torch.testing.assert_close(depths[0], torch.full((5,), 3.0, dtype=F64))
 
 
 def test_moved_keeping_target_keeps_the_target_on_its_ray_and_turns_least():

@@ -13,7 +13,7 @@ import warpbags
 from warpbags.alignment import pose_errors
 from warpbags.camera_optimizer import CameraOptimizer, CameraOptimizerSettings, corrected_viewmats
 from warpbags.camera_setup import coherent_start
-from warpbags.cameras import camera_centers, project_points
+from warpbags.cameras import camera_centers, pixel_directions, project_points
 from warpbags.data import SyntheticOptions, ensure_synthetic_scene, load_scene
 from warpbags.data.noise import perturb_viewmats
 from warpbags.lie import so3_exp
@@ -141,9 +141,7 @@ def test_coherence_search_picks_each_rays_least_sample_as_trying_every_sample_do
     depths = (center - centers).norm(dim=-1)[:, None] + torch.linspace(-radius, radius, COHERENCE_SAMPLES, dtype=dtype)
     picked, least, zero_runs = 0, 0, 0
     for view in range(len(viewmats)):
-        pixels, K = targets.foreground[view].to(dtype), Ks[view]
-        rays = torch.stack([(pixels[:, 0] - K[0, 2]) / K[0, 0], (pixels[:, 1] - K[1, 2]) / K[1, 1],
-                            torch.ones_like(pixels[:, 0])], dim=-1) @ viewmats[view, :3, :3]
+        rays = pixel_directions(targets.foreground[view].to(dtype), Ks[view]) @ viewmats[view, :3, :3]
         chosen = least_outside_samples(rays, torch.full((len(rays),), view), centers, depths, viewmats, Ks,
                                        targets.outside_distance, targets.margin, targets.size)
         points = centers[view] + rays[:, None] * depths[view][None, :, None]

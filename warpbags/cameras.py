@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import torch
 
-__all__ = ["camera_centers", "moved_keeping_target", "project_points", "viewmats_from_centers"]
+__all__ = ["camera_centers", "moved_keeping_target", "pixel_directions", "project_points", "viewmats_from_centers"]
 
 
 def camera_centers(viewmats: torch.Tensor) -> torch.Tensor:
@@ -42,6 +42,14 @@ def project_points(viewmats: torch.Tensor, Ks: torch.Tensor, points: torch.Tenso
     u = Ks[:, None, 0, 0] * cam[..., 0] / safe + Ks[:, None, 0, 2]
     v = Ks[:, None, 1, 1] * cam[..., 1] / safe + Ks[:, None, 1, 2]
     return torch.stack([u, v], dim=-1), depths
+
+
+def pixel_directions(pixels: torch.Tensor, Ks: torch.Tensor) -> torch.Tensor:
+    """The camera-frame directions at unit depth ([..., 3], z = 1) through [..., 2] pixel positions (pixel centres at
+    +0.5) of cameras [..., 3, 3] `Ks` (broadcast): what `project_points` maps back to those pixels."""
+    x = (pixels[..., 0] - Ks[..., 0, 2]) / Ks[..., 0, 0]
+    y = (pixels[..., 1] - Ks[..., 1, 2]) / Ks[..., 1, 1]
+    return torch.stack([x, y, torch.ones_like(x)], dim=-1)
 
 
 def viewmats_from_centers(rotations: torch.Tensor, centers: torch.Tensor) -> torch.Tensor:

@@ -24,7 +24,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from warpbags.cameras import camera_centers, project_points
+from warpbags.cameras import camera_centers, pixel_directions, project_points
 from warpbags.lie import so3_exp
 from warpbags.wrapper import least_outside_samples, nearest_points
 
@@ -57,8 +57,7 @@ def mask_centroids(masks: torch.Tensor) -> torch.Tensor:
 def centroid_rays(masks: torch.Tensor, viewmats: torch.Tensor, Ks: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """Unit ray directions [C, 3] through the mask centroids, in camera and in world coordinates."""
     centroids = mask_centroids(masks).to(Ks)
-    camera = torch.stack([(centroids[:, 0] - Ks[:, 0, 2]) / Ks[:, 0, 0], (centroids[:, 1] - Ks[:, 1, 2]) / Ks[:, 1, 1],
-                          torch.ones_like(centroids[:, 0])], dim=-1)
+    camera = pixel_directions(centroids, Ks)
     camera = camera / camera.norm(dim=-1, keepdim=True)
     world = (viewmats[:, :3, :3].transpose(1, 2) @ camera[..., None])[..., 0]
     return camera, world
@@ -235,9 +234,7 @@ class SilhouetteTargets:
         depths = (center.to(dtype) - centers).norm(dim=-1)[:, None] + offsets  # [C, S] along each optical axis
         rays = []  # per view [F, 3]: world directions at unit depth through its mask pixels
         for view in views:
-            pixels, K = self.foreground[view].to(dtype), Ks[view]
-            rays.append(torch.stack([(pixels[:, 0] - K[0, 2]) / K[0, 0], (pixels[:, 1] - K[1, 2]) / K[1, 1],
-                                     torch.ones_like(pixels[:, 0])], dim=-1) @ viewmats[view, :3, :3])
+            rays.append(pixel_directions(self.foreground[view].to(dtype), Ks[view]) @ viewmats[view, :3, :3])
         ray_views = torch.cat([torch.full((len(r),), view, device=device) for view, r in zip(views, rays)])
         # where along each ray the least is, searched without a graph (kernels/coherence.py): the min's gradient
         # reaches that point alone
