@@ -66,7 +66,8 @@ def least_outside_sample_kernel(rays: wp.array(dtype=Any), ray_views: wp.array(d
     direction = rays[r]
     origin = origins[view]
     samples = depths.shape[1]
-    best = margin
+    zero = type(margin)(0.0)
+    best = zero  # read only once best_sample >= 0
     best_sample = int(-1)
     for step in range(samples):
         # from the middle of the depth range outwards, where the object is: a low total found early prunes the rest
@@ -75,7 +76,7 @@ def least_outside_sample_kernel(rays: wp.array(dtype=Any), ray_views: wp.array(d
             s = samples / 2 - (step + 1) / 2
         if s < samples:
             point = origin + direction * depths[view, s]
-            total = margin - margin
+            total = zero
             pruned = int(0)
             for other in range(viewmats.shape[0]):
                 # the terms are >= 0, so a partial sum above the best can only end above it: stop there
