@@ -8,7 +8,8 @@ true-pose model, plus an ablation of each part of the pose pipeline, in one run.
 SCENE: a preset (maryrose, moldgoldcape: a clone under WARPBAGS_DATA, synthetic, synthetic-tele), a scene folder,
 `synthetic-small` (16 views, 96 px, cached) or `synthetic-tele-small` (16 views, 128 px, maryrose's 18.6 deg field of
 view and framing, cached; `synthetic-tele-256`: the same at 256 px; `synthetic-tele-lit`: the same with the light and
-the colour gains changing from view to view). Every
+the colour gains changing from view to view; `synthetic-tele-turntable`: lit as on a turntable, the light turning
+with the camera). Every
 training camera is perturbed (rotation angle ~ N(0, rot^2) deg about a random axis, each camera-centre coordinate
 ~ N(0, trans^2) in scene units, orbit radius 4) and optimized (free gauge); errors are measured after sim(3)
 Procrustes alignment. Variants:
@@ -153,6 +154,10 @@ SMALL_SCENES = {
     # as on a capture whose object was moved between sequences (maryrose): the images disagree beyond the poses
     "synthetic-tele-lit": SyntheticOptions(views=16, width=128, height=128, fov_deg=18.6, radius=5.6,
                                            light_jitter_deg=30.0, gain_jitter=0.1),
+    # synthetic-tele-small lit as on a turntable (maryrose): the light turns with the camera, so each part of the
+    # object is shaded differently from each side it is seen from
+    "synthetic-tele-turntable": SyntheticOptions(views=16, width=128, height=128, fov_deg=18.6, radius=5.6,
+                                                 turntable_light=True),
 }
 
 

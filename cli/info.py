@@ -67,10 +67,12 @@ def synth(
                                                      "changes between shots)."),
     gain_jitter: float = typer.Option(0.0, help="Scale each view's colour channels by exp(N(0, this^2)) (exposure "
                                                 "and white balance changing between shots)."),
+    turntable_light: bool = typer.Option(False, help="The light turns with the camera, as on a turntable capture: "
+                                                     "the object's shading changes with the side it is seen from."),
 ) -> None:
     """Render the synthetic excavator scene (exact poses, masks, depth maps) in the MipNeRF360 layout."""
     options = SyntheticOptions(views=views, width=size, height=size, seed=seed, light_jitter_deg=light_jitter_deg,
-                               gain_jitter=gain_jitter)
+                               gain_jitter=gain_jitter, turntable_light=turntable_light)
     folder = generate_synthetic_scene(out_dir, options)
     stdout.print(f"wrote {views} views ({size}x{size}) to {folder}")
 

@@ -32,7 +32,7 @@ from warpbags.data import (
 from warpbags.data import loaders
 from warpbags.data.colmap import read_model, write_model
 from warpbags.data.images import read_image, read_masks, scene_bytes
-from warpbags.data.synthetic import OBJECT_CENTER, dome_viewmats, intrinsics
+from warpbags.data.synthetic import LIGHT_DIRECTION, LIGHT_IN_CAMERA, OBJECT_CENTER, dome_viewmats, intrinsics, view_lighting
 from warpbags.errors import WarpbagsError
 
 SYNTHETIC = SyntheticOptions(views=12, width=64, height=64, num_points=600)
@@ -674,3 +674,28 @@ def test_synthetic_lighting_changes_the_images_and_nothing_else(tmp_path):
     result = CliRunner().invoke(app, ["synth", str(tmp_path / "bad"), "--views", "4", "--gain-jitter", "-1"])
     assert result.exit_code != 0 and "gain jitter must be >= 0" in result.output
     assert not (tmp_path / "bad").exists()
+
+
+def test_turntable_light_stands_still_in_every_camera_and_shades_each_side_differently(tmp_path):
+    plain = SyntheticOptions(views=4, width=24, height=24)
+    turntable = SyntheticOptions(views=4, width=24, height=24, turntable_light=True)
+    assert turntable.folder_name() == plain.folder_name() + "-turntable_light1"
+    viewmats = dome_viewmats(turntable)
+    lights = [light for light, _ in view_lighting(turntable, viewmats)]
+    for viewmat, light in zip(viewmats, lights):  # the same light in each camera's axes: it turns with the camera
+        assert np.allclose(viewmat[:3, :3] @ light, LIGHT_IN_CAMERA)
+    assert np.degrees(np.arccos(np.clip(lights[0] @ lights[2], -1, 1))) > 45  # opposite sides, other lights
+    assert all(np.array_equal(light, LIGHT_DIRECTION) for light, _ in view_lighting(plain, viewmats))
+    generate_synthetic_scene(tmp_path / "plain", plain)
+    result = CliRunner().invoke(app, ["synth", str(tmp_path / "turntable"), "--views", "4", "--size", "24",
+                                      "--turntable-light"])
+    assert result.exit_code == 0, result.output
+    for index in range(4):
+        stem = f"view_{index:03d}"
+        folders = [tmp_path / "plain", tmp_path / "turntable"]
+        masks = [cv2.imread(str(folder / "masks" / f"{stem}.png")) for folder in folders]
+        depths = [np.load(folder / "depths" / f"{stem}.npy") for folder in folders]
+        assert np.array_equal(*masks) and np.array_equal(*depths)
+    images = [cv2.imread(str(folder / "images" / f"view_{index:03d}.png")).astype(int)
+              for folder in folders for index in range(4)]
+    assert np.mean([np.abs(images[index] - images[4 + index]).mean() for index in range(4)]) > 1  # levels of 255

@@ -37,6 +37,9 @@ from warpbags.lie import so3_exp
 GENERATOR_VERSION = 3  # bump whenever the geometry or rendering changes: cache folders are keyed on it
 BACKGROUND = 1.0  # white
 LIGHT_DIRECTION = np.array([0.4, -0.3, 0.87]) / np.linalg.norm([0.4, -0.3, 0.87])
+LIGHT_IN_CAMERA = np.array([-0.7, -0.4, -0.6]) / np.linalg.norm([-0.7, -0.4, -0.6])
+"""The light of `SyntheticOptions.turntable_light`, in camera axes (OpenCV: x right, y down, z forward): to the
+camera's left, above it and on its side of the object, as a studio key light beside a turntable."""
 
 
 @dataclass(frozen=True)
@@ -57,6 +60,9 @@ class SyntheticOptions:
             between sequences under fixed lights.
         gain_jitter: each view's colour channels are scaled by exp(N(0, gain_jitter^2)) (exposure and white
             balance changing between shots). The background stays white; masks and depth maps do not change.
+        turntable_light: the light turns with the camera (`LIGHT_IN_CAMERA` in each view's camera axes), as on a
+            turntable capture, where the object turns under lights that stand still with the camera (maryrose): the
+            shading of each part of the object changes with the side it is seen from. Jitter turns it further.
     """
 
     views: int = 48
@@ -71,6 +77,7 @@ class SyntheticOptions:
     num_points: int = 4000
     light_jitter_deg: float = 0.0
     gain_jitter: float = 0.0
+    turntable_light: bool = False
 
     def folder_name(self) -> str:
         """The cache folder's name: every setting that changes the scene (defaults of optics and orbit left out, so
@@ -78,7 +85,7 @@ class SyntheticOptions:
         name = f"synthetic-v{GENERATOR_VERSION}-{self.views}views-{self.width}x{self.height}-seed{self.seed}"
         defaults = SyntheticOptions()
         for field in ("fov_deg", "radius", "min_elevation_deg", "max_elevation_deg", "supersample", "num_points",
-                      "light_jitter_deg", "gain_jitter"):
+                      "light_jitter_deg", "gain_jitter", "turntable_light"):
             if getattr(self, field) != getattr(defaults, field):
                 name += f"-{field.replace('_deg', '')}{getattr(self, field):g}"
         return name
@@ -342,18 +349,22 @@ def render_view(
     return image.astype(np.float32), hit.reshape(height, width).astype(np.float32), depth.astype(np.float32)
 
 
-def view_lighting(options: SyntheticOptions) -> list[tuple[np.ndarray, np.ndarray | None]]:
-    """Each view's (light direction, colour gain or None) under `options.light_jitter_deg` and `gain_jitter`, from a
-    random stream of its own (the scene's other random draws do not move when they are switched on)."""
+def view_lighting(options: SyntheticOptions, viewmats: np.ndarray) -> list[tuple[np.ndarray, np.ndarray | None]]:
+    """Each view's (light direction, colour gain or None) for [C,4,4] world-to-camera `viewmats`: `LIGHT_DIRECTION`,
+    or with `options.turntable_light` `LIGHT_IN_CAMERA` in each camera's axes, turned by `light_jitter_deg` and scaled
+    by `gain_jitter` from a random stream of its own (the scene's other random draws do not move when they are
+    switched on)."""
+    lights = ([viewmat[:3, :3].T @ LIGHT_IN_CAMERA for viewmat in viewmats] if options.turntable_light
+              else [LIGHT_DIRECTION] * options.views)
     if options.light_jitter_deg == 0 and options.gain_jitter == 0:
-        return [(LIGHT_DIRECTION, None)] * options.views
+        return [(light, None) for light in lights]
     rng = np.random.default_rng([options.seed, 1])
     lighting = []
-    for _ in range(options.views):
+    for light in lights:
         axis = rng.normal(size=3)
         axis /= np.linalg.norm(axis)
         angle = np.radians(options.light_jitter_deg) * rng.uniform()
-        light = so3_exp(torch.from_numpy(axis * angle)).numpy() @ LIGHT_DIRECTION
+        light = so3_exp(torch.from_numpy(axis * angle)).numpy() @ light
         lighting.append((light, np.exp(rng.normal(scale=options.gain_jitter, size=3))))
     return lighting
 
@@ -386,7 +397,7 @@ def generate_synthetic_scene(out_dir: str | Path, options: SyntheticOptions = Sy
         rng = np.random.default_rng(options.seed)
         points, colors = [], []
         per_view = max(1, options.num_points // options.views)
-        for name, viewmat, (light, gain) in zip(names, viewmats, view_lighting(options)):
+        for name, viewmat, (light, gain) in zip(names, viewmats, view_lighting(options, viewmats)):
             image, mask, depth = render_view(primitives, viewmat, K, options.width, options.height, options.supersample,
                                              light, gain)
             stem = Path(name).stem
