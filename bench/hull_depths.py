@@ -1,0 +1,111 @@
+"""A copy of a scene with depth maps of the visual hull of all its views, carved at its reference poses.
+
+    python bench/hull_depths.py SCENE OUT [--resolution 160]
+    python bench/pose_recovery.py OUT --seeds 0,1,2 --no-true-pose [--depth monocular]
+
+SCENE: as bench/pose_recovery.py (a preset or a scene folder). OUT: a new folder, a copy of the scene's files with
+`depths/<image stem>.npy` added (depth along the optical axis, in the scene folder's own units; 0 where a mask pixel's
+ray misses the hull).
+
+What it is for: the synthetic scenes come with exact depth maps and a real capture with none, so whether a real
+capture's cameras fail for want of geometry can be measured by giving it geometry. The hull of every view at the
+reference poses (maryrose: 69 masks) is close to the object's shape wherever the object is convex, far closer than
+any hull of the 4-9 training views; its depth maps stand in for a depth prior much better than a monocular
+network's, so a result with them bounds what such a prior could buy. It uses the reference poses and every view:
+a measurement, not a method. The carve keeps a voxel only where every mask holds it (no missed view), so thin parts
+that a mask misses are lost and those pixels get no depth.
+"""
+
+from __future__ import annotations
+
+import argparse
+import shutil
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from pose_recovery import _load  # noqa: E402
+from warpbags.cameras import camera_centers, pixel_directions  # noqa: E402
+from warpbags.cli.common import clean_errors  # noqa: E402
+from warpbags.errors import WarpbagsError  # noqa: E402
+from warpbags.init import visual_hull  # noqa: E402
+
+RAYS_PER_CHUNK = 20_000
+
+
+def occupancy_grid(points: torch.Tensor, voxel: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """A boolean grid [X,Y,Z] holding the voxel centres `points` [V,3] of edge `voxel`, and its lower corner [3]."""
+    lower = points.min(0).values - voxel
+    dims = ((points.max(0).values - lower) / voxel).ceil().long() + 2
+    grid = torch.zeros(*dims.tolist(), dtype=torch.bool)
+    index = ((points - lower) / voxel).floor().long()
+    grid[index[:, 0], index[:, 1], index[:, 2]] = True
+    return grid, lower
+
+
+def first_hit_depths(grid: torch.Tensor, lower: torch.Tensor, voxel: float, viewmat: torch.Tensor, K: torch.Tensor,
+                     pixels: torch.Tensor, near: float, far: float) -> torch.Tensor:
+    """[P] depth along the optical axis of the first occupied voxel on each pixel's ray (0 where none), marching in
+    half-voxel steps between depths `near` and `far`."""
+    dims = torch.tensor(grid.shape)
+    origin = camera_centers(viewmat[None])[0]
+    directions = pixel_directions(pixels, K) @ viewmat[:3, :3]  # world directions at unit depth
+    steps = torch.arange(max(near, 1e-3), far, 0.5 * voxel, dtype=torch.float64)
+    depths = torch.zeros(len(pixels), dtype=torch.float64)
+    for start in range(0, len(pixels), RAYS_PER_CHUNK):
+        chunk = slice(start, start + RAYS_PER_CHUNK)
+        samples = origin + directions[chunk, None, :] * steps[None, :, None]  # [R, S, 3]
+        cells = ((samples - lower) / voxel).floor().long()
+        inside = ((cells >= 0) & (cells < dims)).all(-1)
+        cells = torch.minimum(cells.clamp(min=0), dims - 1)
+        occupied = grid[cells[..., 0], cells[..., 1], cells[..., 2]] & inside
+        first = occupied.int().argmax(1)
+        depths[chunk] = torch.where(occupied.any(1), steps[first], torch.zeros(()))
+    return depths
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("scene")
+    parser.add_argument("out", type=Path)
+    parser.add_argument("--resolution", type=int, default=160, help="voxels per axis of the hull's fine pass")
+    args = parser.parse_args()
+    if args.out.exists():
+        raise WarpbagsError(f"{args.out} exists; choose a new folder")
+    scene = _load(args.scene)
+    if scene.masks is None:
+        raise WarpbagsError(f"scene {args.scene} has no masks to carve a hull from")
+    started = time.perf_counter()
+    points, voxel = visual_hull(scene.masks, scene.viewmats, scene.Ks, resolution=args.resolution, missed_views=0)
+    if len(points) == 0:
+        raise WarpbagsError(f"the masks of {args.scene} leave no voxel at their reference poses")
+    grid, lower = occupancy_grid(points.double(), voxel)
+    center = points.double().mean(0)
+    radius = float((points.double() - center).norm(dim=1).max())
+    depths = np.zeros((scene.num_views, scene.height, scene.width), np.float32)
+    hit = []
+    for view in range(scene.num_views):
+        viewmat, K = scene.viewmats[view].double(), scene.Ks[view].double()
+        rows, cols = torch.nonzero(scene.masks[view] > 0.5, as_tuple=True)
+        pixels = torch.stack([cols.double() + 0.5, rows.double() + 0.5], -1)
+        distance = float((viewmat[:3, :3] @ center + viewmat[:3, 3])[2])
+        view_depths = first_hit_depths(grid, lower, voxel, viewmat, K, pixels, distance - radius, distance + radius)
+        # back to the scene folder's units: a normalized scene's lengths are the source's times its scale
+        depths[view, rows.numpy(), cols.numpy()] = (view_depths / scene.normalization.scale).numpy()
+        hit.append(float((view_depths > 0).double().mean()))
+    shutil.copytree(scene.root, args.out, symlinks=False)
+    (args.out / "depths").mkdir(exist_ok=True)
+    for view, name in enumerate(scene.image_names):
+        np.save(args.out / "depths" / f"{Path(name).stem}.npy", depths[view])
+    print(f"{args.scene}: hull of {scene.num_views} views, {len(points)} voxels of {voxel:.4f}; mask pixels with a "
+          f"depth: mean {100 * np.mean(hit):.1f}% (min {100 * min(hit):.1f}%); {time.perf_counter() - started:.0f} s "
+          f"-> {args.out}")
+
+
+if __name__ == "__main__":
+    clean_errors(main)()
