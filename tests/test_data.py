@@ -32,7 +32,8 @@ from warpbags.data import (
 from warpbags.data import loaders
 from warpbags.data.colmap import read_model, write_model
 from warpbags.data.images import read_image, read_masks, scene_bytes
-from warpbags.data.synthetic import LIGHT_DIRECTION, LIGHT_IN_CAMERA, OBJECT_CENTER, dome_viewmats, intrinsics, view_lighting
+from warpbags.data.synthetic import (LIGHT_DIRECTION, LIGHT_IN_CAMERA, OBJECT_CENTER, dome_viewmats, intrinsics,
+                                     view_lighting)
 from warpbags.errors import WarpbagsError
 
 SYNTHETIC = SyntheticOptions(views=12, width=64, height=64, num_points=600)
@@ -690,9 +691,9 @@ def test_turntable_light_stands_still_in_every_camera_and_shades_each_side_diffe
     result = CliRunner().invoke(app, ["synth", str(tmp_path / "turntable"), "--views", "4", "--size", "24",
                                       "--turntable-light"])
     assert result.exit_code == 0, result.output
+    folders = [tmp_path / "plain", tmp_path / "turntable"]
     for index in range(4):
         stem = f"view_{index:03d}"
-        folders = [tmp_path / "plain", tmp_path / "turntable"]
         masks = [cv2.imread(str(folder / "masks" / f"{stem}.png")) for folder in folders]
         depths = [np.load(folder / "depths" / f"{stem}.npy") for folder in folders]
         assert np.array_equal(*masks) and np.array_equal(*depths)
