@@ -9,7 +9,8 @@ SCENE: a preset (maryrose, moldgoldcape: a clone under WARPBAGS_DATA, synthetic,
 `synthetic-small` (16 views, 96 px, cached) or `synthetic-tele-small` (16 views, 128 px, maryrose's 18.6 deg field of
 view and framing, cached; `synthetic-tele-256`: the same at 256 px; `synthetic-tele-lit`: the same with the light and
 the colour gains changing from view to view; `synthetic-tele-turntable`: lit as on a turntable, the light turning
-with the camera). Every
+with the camera; `synthetic-tele-tankard`: a wooden tankard shaped and textured like maryrose's instead of the
+excavator). Every
 training camera is perturbed (rotation angle ~ N(0, rot^2) deg about a random axis, each camera-centre coordinate
 ~ N(0, trans^2) in scene units, orbit radius 4) and optimized (free gauge); errors are measured after sim(3)
 Procrustes alignment. Variants:
@@ -158,6 +159,10 @@ SMALL_SCENES = {
     # object is shaded differently from each side it is seen from
     "synthetic-tele-turntable": SyntheticOptions(views=16, width=128, height=128, fov_deg=18.6, radius=5.6,
                                                  turntable_light=True),
+    # maryrose's optics and framing with a tankard like hers lying on its side instead of the excavator: a nearly
+    # symmetric silhouette and a low-contrast, repetitive grain
+    "synthetic-tele-tankard": SyntheticOptions(views=16, width=128, height=128, fov_deg=18.6, radius=5.6,
+                                               object="tankard"),
 }
 
 

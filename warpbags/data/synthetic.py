@@ -1,8 +1,11 @@
 """A synthetic object-centric 360-degree scene with exact poses, masks and depth maps.
 
-A toy excavator (tracks, body, cab, boom, stick, bucket, counterweight) on a base slab, built from textured boxes,
-spheres and cylinders (textures: scikit-image's bundled photographs), rendered by an analytic ray caster in numpy
-(independent of the splatting kernels), Lambertian shading, white background. Cameras sit on a dome around the
+One of two objects built from textured boxes, spheres and cylinders, rendered by an analytic ray caster in numpy
+(independent of the splatting kernels), Lambertian shading, white background: a toy excavator (tracks, body, cab,
+boom, stick, bucket, counterweight) on a base slab, textured with scikit-image's bundled photographs, whose
+silhouette differs from every side; or a wooden tankard lying on its side (a staved cylinder, two hoops, a flat
+handle), shaped and textured like the maryrose capture: a nearly symmetric silhouette and a low-contrast,
+repetitive grain. Cameras sit on a dome around the
 object. The scene is written in the MipNeRF360 / GaussianObject layout, so `load_scene` reads it like a capture:
 
     images/view_XXX.png   masks/view_XXX.png   depths/view_XXX.npy (z-depth, world units, 0 = background)
@@ -63,6 +66,7 @@ class SyntheticOptions:
         turntable_light: the light turns with the camera (`LIGHT_IN_CAMERA` in each view's camera axes), as on a
             turntable capture, where the object turns under lights that stand still with the camera (maryrose): the
             shading of each part of the object changes with the side it is seen from. Jitter turns it further.
+        object: which object the scene shows, a key of `OBJECTS` ("excavator" or "tankard").
     """
 
     views: int = 48
@@ -78,6 +82,7 @@ class SyntheticOptions:
     light_jitter_deg: float = 0.0
     gain_jitter: float = 0.0
     turntable_light: bool = False
+    object: str = "excavator"
 
     def folder_name(self) -> str:
         """The cache folder's name: every setting that changes the scene (defaults of optics and orbit left out, so
@@ -85,9 +90,10 @@ class SyntheticOptions:
         name = f"synthetic-v{GENERATOR_VERSION}-{self.views}views-{self.width}x{self.height}-seed{self.seed}"
         defaults = SyntheticOptions()
         for field in ("fov_deg", "radius", "min_elevation_deg", "max_elevation_deg", "supersample", "num_points",
-                      "light_jitter_deg", "gain_jitter", "turntable_light"):
+                      "light_jitter_deg", "gain_jitter", "turntable_light", "object"):
             if getattr(self, field) != getattr(defaults, field):
-                name += f"-{field.replace('_deg', '')}{getattr(self, field):g}"
+                value = getattr(self, field)
+                name += f"-{field.replace('_deg', '')}{value if isinstance(value, str) else format(value, 'g')}"
         return name
 
 
@@ -167,6 +173,48 @@ def build_excavator(seed: int = 0) -> list[Primitive]:
         make("box", (0.76, -0.08, 0.685), stick_rotation, (0.05, 0.05, 0.26), "yellow"),
         make("sphere", (0.85, -0.08, 0.42), identity, (0.12, 0.12, 0.12), "cat"),
     ]
+
+
+def _wood_texture(rng: np.random.Generator, tint, staves: int = 0, size: int = 128) -> np.ndarray:
+    """[size,size,3] wood: a grain of fine streaks along the rows' direction (texture v, a cylinder's axis), split
+    into `staves` bands across u of slightly different tones with dark seams between them (0: one board)."""
+    grain = cv2.GaussianBlur(rng.normal(size=(size, size)).astype(np.float32), (0, 0), sigmaX=0.7, sigmaY=6.0)
+    shade = 1.0 + 0.12 * grain / grain.std()
+    if staves:
+        band = (np.arange(size) * staves) // size
+        shade = shade * rng.uniform(0.85, 1.1, size=staves)[band][None, :]
+        seams = np.nonzero(np.diff(band))[0] + 1
+        shade[:, seams] *= 0.55
+    return np.clip(shade[:, :, None] * np.asarray(tint, np.float32), 0, 1)
+
+
+def build_tankard(seed: int = 0) -> list[Primitive]:
+    """The primitives of the wooden tankard lying on its side, in world coordinates (about 1.5 units long, its axis
+    along world x, filling the telephoto views as maryrose's fills hers): a staved body, three hoops, a lid on one
+    end and a flat handle along one side, past that end."""
+    rng = np.random.default_rng([seed, 2])
+    staves = _wood_texture(rng, (0.72, 0.52, 0.25), staves=14)
+    hoop = _wood_texture(rng, (0.60, 0.42, 0.20))
+    dark = _wood_texture(rng, (0.42, 0.30, 0.17))
+    along_x = _rotation("y", 90.0)  # a cylinder's local z axis onto world x
+    scale = 1.3
+
+    def make(kind, axial, size, texture, side=0.0, rotation=along_x):
+        center = OBJECT_CENTER + scale * np.array([axial, side, 0.0])
+        return Primitive(kind, center, rotation, scale * np.asarray(size, float), texture)
+
+    return [
+        make("cylinder", 0.0, (0.36, 0.36, 0.48), staves),
+        make("cylinder", -0.38, (0.385, 0.385, 0.035), hoop),
+        make("cylinder", 0.30, (0.385, 0.385, 0.035), hoop),
+        make("cylinder", 0.40, (0.385, 0.385, 0.035), hoop),
+        make("cylinder", -0.50, (0.30, 0.30, 0.02), dark),
+        make("box", -0.45, (0.30, 0.03, 0.12), dark, side=-0.39, rotation=np.eye(3)),
+    ]
+
+
+OBJECTS = {"excavator": build_excavator, "tankard": build_tankard}
+"""The objects a synthetic scene can show, by `SyntheticOptions.object`: each builds its primitives from a seed."""
 
 
 def _intersect(primitive: Primitive, origins: np.ndarray, directions: np.ndarray):
@@ -380,6 +428,8 @@ def generate_synthetic_scene(out_dir: str | Path, options: SyntheticOptions = Sy
             f"synthetic scene needs at least 4 views and 8x8 pixels, "
             f"got {options.views} views of {options.width}x{options.height}"
         )
+    if options.object not in OBJECTS:
+        raise WarpbagsError(f"unknown synthetic object {options.object!r}: choose one of {', '.join(OBJECTS)}")
     if options.light_jitter_deg < 0 or options.gain_jitter < 0:
         raise WarpbagsError(f"light jitter and gain jitter must be >= 0, got {options.light_jitter_deg} and "
                             f"{options.gain_jitter}")
@@ -390,7 +440,7 @@ def generate_synthetic_scene(out_dir: str | Path, options: SyntheticOptions = Sy
     for folder in ("images", "masks", "depths"):
         (staging / folder).mkdir(parents=True)
     try:
-        primitives = build_excavator(options.seed)
+        primitives = OBJECTS[options.object](options.seed)
         viewmats = dome_viewmats(options)
         K = intrinsics(options)
         names = [f"view_{index:03d}.png" for index in range(options.views)]
