@@ -1,6 +1,6 @@
 """A copy of a scene with depth maps of the visual hull of all its views, carved at its reference poses.
 
-    python bench/hull_depths.py SCENE OUT [--resolution 160]
+    python bench/hull_depths.py SCENE OUT [--resolution 160] [--carve-split 4]
     python bench/pose_recovery.py OUT --seeds 0,1,2 --no-true-pose [--depth monocular]
 
 SCENE: as bench/pose_recovery.py (a preset or a scene folder). OUT: a new folder, a copy of the scene's files with
@@ -12,8 +12,9 @@ capture's cameras fail for want of geometry can be measured by giving it geometr
 reference poses (maryrose: 69 masks) is close to the object's shape wherever the object is convex, far closer than
 any hull of the 4-9 training views; its depth maps stand in for a depth prior much better than a monocular
 network's, so a result with them bounds what such a prior could buy. It uses the reference poses and every view:
-a measurement, not a method. The carve keeps a voxel only where every mask holds it (no missed view), so thin parts
-that a mask misses are lost and those pixels get no depth.
+a measurement, not a method. `--carve-split N` carves with the N training views of the scene's split alone (still
+at the reference poses, which the hull then carries into every depth map). The carve keeps a voxel only where every
+mask holds it (no missed view), so thin parts that a mask misses are lost and those pixels get no depth.
 """
 
 from __future__ import annotations
@@ -39,9 +40,10 @@ RAYS_PER_CHUNK = 20_000
 
 
 def occupancy_grid(points: torch.Tensor, voxel: float) -> tuple[torch.Tensor, torch.Tensor]:
-    """A boolean grid [X,Y,Z] holding the voxel centres `points` [V,3] of edge `voxel`, and its lower corner [3]."""
-    lower = points.min(0).values - voxel
-    dims = ((points.max(0).values - lower) / voxel).ceil().long() + 2
+    """A boolean grid [X,Y,Z] holding the voxel centres `points` [V,3] of edge `voxel`, and its lower corner [3]
+    (half a voxel below the lowest centre: each centre falls in the middle of its cell, not on a rounding edge)."""
+    lower = points.min(0).values - 0.5 * voxel
+    dims = ((points.max(0).values - lower) / voxel).round().long() + 1
     grid = torch.zeros(*dims.tolist(), dtype=torch.bool)
     index = ((points - lower) / voxel).floor().long()
     grid[index[:, 0], index[:, 1], index[:, 2]] = True
@@ -69,40 +71,63 @@ def first_hit_depths(grid: torch.Tensor, lower: torch.Tensor, voxel: float, view
     return depths
 
 
+def hull_depth_maps(points: torch.Tensor, voxel: float, masks: torch.Tensor, viewmats: torch.Tensor,
+                    Ks: torch.Tensor) -> torch.Tensor:
+    """[C,H,W] float32 depth maps of a carved hull (`visual_hull`'s voxel centres `points` [V,3] of edge `voxel`)
+    seen by cameras [C,4,4] `viewmats`, [C,3,3] `Ks`: along each pixel's ray inside [C,H,W] `masks`, the depth
+    (along the optical axis) of the first kept voxel; 0 off the masks and where the ray misses the hull: close to
+    the object wherever it is convex."""
+    masks = masks.detach().float().cpu()
+    viewmats, Ks = viewmats.detach().double().cpu(), Ks.detach().double().cpu()
+    depths = torch.zeros(masks.shape, dtype=torch.float32)
+    if len(points) == 0:
+        return depths
+    points = points.detach().double().cpu()
+    grid, lower = occupancy_grid(points, voxel)
+    center = points.mean(0)
+    radius = float((points - center).norm(dim=1).max()) + voxel
+    for view in range(len(masks)):
+        rows, cols = torch.nonzero(masks[view] > 0.5, as_tuple=True)
+        pixels = torch.stack([cols.double() + 0.5, rows.double() + 0.5], -1)
+        distance = float((viewmats[view, :3, :3] @ center + viewmats[view, :3, 3])[2])
+        view_depths = first_hit_depths(grid, lower, voxel, viewmats[view], Ks[view], pixels, distance - radius,
+                                       distance + radius)
+        depths[view, rows, cols] = view_depths.float()
+    return depths
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("scene")
     parser.add_argument("out", type=Path)
     parser.add_argument("--resolution", type=int, default=160, help="voxels per axis of the hull's fine pass")
+    parser.add_argument("--carve-split", default=None, help="carve with this training split's views only (4, 6, 9)")
     args = parser.parse_args()
     if args.out.exists():
         raise WarpbagsError(f"{args.out} exists; choose a new folder")
     scene = _load(args.scene)
     if scene.masks is None:
         raise WarpbagsError(f"scene {args.scene} has no masks to carve a hull from")
+    carved = torch.arange(scene.num_views)
+    if args.carve_split is not None:
+        if args.carve_split not in scene.splits:
+            raise WarpbagsError(f"scene {args.scene} has no split {args.carve_split!r} (it has: "
+                                f"{', '.join(sorted(scene.splits))})")
+        carved = torch.as_tensor(scene.splits[args.carve_split])
     started = time.perf_counter()
-    points, voxel = visual_hull(scene.masks, scene.viewmats, scene.Ks, resolution=args.resolution, missed_views=0)
+    points, voxel = visual_hull(scene.masks[carved], scene.viewmats[carved], scene.Ks[carved],
+                                resolution=args.resolution, missed_views=0)
     if len(points) == 0:
         raise WarpbagsError(f"the masks of {args.scene} leave no voxel at their reference poses")
-    grid, lower = occupancy_grid(points.double(), voxel)
-    center = points.double().mean(0)
-    radius = float((points.double() - center).norm(dim=1).max())
-    depths = np.zeros((scene.num_views, scene.height, scene.width), np.float32)
-    hit = []
-    for view in range(scene.num_views):
-        viewmat, K = scene.viewmats[view].double(), scene.Ks[view].double()
-        rows, cols = torch.nonzero(scene.masks[view] > 0.5, as_tuple=True)
-        pixels = torch.stack([cols.double() + 0.5, rows.double() + 0.5], -1)
-        distance = float((viewmat[:3, :3] @ center + viewmat[:3, 3])[2])
-        view_depths = first_hit_depths(grid, lower, voxel, viewmat, K, pixels, distance - radius, distance + radius)
-        # back to the scene folder's units: a normalized scene's lengths are the source's times its scale
-        depths[view, rows.numpy(), cols.numpy()] = (view_depths / scene.normalization.scale).numpy()
-        hit.append(float((view_depths > 0).double().mean()))
+    # back to the scene folder's units: a normalized scene's lengths are the source's times its scale
+    depths = (hull_depth_maps(points, voxel, scene.masks, scene.viewmats, scene.Ks) / scene.normalization.scale).numpy()
+    on_masks = scene.masks > 0.5
+    hit = [float((torch.from_numpy(depths[view]) > 0)[on_masks[view]].double().mean()) for view in range(scene.num_views)]
     shutil.copytree(scene.root, args.out, symlinks=False)
     (args.out / "depths").mkdir(exist_ok=True)
     for view, name in enumerate(scene.image_names):
         np.save(args.out / "depths" / f"{Path(name).stem}.npy", depths[view])
-    print(f"{args.scene}: hull of {scene.num_views} views, {len(points)} voxels of {voxel:.4f}; mask pixels with a "
+    print(f"{args.scene}: hull of {len(carved)} views, {len(points)} voxels of {voxel:.4f}; mask pixels with a "
           f"depth: mean {100 * np.mean(hit):.1f}% (min {100 * min(hit):.1f}%); {time.perf_counter() - started:.0f} s "
           f"-> {args.out}")
 
