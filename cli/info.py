@@ -69,13 +69,13 @@ def synth(
                                                 "and white balance changing between shots)."),
     turntable_light: bool = typer.Option(False, help="The light turns with the camera, as on a turntable capture: "
                                                      "the object's shading changes with the side it is seen from."),
-    object: str = typer.Option("excavator", "--object", help="The object: excavator (a silhouette that differs from "
-                                                             "every side) or tankard (wooden, nearly symmetric, "
-                                                             "shaped and textured like maryrose)."),
+    object_name: str = typer.Option("excavator", "--object",
+                                    help="The object: excavator (a silhouette that differs from every side) or tankard "
+                                         "(wooden, nearly symmetric, shaped and textured like maryrose)."),
 ) -> None:
     """Render a synthetic scene (exact poses, masks, depth maps) in the MipNeRF360 layout."""
     options = SyntheticOptions(views=views, width=size, height=size, seed=seed, light_jitter_deg=light_jitter_deg,
-                               gain_jitter=gain_jitter, turntable_light=turntable_light, object=object)
+                               gain_jitter=gain_jitter, turntable_light=turntable_light, object=object_name)
     folder = generate_synthetic_scene(out_dir, options)
     stdout.print(f"wrote {views} views ({size}x{size}) to {folder}")
 

@@ -3,18 +3,18 @@
 One of two objects built from textured boxes, spheres and cylinders, rendered by an analytic ray caster in numpy
 (independent of the splatting kernels), Lambertian shading, white background: a toy excavator (tracks, body, cab,
 boom, stick, bucket, counterweight) on a base slab, textured with scikit-image's bundled photographs, whose
-silhouette differs from every side; or a wooden tankard lying on its side (a staved cylinder, two hoops, a flat
-handle), shaped and textured like the maryrose capture: a nearly symmetric silhouette and a low-contrast,
-repetitive grain. Cameras sit on a dome around the
-object. The scene is written in the MipNeRF360 / GaussianObject layout, so `load_scene` reads it like a capture:
+silhouette differs from every side; or a wooden tankard lying on its side (a staved cylinder, three hoops, a lid,
+a flat handle) in procedural wood, shaped and textured like the maryrose capture: a nearly symmetric silhouette and
+a low-contrast, repetitive grain. Cameras sit on a dome around the object. The scene is written in the MipNeRF360 /
+GaussianObject layout, so `load_scene` reads it like a capture:
 
     images/view_XXX.png   masks/view_XXX.png   depths/view_XXX.npy (z-depth, world units, 0 = background)
     sparse/0/{cameras,images,points3D}.bin     sparse_{4,6,9,test}.txt     synthetic.json
 
-Texture sources (all bundled with scikit-image): brick, grass, gravel (CC0), coffee, chelsea (CC0),
-astronaut (public domain, NASA).
+Texture sources of the excavator (all bundled with scikit-image): brick, grass, gravel (CC0), coffee, chelsea (CC0),
+astronaut (public domain, NASA). The tankard's wood is generated (`_wood_texture`).
 
-It stays one module because it is one generator: the object, the ray caster that renders only that object's
+It stays one module because it is one generator: the objects, the ray caster that renders only their
 primitives, the dome of cameras and the writer of the folder, used nowhere else.
 """
 
