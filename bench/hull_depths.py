@@ -119,10 +119,10 @@ def main() -> None:
                                 resolution=args.resolution, missed_views=0)
     if len(points) == 0:
         raise WarpbagsError(f"the masks of {args.scene} leave no voxel at their reference poses")
+    depths = hull_depth_maps(points, voxel, scene.masks, scene.viewmats, scene.Ks)
+    hit = [float((view_depths[mask > 0.5] > 0).double().mean()) for view_depths, mask in zip(depths, scene.masks)]
     # back to the scene folder's units: a normalized scene's lengths are the source's times its scale
-    depths = (hull_depth_maps(points, voxel, scene.masks, scene.viewmats, scene.Ks) / scene.normalization.scale).numpy()
-    on_masks = scene.masks > 0.5
-    hit = [float((torch.from_numpy(depths[view]) > 0)[on_masks[view]].double().mean()) for view in range(scene.num_views)]
+    depths = (depths / scene.normalization.scale).numpy()
     shutil.copytree(scene.root, args.out, symlinks=False)
     (args.out / "depths").mkdir(exist_ok=True)
     for view, name in enumerate(scene.image_names):

@@ -32,10 +32,10 @@ def _sphere_views(radius: float, size: int = 48):
     pixels = torch.stack([cols + 0.5, rows + 0.5], -1).double()
     directions = pixel_directions(pixels, K)  # camera frame, z = 1
     depths = torch.zeros(8, size, size, dtype=torch.float64)
+    # |t d - c|^2 = r^2 for the depth t along the optical axis (d has z = 1, c the sphere's centre in camera axes)
+    a = (directions * directions).sum(-1)
     for view, viewmat in enumerate(viewmats):
-        centre = viewmat[:3, 3]  # the sphere's centre in camera coordinates
-        # |t d - c|^2 = r^2 for the depth t along the optical axis (d has z = 1)
-        a = (directions * directions).sum(-1)
+        centre = viewmat[:3, 3]
         b = (directions * centre).sum(-1)
         disc = b * b - a * (centre @ centre - radius**2)
         depths[view] = torch.where(disc > 0, (b - disc.clamp_min(0).sqrt()) / a, torch.zeros(()))
