@@ -57,6 +57,7 @@ from warpbags.data import ORBIT_RADIUS, SyntheticOptions, ensure_synthetic_scene
 from warpbags.data.noise import monocular_like_depths
 from warpbags.errors import WarpbagsError
 from warpbags.evaluation import evaluate_run
+from warpbags.report import read_log
 from warpbags.trainer import Trainer, training_scene
 from warpbags.cli.common import clean_errors
 
@@ -119,6 +120,8 @@ def run_once(scene, settings: dict, preset: str, root: Path, train: bool = True)
         "floor_final": poses["final"]["rotation_deg_centre_floor"],
         "psnr": report["images"]["mean"]["psnr"], "ssim": report["images"]["mean"]["ssim"],
         "psnr_refined": report["images_after_test_pose_refinement"]["mean"]["psnr"], "minutes": minutes,
+        # with camera.restarts: each restart's loss over all views and rotation errors (the training log's)
+        "restarts": next((record["restarts"] for record in read_log(root) if "restarts" in record), None),
     }
 
 

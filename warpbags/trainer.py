@@ -396,9 +396,11 @@ class Trainer:
 
     def _search_restarts(self) -> list[tuple[dict, torch.Tensor]] | None:
         """`camera.restarts`: train the coarse stage from the start the trainer was made with and from each turned
-        copy of the given poses (`turned_about_center`), and keep the one whose Gaussians fit all training views best
-        at its end. The trainer is left at the kept start's end, its `viewmats_start` that start's. Returns its (log
-        record, poses) per iteration, or None on Ctrl-C (the trainer is then back at the first start)."""
+        copy of the given poses (`turned_about_center`), and keep the turned start whose Gaussians fit all training
+        views best at its end if that loss is below the first start's by more than `camera.restart_margin`
+        (relative), else the first. The trainer is left at the kept start's end, its `viewmats_start` that start's.
+        Returns its (log record, poses) per iteration, or None on Ctrl-C (the trainer is then back at the first
+        start)."""
         settings = self.config.camera
         first = dict(cameras=copy.deepcopy(self.cameras), model=self.model, viewmats_start=self.viewmats_start,
                      object_center=self.object_center, generator=self.generator.get_state())
@@ -409,7 +411,7 @@ class Trainer:
             self.viewmats_start, self.object_center = start["viewmats_start"], start["object_center"]
             self.generator.set_state(start["generator"])
 
-        best, outcomes = None, []
+        unturned, best, outcomes = None, None, []
         for restart in range(settings.restarts):
             if restart == 0:
                 back_to(first)
@@ -428,15 +430,21 @@ class Trainer:
             self.log(f"restart {restart + 1} of {settings.restarts}"
                      + ("" if restart == 0 else f" (every camera turned {settings.restart_turn_deg:g} deg)")
                      + f": loss over all views {outcome['loss']:.4f}")
-            if best is None or outcome["loss"] < best["loss"]:
-                best = dict(loss=outcome["loss"], restart=restart, steps=steps, cameras=copy.deepcopy(self.cameras),
-                            model=self.model, viewmats_start=self.viewmats_start, object_center=self.object_center,
-                            generator=self.generator.get_state())
-        back_to(best)
+            trial = dict(loss=outcome["loss"], restart=restart, steps=steps, cameras=copy.deepcopy(self.cameras),
+                         model=self.model, viewmats_start=self.viewmats_start, object_center=self.object_center,
+                         generator=self.generator.get_state())
+            if restart == 0:
+                unturned = trial
+            elif best is None or trial["loss"] < best["loss"]:
+                best = trial
+        kept = best if best["loss"] < (1 - settings.restart_margin) * unturned["loss"] else unturned
+        back_to(kept)
         self.iteration = self.config.iters
-        best["steps"][0][0]["restarts"] = {"kept": best["restart"], "outcomes": outcomes}
-        self.log(f"restart {best['restart'] + 1} fits best: training goes on from it")
-        return best["steps"]
+        kept["steps"][0][0]["restarts"] = {"kept": kept["restart"], "outcomes": outcomes}
+        self.log(f"restart {best['restart'] + 1} fits best of the turned starts, "
+                 f"{100 * (1 - best['loss'] / unturned['loss']):.1f}% below the first: training goes on from restart "
+                 f"{kept['restart'] + 1}")
+        return kept["steps"]
 
     def _train_coarse_stage(self) -> list[tuple[dict, torch.Tensor]] | None:
         """Train from here to the coarse stage's end, the view-hypotheses search included where it is due; returns the
