@@ -455,7 +455,7 @@ def test_a_search_in_a_shorter_last_round_trains_to_the_end(scene_dir, tmp_path)
 
 def test_restarts_train_the_coarse_stage_from_each_start_and_keep_the_best_fit(scene_dir, tmp_path):
     """camera.restarts: the first start is the run without restarts (the same loss at its end), each later start
-    turns every camera; the kept one has the lowest loss over all views, its iterations (the view-hypotheses search
+    turns every camera; with no margin the kept one has the lowest loss over all views, its iterations (the view-hypotheses search
     of its round 2 among them) are logged once each and its start is the run's poses_start.npy. A stop inside the
     search stops at its start, with a checkpoint there."""
     settings = dict(iters=30, rounds=2, pose_opt_start=0, rot_noise_deg=10.0)
@@ -463,7 +463,7 @@ def test_restarts_train_the_coarse_stage_from_each_start_and_keep_the_best_fit(s
     plain = make_trainer(scene_dir, tmp_path / "plain", **settings, camera=hypotheses)
     plain.train()
     messages = []
-    config = tiny_config(**settings, camera={**hypotheses, "restarts": 3})
+    config = tiny_config(**settings, camera={**hypotheses, "restarts": 3, "restart_margin": 0.0})
     trainer = Trainer(training_scene(load_scene(scene_dir, name="tiny"), config), config, tmp_path / "run",
                       log=messages.append)
     trainer.train(stop_at=20)
