@@ -18,9 +18,6 @@ Procrustes alignment. Variants:
     fixed-noisy   the same pipeline with the noisy poses frozen (GaussianObject's baseline)
     truth-start   bags started at the reference poses (no noise): where the method's own optimum sits on the scene
     frozen-orbit  bags with the orbit about the object centre held in every round (`camera.orbit_from_round`)
-    restarts      bags with the coarse stage trained from 4 starts, the best fit over all views kept
-                  (`warpbags train --restarts 4`: the given poses and 3 copies with every camera turned 10 deg about
-                  the object centre)
     --ablations   bags with one part switched off in turn: no-centroid-start, no-coherence (no silhouette-
                   coherence solve of the starting poses), no-silhouette (mask distance and
                   chamfer terms), no-precondition, camera-param (se(3) about the camera centre, no preconditioner),
@@ -57,7 +54,6 @@ from warpbags.data import ORBIT_RADIUS, SyntheticOptions, ensure_synthetic_scene
 from warpbags.data.noise import monocular_like_depths
 from warpbags.errors import WarpbagsError
 from warpbags.evaluation import evaluate_run
-from warpbags.report import read_log
 from warpbags.trainer import Trainer, training_scene
 from warpbags.cli.common import clean_errors
 
@@ -77,8 +73,6 @@ VARIANTS = {
     "frozen-orbit": dict(camera={"orbit_from_round": 99}),
     # no search over turns of the worst-fit camera (`camera.hypotheses_round`)
     "no-hypotheses": dict(camera={"hypotheses_round": 0}),
-    # the coarse stage from 4 starts, the best fit kept (`camera.restarts`, `warpbags train --restarts 4`)
-    "restarts": dict(camera={"restarts": 4}),
 }
 ABLATIONS = ["no-centroid-start", "no-coherence", "no-silhouette", "no-precondition", "camera-param", "poses-whole-round",
              "poses-first-half", "no-hypotheses"]
@@ -120,8 +114,6 @@ def run_once(scene, settings: dict, preset: str, root: Path, train: bool = True)
         "floor_final": poses["final"]["rotation_deg_centre_floor"],
         "psnr": report["images"]["mean"]["psnr"], "ssim": report["images"]["mean"]["ssim"],
         "psnr_refined": report["images_after_test_pose_refinement"]["mean"]["psnr"], "minutes": minutes,
-        # with camera.restarts: each restart's loss over all views and rotation errors (the training log's)
-        "restarts": next((record["restarts"] for record in read_log(root) if "restarts" in record), None),
     }
 
 

@@ -69,7 +69,6 @@ TRAIN_OPTIONS = (
     ConfigOption("--orbit-from-round", "camera.orbit_from_round"),
     ConfigOption("--round-anchor", "camera.round_anchor"),
     ConfigOption("--hypotheses-round", "camera.hypotheses_round"),
-    ConfigOption("--restarts", "camera.restarts"),
     ConfigOption("--repair-iters", "repair.iters"),
     ConfigOption("--no-repair", "repair.iters", sets=0, help="Skip the repair stage."),
     ConfigOption("--repairer", "repair.repairer"),

@@ -147,19 +147,6 @@ class CameraConfig:
         hypothesis_axes, hypothesis_angles, hypothesis_margin: the axes of the camera's frame turned about ("z": roll
             about the line of sight to the object centre; "x", "y": an orbit), the angles (degrees, each with both
             signs), and the relative loss decrease a turn must bring to be kept.
-        restarts: the coarse stage is trained this many times, from the given poses and from `restarts - 1` copies
-            of them with every camera turned about the object centre by `restart_turn_deg` about a random axis (each
-            copy then through the mask-centroid start and the coherence solve as the given poses are), and the turned
-            start whose Gaussians fit every training view best at its end (the training loss over all views) is
-            kept if that beats the given poses' start by `restart_margin`; training goes on from the kept one. Four
-            views leave a set of silhouette-coherent poses several degrees wide, and the photometric rounds move
-            little from where in it they start: a start off in one direction ends there. Each restart runs the
-            `hypotheses_round` search too. Costs `restarts` coarse stages; poses optimized only. 1 = off.
-        restart_turn_deg: the turn of every camera in a restart, degrees.
-        restart_margin: the relative loss decrease under the first start's that the best turned start must bring to
-            be kept: on the telephoto synthetic scene without depth maps turned starts ended 0.4-1.6% below the
-            first and further from the truth (1.53 -> 3.22 deg kept at any decrease), as `hypothesis_margin` is for
-            the same reason.
     """
 
     parameterization: Literal["object", "camera"] = "object"
@@ -178,9 +165,6 @@ class CameraConfig:
     hypothesis_axes: str = "z"
     hypothesis_angles: tuple[float, ...] = (15.0, 30.0)
     hypothesis_margin: float = 0.05
-    restarts: int = 1
-    restart_turn_deg: float = 10.0
-    restart_margin: float = 0.05
 
 
 @dataclass(frozen=True)
@@ -418,11 +402,6 @@ class TrainConfig:
              f"camera.hypothesis_angles must be positive degrees, got {list(self.camera.hypothesis_angles)}"),
             (0 <= self.camera.hypothesis_margin < 1,
              f"camera.hypothesis_margin must be in [0, 1), got {self.camera.hypothesis_margin}"),
-            (self.camera.restarts >= 1, f"camera.restarts must be >= 1, got {self.camera.restarts}"),
-            (self.camera.restart_turn_deg > 0,
-             f"camera.restart_turn_deg must be positive degrees, got {self.camera.restart_turn_deg}"),
-            (0 <= self.camera.restart_margin < 1,
-             f"camera.restart_margin must be in [0, 1), got {self.camera.restart_margin}"),
             (self.camera.lbfgs_iters >= 1, f"camera.lbfgs_iters must be >= 1, got {self.camera.lbfgs_iters}"),
             (self.camera.coherence_iters >= 0,
              f"camera.coherence_iters must be >= 0, got {self.camera.coherence_iters}"),

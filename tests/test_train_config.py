@@ -24,8 +24,7 @@ PAPER = {
                "coherence_continued_from_views": 6,
                "fix_first_camera": False, "orbit_from_round": 0, "round_anchor": 0.0,
                "lbfgs_from_round": None, "lbfgs_every": 10, "lbfgs_iters": 10, "hypotheses_round": 0,
-               "hypothesis_axes": "z", "hypothesis_angles": (15.0, 30.0), "hypothesis_margin": 0.05,
-               "restarts": 1, "restart_turn_deg": 10.0, "restart_margin": 0.05},
+               "hypothesis_axes": "z", "hypothesis_angles": (15.0, 30.0), "hypothesis_margin": 0.05},
     "densify": {"start": 500, "stop": 3000, "every": 100, "grad_threshold": 0.0002, "percent_dense": 0.01,
                 "prune_opacity": 0.005, "prune_scale": 0.1, "opacity_reset_every": 1000, "max_gaussians": 0,
                 "floater_every": 500, "floater_std_ratio": 3.0},
@@ -53,8 +52,7 @@ QUICK = {
                "coherence_continued_from_views": 6,
                "fix_first_camera": False, "orbit_from_round": 0, "round_anchor": 0.0,
                "lbfgs_from_round": None, "lbfgs_every": 10, "lbfgs_iters": 10, "hypotheses_round": 1,
-               "hypothesis_axes": "z", "hypothesis_angles": (15.0, 30.0), "hypothesis_margin": 0.05,
-               "restarts": 1, "restart_turn_deg": 10.0, "restart_margin": 0.05},
+               "hypothesis_axes": "z", "hypothesis_angles": (15.0, 30.0), "hypothesis_margin": 0.05},
     "densify": {"start": 100, "stop": 201, "every": 50, "grad_threshold": 0.0008, "percent_dense": 0.01,
                 "prune_opacity": 0.005, "prune_scale": 0.1, "opacity_reset_every": 0, "max_gaussians": 6000,
                 "floater_every": 0, "floater_std_ratio": 3.0},
@@ -106,10 +104,7 @@ def test_values_that_would_break_training_later_are_refused_up_front():
                                ({"lr": {"quats": -1}}, "lr.quats must be >= 0"),
                                ({"densify": {"every": 0}}, "densify.every must be >= 1"),
                                ({"camera": {"coherence_continued_from_views": -1}},
-                                "camera.coherence_continued_from_views must be >= 0"),
-                               ({"camera": {"restarts": 0}}, "camera.restarts must be >= 1"),
-                               ({"camera": {"restart_turn_deg": 0}}, "camera.restart_turn_deg must be positive"),
-                               ({"camera": {"restart_margin": 1}}, "camera.restart_margin must be in")]:
+                                "camera.coherence_continued_from_views must be >= 0")]:
         with pytest.raises(WarpbagsError, match=message):
             load_preset("quick", **overrides)
     assert load_preset("quick", lr={"sh_rest": 0}).lr.sh_rest == 0  # a group held still is allowed

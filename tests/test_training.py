@@ -453,38 +453,6 @@ def test_a_search_in_a_shorter_last_round_trains_to_the_end(scene_dir, tmp_path)
     assert log == list(range(1, 9))
 
 
-def test_restarts_train_the_coarse_stage_from_each_start_and_keep_the_best_fit(scene_dir, tmp_path):
-    """camera.restarts: the first start is the run without restarts (the same loss at its end), each later start
-    turns every camera; with no margin the kept one has the lowest loss over all views, its iterations (the view-hypotheses search
-    of its round 2 among them) are logged once each and its start is the run's poses_start.npy. A stop inside the
-    search stops at its start, with a checkpoint there."""
-    settings = dict(iters=30, rounds=2, pose_opt_start=0, rot_noise_deg=10.0)
-    hypotheses = {"hypotheses_round": 1, "hypothesis_angles": (10.0,)}
-    plain = make_trainer(scene_dir, tmp_path / "plain", **settings, camera=hypotheses)
-    plain.train()
-    messages = []
-    config = tiny_config(**settings, camera={**hypotheses, "restarts": 3, "restart_margin": 0.0})
-    trainer = Trainer(training_scene(load_scene(scene_dir, name="tiny"), config), config, tmp_path / "run",
-                      log=messages.append)
-    trainer.train(stop_at=20)
-    assert trainer.iteration == 0 and trainer.latest_checkpoint().name == "checkpoint_000000.pt"
-    trainer.train()
-    assert trainer.iteration == 30
-    log = [json.loads(line) for line in (tmp_path / "run" / "log.jsonl").read_text().splitlines()]
-    assert [record["iter"] for record in log] == list(range(1, 31))
-    assert [record["iter"] for record in log if "view_hypotheses" in record] == [16]
-    search = log[0]["restarts"]
-    losses = [outcome["loss"] for outcome in search["outcomes"]]
-    assert len(losses) == 3 and search["kept"] == int(np.argmin(losses))
-    assert losses[0] == pytest.approx(plain._fit_loss(), rel=1e-5)
-    starts = [outcome["start_rot_err_deg"] for outcome in search["outcomes"]]
-    assert len(set(np.round(starts, 6))) == 3  # three different starts
-    assert log[-1]["rot_err_deg"] == pytest.approx(search["outcomes"][search["kept"]]["rot_err_deg"])
-    assert trainer.pose_error()["rot_err_deg"] == pytest.approx(log[-1]["rot_err_deg"], abs=1e-6)
-    np.testing.assert_allclose(np.load(tmp_path / "run" / "poses_start.npy"), trainer.viewmats_start.cpu().numpy())
-    assert sum("restart" in message and "loss over all views" in message for message in messages) == 3
-
-
 # ------------------------------------------------------------------------------------------------ CLI
 runner = CliRunner()
 
@@ -505,22 +473,6 @@ def test_cli_smoke_writes_run_files(scene_dir, tmp_path):
     # A fresh run into the same folder is refused (resuming one: test_resuming_a_finished_run_trains_nothing).
     again = runner.invoke(app, ["train", str(scene_dir), "--iters", "6", "--out", str(out)])
     assert again.exit_code == 2 and "--resume" in again.output
-
-
-def test_cli_restarts_say_each_start_and_the_report_lists_them(scene_dir, tmp_path):
-    out = tmp_path / "run"
-    # A margin no turned start can beat: training goes on from the first start, whatever the losses.
-    result = runner.invoke(app, ["train", str(scene_dir), "--iters", "6", "--rounds", "1", "--restarts", "2",
-                                 "--set", "camera.restart_margin=0.99", "--rot-noise-deg", "5", "--out", str(out),
-                                 "--max-image-size", "48"])
-    assert result.exit_code == 0, result.output
-    said = " ".join(result.output.split())  # rich wraps long lines to the terminal's width
-    assert "restart 1 of 2" in said and "restart 2 of 2 (every camera turned 10 deg)" in said
-    assert "training goes on from restart 1" in said
-    assert json.loads((out / "log.jsonl").read_text().splitlines()[0])["restarts"]["kept"] == 0
-    assert runner.invoke(app, ["eval", str(out), "--refine-iters", "0"]).exit_code == 0
-    report = (out / "report.md").read_text()
-    assert "## Restarts of the coarse stage" in report and report.count("| yes |") == 1
 
 
 def test_cli_resume_goes_on_with_the_runs_config(scene_dir, tmp_path):

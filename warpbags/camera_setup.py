@@ -1,6 +1,5 @@
 """Where a fit's cameras start: the given poses (with the config's noise injected for experiments), the
-mask-centroid start, the object centre, the `CameraOptimizer` built on them and its silhouette-coherence solve, and
-the turned copies of the given poses that `camera.restarts` starts from.
+mask-centroid start, the object centre, the `CameraOptimizer` built on them and its silhouette-coherence solve.
 
 The trainer starts every run here; the repair stage's leave-one-out fits build their (frozen) cameras the same way.
 """
@@ -8,7 +7,6 @@ The trainer starts every run here; the repair stage's leave-one-out fits build t
 from __future__ import annotations
 
 import copy
-import math
 from collections.abc import Callable
 
 import torch
@@ -18,7 +16,6 @@ from warpbags.cameras import camera_centers
 from warpbags.configs.train import TrainConfig
 from warpbags.data.noise import PoseNoise, noisy_viewmats
 from warpbags.data.scene import Scene
-from warpbags.lie import so3_exp
 from warpbags.silhouette import SilhouetteTargets, centroid_start, rays_meeting_point
 
 
@@ -31,21 +28,6 @@ def given_viewmats(scene: Scene, config: TrainConfig) -> torch.Tensor:
         # known, since its delta stays zero and its noise could never be corrected.
         viewmats[0] = scene.viewmats[0]
     return viewmats
-
-
-def turned_about_center(viewmats: torch.Tensor, center: torch.Tensor, turn_deg: float,
-                        generator: torch.Generator) -> torch.Tensor:
-    """[C,4,4] `viewmats` (world-to-camera) with every camera turned about the [3] world point `center` by `turn_deg`
-    degrees about its own random axis (uniform on the sphere, drawn from `generator`): the camera keeps looking at
-    what it looked at there, from elsewhere on a sphere about it and rolled."""
-    axes = torch.randn(len(viewmats), 3, generator=generator, dtype=torch.float64)
-    turns = so3_exp(axes / axes.norm(dim=-1, keepdim=True) * math.radians(turn_deg))  # [C,3,3], world frame
-    center = center.double().cpu()
-    # x -> Q (x - c) + c moves the camera with the world; its world-to-camera matrix becomes W @ inverse(that).
-    inverse = torch.eye(4, dtype=torch.float64).repeat(len(viewmats), 1, 1)
-    inverse[:, :3, :3] = turns.transpose(-1, -2)
-    inverse[:, :3, 3] = center - (turns.transpose(-1, -2) @ center)
-    return (viewmats.double().cpu() @ inverse).to(viewmats)
 
 
 def starting_poses(viewmats: torch.Tensor, masks: torch.Tensor | None, Ks: torch.Tensor, config: TrainConfig,

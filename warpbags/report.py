@@ -97,16 +97,6 @@ def write_run_report(run_dir: Path, result: dict) -> Path:
                   "| from iteration | camera | best turn | its loss | unturned loss | kept |", "|---|---|---|---|---|---|"]
         lines += [f"| {iteration - 1} | {s['camera']} | {s['best_turn']} | {s['best_loss']:.4f} | "
                   f"{s['unturned_loss']:.4f} | {'yes' if s['kept'] else 'no'} |" for iteration, s in searches]
-    for search in (r["restarts"] for r in records if "restarts" in r):
-        lines += ["", "## Restarts of the coarse stage", "",
-                  "| restart | rotation error at its start (deg) | at its end (deg) | loss over all views | kept |",
-                  "|---|---|---|---|---|"]
-        for outcome in search["outcomes"]:
-            kept = "yes" if outcome["restart"] == search["kept"] else "no"
-            lines.append(f"| {outcome['restart'] + 1} | {outcome['start_rot_err_deg']:.3f} | "
-                         f"{outcome['rot_err_deg']:.3f} | {outcome['loss']:.4f} | {kept} |")
-        lines += ["", "Rotation errors as the training log gives them: the mean over the training cameras against the "
-                  "scene's poses, after the run's pose alignment."]
     lines += ["", f"## Held-out views ({result['test_views']}, test cameras aligned by {result['alignment']})", "",
               "| test poses | PSNR | SSIM | FLIP | LPIPS |", "|---|---|---|---|---|"]
     rows = [("aligned", result["images"])]

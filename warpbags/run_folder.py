@@ -74,14 +74,8 @@ class RunFolder:
         (self.path / "config.json").write_text(json.dumps(info, indent=2))
         np.save(self.path / "poses_true.npy", viewmats_true.cpu().numpy())
         np.save(self.path / "poses_init.npy", viewmats_init.cpu().numpy())
-        self.write_start_poses(viewmats_start)
-        np.save(self.path / "intrinsics.npy", scene.Ks.cpu().numpy())
-
-    def write_start_poses(self, viewmats_start: torch.Tensor) -> None:
-        """poses_start.npy: [C,4,4] where the optimization started (rewritten when `camera.restarts` keeps another
-        start than the first)."""
-        self.path.mkdir(parents=True, exist_ok=True)
         np.save(self.path / "poses_start.npy", viewmats_start.cpu().numpy())
+        np.save(self.path / "intrinsics.npy", scene.Ks.cpu().numpy())
 
     def read_info(self) -> dict:
         """config.json: the TrainConfig (under "config") and the scene and view information written with it.

@@ -11,11 +11,11 @@ renders, next to the real views). The parts it runs, each in its own module:
     warpbags.camera_setup      the starting poses and the camera optimizer (`warpbags.camera_optimizer`)
     warpbags.run_folder        config, poses, log, checkpoints and results on disk (the layout is documented there)
 
-The trainer adds the loop itself: rounds, the search of the coarse stage over turned starts (`camera.restarts`)
-and of one round over turns of its worst-fit camera (`camera.hypotheses_round`), the repair stage, checkpoint
-cadence, the log and Ctrl-C. The module also holds the run's entry points that the command line, the benchmarks,
-the sweep and the tests import from here (`training_scene`, `start_or_resume`, `default_run_dir`) and the
-attributes they read (`params`, `cameras`, `scene`, `Ks`, `pose_error`).
+The trainer adds the loop itself: rounds, the search of one round over turns of its worst-fit camera
+(`camera.hypotheses_round`), the repair stage, checkpoint cadence, the log and Ctrl-C. The module also
+holds the run's entry points that the command line, the benchmarks, the sweep and the tests import from here
+(`training_scene`, `start_or_resume`, `default_run_dir`) and the attributes they read (`params`, `cameras`,
+`scene`, `Ks`, `pose_error`).
 """
 
 from __future__ import annotations
@@ -31,8 +31,7 @@ import torch
 
 from warpbags.alignment import alignment_for, pose_errors
 from warpbags.camera_optimizer import hypothesis_turns
-from warpbags.camera_setup import (coherent_start, given_viewmats, starting_poses, training_cameras,
-                                   turned_about_center)
+from warpbags.camera_setup import coherent_start, given_viewmats, starting_poses, training_cameras
 from warpbags.configs.train import TrainConfig
 from warpbags.data.scene import Scene
 from warpbags.devices import torch_device
@@ -77,6 +76,7 @@ class Trainer:
         self.viewmats_true = scene.viewmats.to(self.device)
         viewmats_init = given_viewmats(scene, config) if viewmats_init is None else viewmats_init
         self.viewmats_init = viewmats_init.to(self.device).float()
+        self.viewmats_start, self.object_center = starting_poses(self.viewmats_init, full.masks, full.Ks, config, log)
         self.scene_extent = scene_extent(self.viewmats_init)
         if full.depths is None and config.depth_until > 0:
             # The depth term is what takes the synthetic scene's cameras in from 15 degrees of noise (README, "Pose
@@ -87,26 +87,15 @@ class Trainer:
         if self._pose_alignment() != config.pose_alignment:
             self.log(f"{self.num_cameras} training cameras: the logged pose error uses pairwise alignment "
                      "(procrustes needs 3 camera centres)")
-        self.iteration = 0
-        self._start_from(self.viewmats_init, solve=not resuming)
-        self.repair_stage: RepairStage | None = None  # built when the repair stage first uses pseudo views
-        self._repair_state: dict | None = None  # its checkpointed state, applied when it is built
-        self._stop_requested = False
-
-    def _start_from(self, viewmats: torch.Tensor, solve: bool = True) -> None:
-        """Where the cameras start from [C,4,4] given `viewmats`: the mask-centroid start, the object centre, the
-        camera optimizer, its silhouette-coherence solve (with `solve`; a resumed run's checkpoint holds its result)
-        and the first Gaussians; the random stream starts again from the config's seed."""
-        config, full = self.config, self._training_views(0)
         self.generator = torch.Generator().manual_seed(config.seed)  # initialization, view sampling, densification
-        self.viewmats_start, self.object_center = starting_poses(viewmats, full.masks, full.Ks, config, self.log)
+        self.iteration = 0
         self.model = self._fresh_model(self.viewmats_start)
-        # The camera optimizer's preconditioner comes from the first round's initial points; resume loads state
-        # into the one made here.
+        # The camera optimizer is created exactly once (resume loads state into it); its preconditioner comes from
+        # the first round's initial points.
         views = self.model.training_views
         self.cameras = training_cameras(config, self.viewmats_start, self.object_center, views.Ks, views.scene.width,
                                         views.scene.height, self.model.params["means"].detach())
-        if config.pose_opt and full.masks is not None and config.camera.coherence_iters > 0 and solve:
+        if config.pose_opt and full.masks is not None and config.camera.coherence_iters > 0 and not resuming:
             # With enough views the silhouettes fix the poses without the frame's false border (`CameraConfig`).
             continued = self.num_cameras >= config.camera.coherence_continued_from_views
             targets = (full.silhouettes if full.silhouettes is not None and not continued
@@ -117,6 +106,9 @@ class Trainer:
                      + (" (masks continued beyond the image border)" if continued else ""))
             self.viewmats_start = self.cameras.viewmats()
             self.model = self._fresh_model(self.viewmats_start)  # carved again, with the coherent poses
+        self.repair_stage: RepairStage | None = None  # built when the repair stage first uses pseudo views
+        self._repair_state: dict | None = None  # its checkpointed state, applied when it is built
+        self._stop_requested = False
 
     def _training_views(self, level: int | None = None) -> TrainingViews:
         """The training views at pyramid level `level` (0 = the full training resolution, k = 1/2^k of it; None:
@@ -387,86 +379,6 @@ class Trainer:
                  + ("kept" if kept is best else "not kept"))
         return kept["steps"]
 
-    def _fit_loss(self) -> float:
-        """The training loss over every training view at the current Gaussians and poses (last iteration's terms)."""
-        views = torch.arange(self.num_cameras, device=self.device)
-        loss = self.model.loss(views, self.current_viewmats().detach(), self.schedule.at(self.iteration - 1))[0]
-        self.model.optimizer.zero_grad(set_to_none=True)
-        return loss.item()
-
-    def _search_restarts(self) -> list[tuple[dict, torch.Tensor]] | None:
-        """`camera.restarts`: train the coarse stage from the start the trainer was made with and from each turned
-        copy of the given poses (`turned_about_center`), and keep the turned start whose Gaussians fit all training
-        views best at its end if that loss is below the first start's by more than `camera.restart_margin`
-        (relative), else the first. The trainer is left at the kept start's end, its `viewmats_start` that start's.
-        Returns its (log record, poses) per iteration, or None on Ctrl-C (the trainer is then back at the first
-        start)."""
-        settings = self.config.camera
-        first = dict(cameras=copy.deepcopy(self.cameras), model=self.model, viewmats_start=self.viewmats_start,
-                     object_center=self.object_center, generator=self.generator.get_state())
-        turns = torch.Generator().manual_seed(self.config.seed)  # the restarts' turns, apart from training's stream
-
-        def back_to(start: dict) -> None:
-            self.cameras, self.model, self.iteration = copy.deepcopy(start["cameras"]), start["model"], 0
-            self.viewmats_start, self.object_center = start["viewmats_start"], start["object_center"]
-            self.generator.set_state(start["generator"])
-
-        unturned, best, outcomes = None, None, []
-        for restart in range(settings.restarts):
-            if restart == 0:
-                back_to(first)
-            else:
-                self._start_from(turned_about_center(self.viewmats_init, first["object_center"],
-                                                     settings.restart_turn_deg, turns))
-                self.iteration = 0
-            start_error = self.pose_error()["rot_err_deg"]
-            steps = self._train_coarse_stage()
-            if steps is None:
-                back_to(first)
-                return None
-            outcome = {"restart": restart, "loss": self._fit_loss(), "start_rot_err_deg": start_error,
-                       "rot_err_deg": steps[-1][0]["rot_err_deg"]}
-            outcomes.append(outcome)
-            self.log(f"restart {restart + 1} of {settings.restarts}"
-                     + ("" if restart == 0 else f" (every camera turned {settings.restart_turn_deg:g} deg)")
-                     + f": loss over all views {outcome['loss']:.4f}")
-            trial = dict(loss=outcome["loss"], restart=restart, steps=steps, cameras=copy.deepcopy(self.cameras),
-                         model=self.model, viewmats_start=self.viewmats_start, object_center=self.object_center,
-                         generator=self.generator.get_state())
-            if restart == 0:
-                unturned = trial
-            elif best is None or trial["loss"] < best["loss"]:
-                best = trial
-        kept = best if best["loss"] < (1 - settings.restart_margin) * unturned["loss"] else unturned
-        back_to(kept)
-        self.iteration = self.config.iters
-        kept["steps"][0][0]["restarts"] = {"kept": kept["restart"], "outcomes": outcomes}
-        self.log(f"restart {best['restart'] + 1} fits best of the turned starts, "
-                 f"{100 * (1 - best['loss'] / unturned['loss']):.1f}% below the first: training goes on from restart "
-                 f"{kept['restart'] + 1}")
-        return kept["steps"]
-
-    def _train_coarse_stage(self) -> list[tuple[dict, torch.Tensor]] | None:
-        """Train from here to the coarse stage's end, the view-hypotheses search included where it is due; returns the
-        (log record, poses) of every iteration, or None on Ctrl-C."""
-        steps = []
-        while self.iteration < self.config.iters:
-            if self._hypotheses_due():
-                searched = self._search_view_hypotheses()
-                if searched is None:
-                    return None
-                steps += searched
-                continue
-            steps.append((self.train_step(), self.current_viewmats()))
-            if self._stop_requested:
-                return None
-        return steps
-
-    def _restarts_due(self) -> bool:
-        """True at iteration 0 with `camera.restarts` > 1 when poses are optimized and there are coarse iterations."""
-        camera = self.config.camera
-        return camera.restarts > 1 and self.config.pose_opt and self.iteration == 0 and self.config.iters > 0
-
     def _hypotheses_due(self) -> bool:
         """True at the start of the coarse round `camera.hypotheses_round` (> 0) when poses are optimized."""
         round_index = self.config.camera.hypotheses_round
@@ -501,10 +413,10 @@ class Trainer:
         Checkpoints every `checkpoint_every` iterations, at the end of the coarse stage and at the end. With a
         repair stage, the coarse result is also written to coarse/ as a run folder of its own. Ctrl-C (SIGINT)
         finishes the current iteration, saves a checkpoint and raises KeyboardInterrupt. Divergence raises
-        WarpbagsError. `callback(record)` is called after each iteration. A search trains its span as a whole (the
-        coarse stage with `camera.restarts`, the round searched for view hypotheses with `camera.hypotheses_round`):
-        a `stop_at` inside it stops at its start, Ctrl-C goes back to its start, only its end is checkpointed, and the
-        kept trial's iterations are logged (and passed to `callback`) after the search, the trainer then at its end.
+        WarpbagsError. `callback(record)` is called after each iteration. The round searched for view hypotheses
+        (`camera.hypotheses_round`) trains as a whole: a `stop_at` inside it stops at its start, Ctrl-C goes back to
+        its start, only its end is checkpointed, and its iterations are logged (and passed to `callback`) after the
+        search, the trainer then at the round's end.
         """
         total = self.config.total_iters
         stop_at = total if stop_at is None else min(stop_at, total)
@@ -520,19 +432,14 @@ class Trainer:
         try:
             with threads, self.run_folder.log_writer() as write_log:
                 while self.iteration < stop_at:
-                    if self._restarts_due() or self._hypotheses_due():
-                        searched_until = (self.config.iters if self._restarts_due()
-                                          else self.schedule.round_end(self.iteration))
-                        if searched_until > stop_at:
-                            self.save_checkpoint()  # a search trains its span as a whole: stop at its start
+                    if self._hypotheses_due():
+                        if self.schedule.round_end(self.iteration) > stop_at:
+                            self.save_checkpoint()  # the search trains its round as a whole: stop at its start
                             break
-                        restarts = self._restarts_due()
-                        steps = self._search_restarts() if restarts else self._search_view_hypotheses()
-                        if steps is None:  # Ctrl-C during the search: back at its start
+                        steps = self._search_view_hypotheses()
+                        if steps is None:  # Ctrl-C during the search: back at the round's start
                             self.save_checkpoint()
                             raise KeyboardInterrupt
-                        if restarts:
-                            self.run_folder.write_start_poses(self.viewmats_start)
                         # Only the kept round's state is left, so only its last iteration can be checkpointed.
                         for index, (record, viewmats) in enumerate(steps):
                             record = self._finish_iteration(record, viewmats, write_log, callback, stop_at,
