@@ -31,7 +31,7 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from pose_recovery import _load  # noqa: E402
-from warpbags.cameras import camera_centers, pixel_directions  # noqa: E402
+from warpbags.cameras import camera_centers, pixel_directions, project_points  # noqa: E402
 from warpbags.cli.common import clean_errors  # noqa: E402
 from warpbags.errors import WarpbagsError  # noqa: E402
 from warpbags.init import visual_hull  # noqa: E402
@@ -86,10 +86,11 @@ def hull_depth_maps(points: torch.Tensor, voxel: float, masks: torch.Tensor, vie
     grid, lower = occupancy_grid(points, voxel)
     center = points.mean(0)
     radius = float((points - center).norm(dim=1).max()) + voxel
+    _, distances = project_points(viewmats, Ks, center[None])  # [C, 1]: the centre's depth in each camera
     for view in range(len(masks)):
         rows, cols = torch.nonzero(masks[view] > 0.5, as_tuple=True)
         pixels = torch.stack([cols.double() + 0.5, rows.double() + 0.5], -1)
-        distance = float((viewmats[view, :3, :3] @ center + viewmats[view, :3, 3])[2])
+        distance = float(distances[view, 0])
         view_depths = first_hit_depths(grid, lower, voxel, viewmats[view], Ks[view], pixels, distance - radius,
                                        distance + radius)
         depths[view, rows, cols] = view_depths.float()
