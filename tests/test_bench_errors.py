@@ -14,7 +14,8 @@ BENCH = Path(__file__).resolve().parents[1] / "bench"
 
 
 @pytest.mark.parametrize("script", ["pose_recovery.py", "pose_optimum.py", "repair.py", "hull_noise.py",
-                                    "reference_poses.py", "view_agreement.py", "hull_depths.py"])
+                                    "reference_poses.py", "view_agreement.py", "hull_depths.py",
+                                    "fitted_loss.py"])
 def test_an_unknown_scene_is_one_error_line(script, tmp_path):
     more = [str(tmp_path / "out")] if script == "hull_depths.py" else []  # its second argument: the copy to write
     result = subprocess.run([sys.executable, str(BENCH / script), "nosuchscene", *more], capture_output=True,
