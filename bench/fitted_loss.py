@@ -38,6 +38,7 @@ from warpbags.alignment import pose_errors
 from warpbags.cameras import pixel_directions, project_points
 from warpbags.cli.common import clean_errors
 from warpbags.configs.train import load_preset, parse_settings
+from warpbags.errors import WarpbagsError
 from warpbags.trainer import Trainer, training_scene
 
 
@@ -86,10 +87,12 @@ def cross_view_consistency(images: torch.Tensor, masks: torch.Tensor, depths: to
             grid = torch.stack([2 * landed[:, 0] / width - 1, 2 * landed[:, 1] / height - 1], -1)
 
             def sample(image: torch.Tensor) -> torch.Tensor:  # [H,W,D] of view j at the landed points -> [H*W,D]
-                return F.grid_sample(image.permute(2, 0, 1)[None], grid.reshape(1, height, width, 2),
-                                     align_corners=False, padding_mode="border")[0].permute(1, 2, 0).reshape(-1, image.shape[-1])
+                sampled = F.grid_sample(image.permute(2, 0, 1)[None], grid.reshape(1, height, width, 2),
+                                        align_corners=False, padding_mode="border")
+                return sampled[0].permute(1, 2, 0).reshape(-1, image.shape[-1])
 
-            colors, depth_there, mask_there = sample(images[j]), sample(depths[j][..., None])[:, 0], sample(masks[j][..., None])[:, 0]
+            colors = sample(images[j])
+            depth_there, mask_there = sample(depths[j][..., None])[:, 0], sample(masks[j][..., None])[:, 0]
             inside = (landed[:, 0] > 0) & (landed[:, 0] < width) & (landed[:, 1] > 0) & (landed[:, 1] < height)
             counted = (source & inside & (z > 0) & (mask_there > 0.5)
                        & ((z - depth_there).abs() < depth_tolerance * z))
@@ -151,7 +154,7 @@ def main() -> None:
     parser.add_argument("--trans", type=float, default=0.3, help="camera-centre noise std per axis (orbit radius 4)")
     parser.add_argument("--views", type=int, default=4)
     parser.add_argument("--depth", choices=("true", "monocular", "none"), default="true",
-                        help="the scene's depth maps, degraded as a monocular network's, or none (bench/pose_recovery.py)")
+                        help="the scene's depth maps, degraded as a monocular network's, or none")
     parser.add_argument("--fit-seeds", default="0,1", help="training seeds of the frozen fits, averaged")
     parser.add_argument("--preset", default="quick")
     parser.add_argument("--set", dest="settings", action="append", default=[], metavar="NAME=VALUE",
@@ -162,6 +165,9 @@ def main() -> None:
     overrides = parse_settings(args.settings)
     load_preset(args.preset, **overrides)  # a bad preset or setting fails before the first line of the table
     scenes = {name: _with_depth(_load(name), args.depth) for name in args.scenes}
+    for name, scene in scenes.items():
+        if scene.masks is None:
+            raise WarpbagsError(f"scene {name} has no masks: the comparison across views counts pixels on the object")
     fit_seeds = _numbers(args.fit_seeds, int)
     results: dict = {"preset": args.preset, "overrides": overrides, "depth": args.depth, "rows": []}
     header = (f"{'scene':<24} {'poses':<14} {'rot (deg)':>9} {'loss':>9} {'vs ref':>7} {'px/pair':>7} {'L1':>7} "
