@@ -109,11 +109,6 @@ class CameraConfig:
             their epipolar tangencies from 6 views on (n (n - 1) against 6 n - 7); below that the frame's false
             border is a constraint the solve needs, above it the border pulls cameras away from poses at which a
             capture cut by the frame is coherent. 0 = always.
-        coherence_max_miss: the solve's poses are taken only if its loss ends at most this per other view (image
-            sizes; 0 = always taken). A solve that stops above it has found no coherent poses: at 4 views on the
-            synthetic scenes, solves that ended at 6-16e-5 per other view started training 13-32 deg off, those at
-            0.2-2.8e-5 2-13 deg off (real captures: 0.4-2.1e-5 at 4-9 views); training then starts from the poses
-            before the solve (the mask-centroid start).
         fix_first_camera: gauge; keep camera 0 at its starting pose (False: every camera is optimized and errors are
             measured after sim(3) alignment, the BAGS protocol).
         orbit_from_round: the object-centric orbit (wx, wy: the camera turned about the object centre, which stays
@@ -160,7 +155,6 @@ class CameraConfig:
     centroid_start: bool = True
     coherence_iters: int = 100
     coherence_continued_from_views: int = 6
-    coherence_max_miss: float = 4e-5
     fix_first_camera: bool = False
     orbit_from_round: int = 0
     round_anchor: float = 0.0
@@ -411,8 +405,6 @@ class TrainConfig:
             (self.camera.lbfgs_iters >= 1, f"camera.lbfgs_iters must be >= 1, got {self.camera.lbfgs_iters}"),
             (self.camera.coherence_iters >= 0,
              f"camera.coherence_iters must be >= 0, got {self.camera.coherence_iters}"),
-            (self.camera.coherence_max_miss >= 0,
-             f"camera.coherence_max_miss must be >= 0, got {self.camera.coherence_max_miss}"),
             (self.camera.coherence_continued_from_views >= 0,
              f"camera.coherence_continued_from_views must be >= 0, got {self.camera.coherence_continued_from_views}"),
             (self.pose_opt_start >= 0, f"--pose-opt-start must be >= 0, got {self.pose_opt_start}"),

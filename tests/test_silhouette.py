@@ -160,37 +160,14 @@ def test_coherent_start_brings_noisy_cameras_in_before_any_gaussian_is_fitted(sc
     noisy = perturb_viewmats(truth, 15.0, 0.3, seed=1)
     start, center = centroid_start(views.masks, noisy, views.Ks)
     cameras = CameraOptimizer(start.float(), CameraOptimizerSettings(precondition=False), center.float())
-    before, after, taken = coherent_start(cameras, targets, views.Ks, center.float(), iterations=100,
-                                          max_miss_per_view=4e-5)
+    before, after = coherent_start(cameras, targets, views.Ks, center.float(), iterations=100)
     error = lambda viewmats: pose_errors(viewmats.double(), truth, alignment="procrustes")["rotation_error_deg_mean"]  # noqa: E731
-    assert after < 0.1 * before and taken
+    assert after < 0.1 * before
     # Every camera perturbed (15 deg / 0.3, free gauge): measured 6.87 deg after the centroid start and 2.79 after
     # the coherence solve; the photometric terms take it from there.
     assert error(start) > 6.0
     assert error(cameras.viewmats()) < 0.6 * error(start)
     assert torch.equal(cameras.rotations, torch.zeros_like(cameras.rotations))  # solved into the starting poses
-
-
-def test_a_solve_that_finds_no_coherent_poses_is_not_taken(scene):
-    """One view's mask turned upside down: no poses make every ray meet the other silhouettes, the solve stops with
-    its rays still missing them, and with `max_miss_per_view` its poses are not taken (the trainer then starts from
-    the poses before it)."""
-    views, truth, Ks, _, _, _ = _coherence_case(scene, count=4)
-    masks = views.masks.clone()
-    masks[1] = masks[1].flip(0).roll(masks.shape[1] // 4, dims=1)
-    start, center = centroid_start(masks, perturb_viewmats(truth, 15.0, 0.3, seed=1), views.Ks)
-    solved = {}
-    for max_miss in (0.0, 4e-5):
-        cameras = CameraOptimizer(start.float(), CameraOptimizerSettings(precondition=False), center.float())
-        before, after, taken = coherent_start(cameras, SilhouetteTargets(masks), views.Ks, center.float(),
-                                              iterations=30, max_miss_per_view=max_miss)
-        solved[max_miss] = (after, taken, cameras.viewmats())
-    after, taken, moved = solved[0.0]
-    assert taken and not torch.allclose(moved, start.float(), atol=1e-4)  # 0: always taken
-    # Measured 9.7e-4 image sizes per other view after 30 iterations
-    assert after / 3 > 4e-5
-    after, taken, kept = solved[4e-5]
-    assert not taken and torch.equal(kept, start.float())
 
 
 def test_coherent_start_of_a_capture_cut_by_the_frame_needs_the_masks_continued(scene):

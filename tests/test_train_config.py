@@ -21,7 +21,7 @@ PAPER = {
            "scales": 0.005, "quats": 0.001, "adam_eps": 1e-15, "pose": 0.003, "pose_final": 0.0003,
            "pose_translation_scale": 1.0, "pose_warmup": 0},
     "camera": {"parameterization": "object", "precondition": True, "precondition_reg": 0.1, "centroid_start": True, "coherence_iters": 100,
-               "coherence_continued_from_views": 6, "coherence_max_miss": 4e-05,
+               "coherence_continued_from_views": 6,
                "fix_first_camera": False, "orbit_from_round": 0, "round_anchor": 0.0,
                "lbfgs_from_round": None, "lbfgs_every": 10, "lbfgs_iters": 10, "hypotheses_round": 0,
                "hypothesis_axes": "z", "hypothesis_angles": (15.0, 30.0), "hypothesis_margin": 0.05},
@@ -49,7 +49,7 @@ QUICK = {
            "scales": 0.005, "quats": 0.001, "adam_eps": 1e-15, "pose": 0.01, "pose_final": 0.001,
            "pose_translation_scale": 0.1, "pose_warmup": 20},
     "camera": {"parameterization": "object", "precondition": True, "precondition_reg": 0.1, "centroid_start": True, "coherence_iters": 100,
-               "coherence_continued_from_views": 6, "coherence_max_miss": 4e-05,
+               "coherence_continued_from_views": 6,
                "fix_first_camera": False, "orbit_from_round": 0, "round_anchor": 0.0,
                "lbfgs_from_round": None, "lbfgs_every": 10, "lbfgs_iters": 10, "hypotheses_round": 1,
                "hypothesis_axes": "z", "hypothesis_angles": (15.0, 30.0), "hypothesis_margin": 0.05},
@@ -104,8 +104,7 @@ def test_values_that_would_break_training_later_are_refused_up_front():
                                ({"lr": {"quats": -1}}, "lr.quats must be >= 0"),
                                ({"densify": {"every": 0}}, "densify.every must be >= 1"),
                                ({"camera": {"coherence_continued_from_views": -1}},
-                                "camera.coherence_continued_from_views must be >= 0"),
-                               ({"camera": {"coherence_max_miss": -1e-5}}, "camera.coherence_max_miss must be >= 0")]:
+                                "camera.coherence_continued_from_views must be >= 0")]:
         with pytest.raises(WarpbagsError, match=message):
             load_preset("quick", **overrides)
     assert load_preset("quick", lr={"sh_rest": 0}).lr.sh_rest == 0  # a group held still is allowed

@@ -58,7 +58,7 @@ def training_cameras(config: TrainConfig, viewmats: torch.Tensor, object_center:
 
 
 def coherent_start(cameras: CameraOptimizer, targets: SilhouetteTargets, Ks: torch.Tensor, object_center: torch.Tensor,
-                   iterations: int, max_miss_per_view: float = 0.0) -> tuple[float, float, bool]:
+                   iterations: int) -> tuple[float, float]:
     """Solve every camera of `cameras` for silhouette coherence with the others (`SilhouetteTargets.coherence_loss`)
     by L-BFGS, and make that its starting pose (`CameraOptimizer.rebase`: corrections and moments at zero).
 
@@ -66,20 +66,14 @@ def coherent_start(cameras: CameraOptimizer, targets: SilhouetteTargets, Ks: tor
     views still constrain them, before any Gaussian is fitted. The solve runs on a float64 copy: the loss falls to
     1e-5 of an image size, and L-BFGS's line search compares such values.
 
-    A solve can stop where its rays still miss other views' silhouettes: poses that are not coherent, often further
-    off than it started them. Where its loss per other view ends above `max_miss_per_view` (> 0), its poses are not
-    taken and `cameras` keep theirs.
-
     Args:
         cameras: the fit's camera optimizer (its parameterization, gauge and preconditioner are used).
         targets: the masks' distance transforms (the training views' `silhouettes` where the silhouette terms use
             them). Ks: [C, 3, 3] at the masks' resolution. object_center: [3].
         iterations: L-BFGS iterations.
-        max_miss_per_view: the most the solved loss, divided by the C - 1 other views each ray is measured against,
-            may be for its poses to be taken (image sizes); 0 = always taken.
 
     Returns:
-        (the coherence loss before, after the solve, in image sizes; whether its poses were taken).
+        (the coherence loss before, after), in image sizes.
     """
     solver = copy.deepcopy(cameras).double()
     Ks, center = Ks.double(), object_center.double()
@@ -90,9 +84,6 @@ def coherent_start(cameras: CameraOptimizer, targets: SilhouetteTargets, Ks: tor
     solved = solver.viewmats()
     with torch.no_grad():
         after = float(targets.coherence_loss(solved, Ks, center, radius))
-    taken = max_miss_per_view <= 0 or after / max(len(solved) - 1, 1) <= max_miss_per_view
-    if taken:
-        with torch.no_grad():
-            cameras.viewmats_init.copy_(solved.to(cameras.viewmats_init))
-        cameras.rebase()
-    return before, after, taken
+        cameras.viewmats_init.copy_(solved.to(cameras.viewmats_init))
+    cameras.rebase()
+    return before, after

@@ -100,16 +100,12 @@ class Trainer:
             continued = self.num_cameras >= config.camera.coherence_continued_from_views
             targets = (full.silhouettes if full.silhouettes is not None and not continued
                        else SilhouetteTargets(full.masks, continued_beyond_frame=continued).to(self.device))
-            before, after, taken = coherent_start(self.cameras, targets, full.Ks, self.object_center,
-                                                  config.camera.coherence_iters, config.camera.coherence_max_miss)
+            before, after = coherent_start(self.cameras, targets, full.Ks, self.object_center,
+                                           config.camera.coherence_iters)
             self.log(f"silhouette coherence of the starting poses: {before:.2e} -> {after:.2e}"
-                     + (" (masks continued beyond the image border)" if continued else "")
-                     + ("" if taken else f"; above camera.coherence_max_miss ({config.camera.coherence_max_miss:g} "
-                        "per other view): the solve found no coherent poses and training starts from the poses "
-                        "before it"))
-            if taken:
-                self.viewmats_start = self.cameras.viewmats()
-                self.model = self._fresh_model(self.viewmats_start)  # carved again, with the coherent poses
+                     + (" (masks continued beyond the image border)" if continued else ""))
+            self.viewmats_start = self.cameras.viewmats()
+            self.model = self._fresh_model(self.viewmats_start)  # carved again, with the coherent poses
         self.repair_stage: RepairStage | None = None  # built when the repair stage first uses pseudo views
         self._repair_state: dict | None = None  # its checkpointed state, applied when it is built
         self._stop_requested = False
