@@ -190,7 +190,7 @@ def main() -> None:
                 started = time.perf_counter()
                 fits = [fitted_at(scene, poses, base, args.preset, fit_seed) for fit_seed in fit_seeds]
                 rotation = pose_errors(poses.double().cpu(), truth.double().cpu(),
-                                       alignment="procrustes")["rotation_errors_deg"].mean().item()
+                                       alignment="procrustes")["rotation_error_deg_mean"]
                 row = {"scene": name, "poses": label, "noise_seed": seed, "rotation_deg": rotation,
                        **{key: float(np.mean([fit[key] for fit in fits])) for key in ("loss", "pixels", "l1", "ncc")},
                        "fits": fits, "minutes": (time.perf_counter() - started) / 60}
