@@ -69,6 +69,16 @@ SCENES: dict[str, ScenePreset] = {
             how_to_get="git clone https://github.com/vork/moldGoldCape into a folder and pass that folder as "
                        "--data-root (or set WARPBAGS_DATA)",
         ),
+        # A third NeRD capture: the Ethiopian Head (British Museum), dark stone, 66 photographs of 4000 px with masks
+        # and NeRD's poses, a 29.7 deg field of view (maryrose: 18.6); read at 1/8 (500 px). CC BY-NC-SA, not shipped.
+        ScenePreset(
+            name="ethiopianhead",
+            source="data_root",
+            folders=("ethiopianHead", "ethiopianhead"),
+            resolution=8,
+            how_to_get="git clone https://github.com/vork/ethiopianHead into a folder and pass that folder as "
+                       "--data-root (or set WARPBAGS_DATA)",
+        ),
         ScenePreset(
             name="synthetic",
             source="synthetic",

@@ -591,6 +591,8 @@ def test_unknown_scene_and_missing_dataset(tmp_path):
         open_scene("kitchen", root=tmp_path)
     with pytest.raises(WarpbagsError, match=r"scene moldgoldcape not found .*git clone https://github.com/vork/mold"):
         open_scene("moldgoldcape", root=tmp_path)
+    with pytest.raises(WarpbagsError, match=r"scene ethiopianhead not found .*git clone https://github.com/vork/ethi"):
+        open_scene("ethiopianhead", root=tmp_path)
 
 
 # ---------------------------------------------------------------------------------------------------------------
