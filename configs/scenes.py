@@ -69,7 +69,7 @@ SCENES: dict[str, ScenePreset] = {
             how_to_get="git clone https://github.com/vork/moldGoldCape into a folder and pass that folder as "
                        "--data-root (or set WARPBAGS_DATA)",
         ),
-        # A third NeRD capture: the Ethiopian Head (British Museum), dark stone, 66 photographs of 4000 px with masks
+        # A third NeRD capture: the Ethiopian Head (British Museum), dark bronze, 66 photographs of 4000 px with masks
         # and NeRD's poses, a 29.7 deg field of view (maryrose: 18.6); read at 1/8 (500 px). CC BY-NC-SA, not shipped.
         ScenePreset(
             name="ethiopianhead",
