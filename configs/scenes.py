@@ -39,6 +39,19 @@ class ScenePreset:
     synthetic_radius: float = 3.6
 
 
+def _nerd_capture(repository: str) -> ScenePreset:
+    """One of NeRD's real captures as its GitHub repository `vork/<repository>` is cloned (photographs, masks, LLFF
+    poses), named in lower case and read at 1/8 as maryrose's images_8. Not shipped: they are CC BY-NC-SA."""
+    return ScenePreset(
+        name=repository.lower(),
+        source="data_root",
+        folders=(repository, repository.lower()),
+        resolution=8,
+        how_to_get=f"git clone https://github.com/vork/{repository} into a folder and pass that folder as "
+                   "--data-root (or set WARPBAGS_DATA)",
+    )
+
+
 SCENES: dict[str, ScenePreset] = {
     preset.name: preset
     for preset in (
@@ -59,26 +72,11 @@ SCENES: dict[str, ScenePreset] = {
             how_to_get="it ships inside the warpbags package (warpbags/assets/maryrose); reinstall warpbags",
         ),
         # A second real capture from the NeRD datasets: the Mold Gold Cape (British Museum), gold and specular, 119
-        # photographs of 3648 px with masks and NeRD's poses (LLFF), read at 1/8 (456 px) as maryrose's images_8.
-        # Not shipped (CC BY-NC-SA); its repository is read as it is cloned.
-        ScenePreset(
-            name="moldgoldcape",
-            source="data_root",
-            folders=("moldGoldCape", "moldgoldcape"),
-            resolution=8,
-            how_to_get="git clone https://github.com/vork/moldGoldCape into a folder and pass that folder as "
-                       "--data-root (or set WARPBAGS_DATA)",
-        ),
+        # photographs of 3648 px with masks and NeRD's poses (LLFF), read at 1/8 (456 px).
+        _nerd_capture("moldGoldCape"),
         # A third NeRD capture: the Ethiopian Head (British Museum), dark bronze, 66 photographs of 4000 px with masks
-        # and NeRD's poses, a 29.7 deg field of view (maryrose: 18.6); read at 1/8 (500 px). CC BY-NC-SA, not shipped.
-        ScenePreset(
-            name="ethiopianhead",
-            source="data_root",
-            folders=("ethiopianHead", "ethiopianhead"),
-            resolution=8,
-            how_to_get="git clone https://github.com/vork/ethiopianHead into a folder and pass that folder as "
-                       "--data-root (or set WARPBAGS_DATA)",
-        ),
+        # and NeRD's poses, a 29.7 deg field of view (maryrose: 18.6); read at 1/8 (500 px).
+        _nerd_capture("ethiopianHead"),
         ScenePreset(
             name="synthetic",
             source="synthetic",
