@@ -39,6 +39,25 @@ class LayoutCameras:
     test_names: set[str] | None = None
 
 
+def read_layout_cameras(root: Path) -> LayoutCameras:
+    """The cameras of scene folder `root`, from whichever layout it holds (COLMAP first, then LLFF, then
+    transforms.json).
+
+    Raises:
+        WarpbagsError: no layout's camera file, or one that cannot be read.
+    """
+    if (root / "sparse" / "0").is_dir() or any((root / "sparse" / name).is_file() for name in ("cameras.bin",
+                                                                                             "cameras.txt")):
+        return colmap_cameras(root)
+    if (root / "poses_bounds.npy").is_file():
+        return llff_cameras(root)
+    if (root / "transforms.json").is_file() or (root / "transforms_train.json").is_file():
+        return transforms_cameras(root)
+    raise WarpbagsError(
+        f"no cameras in {root}: expected sparse/0/cameras.bin (COLMAP), poses_bounds.npy (LLFF) or transforms.json"
+    )
+
+
 def colmap_cameras(root: Path) -> LayoutCameras:
     """`sparse/0/` (or `sparse/`) read through pycolmap, with its SfM points."""
     model_dir = root / "sparse" / "0" if (root / "sparse" / "0").is_dir() else root / "sparse"

@@ -25,7 +25,7 @@ from warpbags.cameras import camera_centers
 from warpbags.data.images import (FACTORS, IMAGE_MEMORY_BUDGET, default_resolution, factor_within_budget, image_size,
                                   physical_memory, read_depths, read_images, read_masks, resolution_path, scene_bytes,
                                   undistort)
-from warpbags.data.layouts import LayoutCameras, colmap_cameras, llff_cameras, transforms_cameras
+from warpbags.data.layouts import LayoutCameras, read_layout_cameras
 from warpbags.data.scene import ORBIT_RADIUS, Scene, SceneNormalization
 from warpbags.data.splits import read_splits
 from warpbags.errors import WarpbagsError
@@ -63,17 +63,7 @@ def load_scene(
     root = Path(root)
     if not root.is_dir():
         raise WarpbagsError(f"scene folder {root} does not exist")
-    if (root / "sparse" / "0").is_dir() or any((root / "sparse" / name).is_file() for name in ("cameras.bin",
-                                                                                             "cameras.txt")):
-        cameras = colmap_cameras(root)
-    elif (root / "poses_bounds.npy").is_file():
-        cameras = llff_cameras(root)
-    elif (root / "transforms.json").is_file() or (root / "transforms_train.json").is_file():
-        cameras = transforms_cameras(root)
-    else:
-        raise WarpbagsError(
-            f"no cameras in {root}: expected sparse/0/cameras.bin (COLMAP), poses_bounds.npy (LLFF) or transforms.json"
-        )
+    cameras = read_layout_cameras(root)
     resolution = _resolution(root, cameras, resolution)
 
     image_folders = (f"images_{resolution}", "images")
