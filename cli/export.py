@@ -18,11 +18,17 @@ stdout = Console(highlight=False)
 def export(
     run_dir: Optional[Path] = typer.Argument(None, help="Run folder (default: the newest under runs/)."),
     out: Optional[Path] = typer.Option(None, "--out", help="Output folder (default: RUN_DIR/export)."),
+    colmap: bool = typer.Option(True, "--colmap/--no-colmap",
+                                help="Also write sparse/0/, a COLMAP text model of the training cameras: the input's "
+                                     "calibration, read again from the scene folder, with the final poses."),
 ) -> None:
     """Write the Gaussians (standard 3DGS PLY) and final poses in the input scene's frame: poses_final.npy holds
-    [C,4,4] world-to-camera matrices with OpenCV axes, whatever the input layout."""
-    folder = export_run(run_dir or latest_run(), out)
-    stdout.print(f"wrote {folder / 'gaussians.ply'} and {folder / 'poses_final.npy'} (input scene frame)")
+    [C,4,4] world-to-camera matrices with OpenCV axes, whatever the input layout, and sparse/0/ the training cameras
+    as a COLMAP model that COLMAP-reading trainers (3DGS, gsplat, nerfstudio) take as it is."""
+    folder, image_folder = export_run(run_dir or latest_run(), out, colmap=colmap)
+    written = ["gaussians.ply", "poses_final.npy"] + (["sparse/0/"] if colmap else [])
+    stdout.print(f"wrote {', '.join(str(folder / name) for name in written)} (input scene frame)"
+                 + (f"; the model's images are in {image_folder}" if image_folder is not None else ""))
 
 
 def render(

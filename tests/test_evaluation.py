@@ -6,6 +6,7 @@ import json
 import shutil
 import sys
 import types
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -15,6 +16,7 @@ from typer.testing import CliRunner
 
 from warpbags.cli.main import app
 from warpbags.data import SyntheticOptions, ensure_synthetic_scene
+from warpbags.data.colmap import read_model, write_model
 from warpbags.evaluation import FlipMetric, LpipsMetric, comparison_file_names, image_metrics, load_run, pose_accuracy
 from warpbags.gaussians import read_ply, write_ply
 from warpbags.losses import load_lpips
@@ -212,6 +214,80 @@ def test_export_is_in_the_source_frame(finished_run, tmp_path):
     cam_norm = poses_norm[1, :3, :3] @ point_norm + poses_norm[1, :3, 3]
     cam_src = poses_src[1, :3, :3] @ point_src + poses_src[1, :3, 3]
     np.testing.assert_allclose(cam_src * scale, cam_norm, atol=1e-4)
+
+
+def _run_on_scene(finished_run, tmp_path, scene_root):
+    """A copy of `finished_run` whose config.json names `scene_root` as its scene folder."""
+    run = tmp_path / "run"
+    shutil.copytree(finished_run, run)
+    info = json.loads((run / "config.json").read_text())
+    (run / "config.json").write_text(json.dumps({**info, "scene_root": str(scene_root)}))
+    return run, info
+
+
+def test_export_writes_the_training_cameras_with_the_inputs_calibration_as_a_colmap_model(finished_run, tmp_path):
+    # A scene whose model calibrates the images at twice their size with a radial distortion: the export must carry
+    # that calibration, not the run's (training resolution, undistorted) intrinsics.
+    info = json.loads((finished_run / "config.json").read_text())
+    scene = tmp_path / "scene"
+    shutil.copytree(info["scene_root"], scene)
+    source = read_model(scene / "sparse" / "0")
+    Ks = np.stack([camera.K for camera in source.cameras]) * np.array([2.0, 2.0, 1.0])[:, None]
+    distortions = np.tile([0.01, -0.002, 0.0, 0.0], (len(Ks), 1))
+    shutil.rmtree(scene / "sparse" / "0")
+    write_model(scene / "sparse" / "0", source.image_names, source.viewmats, Ks, 128, 128, distortions=distortions)
+    run, _ = _run_on_scene(finished_run, tmp_path, scene)
+
+    result = runner.invoke(app, ["export", str(run), "--out", str(tmp_path / "export")])
+    assert result.exit_code == 0, result.output
+    assert f"the model's images are in {scene / 'images'}" in " ".join(result.output.split())
+    model = read_model(tmp_path / "export" / "sparse" / "0")
+    names = info["image_names"]
+    assert model.image_names == sorted(names) and len(names) == 4
+    poses = np.load(tmp_path / "export" / "poses_final.npy")
+    # poses_final.npy is float32: its rotations are orthonormal to ~1e-7, COLMAP stores quaternions
+    np.testing.assert_allclose(model.viewmats, poses[[names.index(name) for name in model.image_names]], atol=1e-6)
+    given = dict(zip(source.image_names, Ks))
+    for name, camera in zip(model.image_names, model.cameras):
+        np.testing.assert_allclose(camera.K, given[name], atol=1e-9)
+        assert (camera.width, camera.height, camera.model) == (128, 128, "OPENCV")
+        np.testing.assert_allclose(camera.distortion, [0.01, -0.002, 0.0, 0.0])
+    gaussians = read_ply(tmp_path / "export" / "gaussians.ply")
+    assert len(model.points) == len(gaussians["means"])
+    np.testing.assert_allclose(np.sort(model.points, axis=0), np.sort(gaussians["means"].numpy(), axis=0), atol=1e-5)
+
+
+def test_exported_image_names_are_relative_to_one_image_folder_for_a_transforms_json_scene(finished_run, tmp_path):
+    from warpbags.export import training_calibration
+
+    info = json.loads((finished_run / "config.json").read_text())
+    source = read_model(Path(info["scene_root"]) / "sparse" / "0")
+    camera_to_world = np.linalg.inv(source.viewmats) @ np.diag([1.0, -1.0, -1.0, 1.0])
+    K, (width, height) = source.cameras[0].K, (source.cameras[0].width, source.cameras[0].height)
+    frames = [{"file_path": f"pictures/{name}", "transform_matrix": matrix.tolist()}
+              for name, matrix in zip(source.image_names, camera_to_world)]
+    scene = tmp_path / "scene"
+    shutil.copytree(Path(info["scene_root"]) / "images", scene / "pictures")
+    (scene / "transforms.json").write_text(json.dumps({"fl_x": K[0, 0], "fl_y": K[1, 1], "cx": K[0, 2], "cy": K[1, 2],
+                                                       "w": width, "h": height, "frames": frames}))
+    names = [f"pictures/{name}" for name in info["image_names"]]
+    run = types.SimpleNamespace(path=finished_run, info={"scene_root": str(scene), "image_names": names})
+    calibration = training_calibration(run)
+    assert calibration.image_folder == "pictures" and calibration.image_names == info["image_names"]
+    np.testing.assert_allclose(calibration.Ks, np.tile(K, (len(names), 1, 1)), atol=1e-9)
+
+
+def test_export_without_its_scene_folder_writes_nothing_unless_told_to_skip_the_cameras(finished_run, tmp_path):
+    run, _ = _run_on_scene(finished_run, tmp_path, tmp_path / "moved-away")
+    result = runner.invoke(app, ["export", str(run), "--out", str(tmp_path / "export")])
+    assert result.exit_code == 2 and "moved-away is gone" in result.output and "--no-colmap" in result.output
+    assert "Traceback" not in result.output and not (tmp_path / "export").exists()
+    (tmp_path / "a-file").write_text("")
+    result = runner.invoke(app, ["export", str(run), "--out", str(tmp_path / "a-file"), "--no-colmap"])
+    assert result.exit_code == 2 and "a-file is a file, not a folder to export into" in result.output
+    result = runner.invoke(app, ["export", str(run), "--out", str(tmp_path / "export"), "--no-colmap"])
+    assert result.exit_code == 0, result.output
+    assert sorted(path.name for path in (tmp_path / "export").iterdir()) == ["gaussians.ply", "poses_final.npy"]
 
 
 def test_turntable_frames_and_video(finished_run):

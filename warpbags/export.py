@@ -1,12 +1,16 @@
 """A run's results outside warpbags: its Gaussians and poses in the input scene's frame, and a turntable render.
 
-`export_run` writes a standard 3DGS PLY and the final [C,4,4] poses, undoing the scene normalization;
-`render_turntable` renders novel views on a full orbit of the object as PNG frames and an mp4.
+`export_run` writes a standard 3DGS PLY, the final [C,4,4] poses and a COLMAP model of the training cameras (the
+input's calibration, the corrected poses), undoing the scene normalization; `render_turntable` renders novel views on
+a full orbit of the object as PNG frames and an mp4.
 """
 
 from __future__ import annotations
 
-from pathlib import Path
+import os
+import shutil
+from dataclasses import dataclass
+from pathlib import Path, PurePosixPath
 
 import cv2
 import numpy as np
@@ -14,30 +18,102 @@ import torch
 
 from warpbags.camera_paths import turntable_viewmats
 from warpbags.data import SceneNormalization
+from warpbags.data.colmap import write_model
+from warpbags.data.layouts import read_layout_cameras
 from warpbags.errors import WarpbagsError
-from warpbags.evaluation import load_run
+from warpbags.evaluation import TrainingRun, load_run
 from warpbags.files import atomic_output
 from warpbags.gaussians import render_gaussians, sh_degree_of, to_source_frame, write_ply
+from warpbags.init import SH_C0
 from warpbags.threads import torch_threads
 
 
-def export_run(path: str | Path, out: str | Path | None = None) -> Path:
+@dataclass
+class Calibration:
+    """The training views' cameras as the input scene folder gives them (full resolution, before undistortion).
+
+    Attributes:
+        image_folder: the folder, relative to the scene folder, that the names are relative to (COLMAP's image path).
+        image_names: C names.
+        Ks: [C,3,3] float64 at `sizes`; sizes: [C,2] (width, height); distortions: [C,4] OpenCV (k1, k2, p1, p2).
+    """
+
+    image_folder: str
+    image_names: list[str]
+    Ks: np.ndarray
+    sizes: np.ndarray
+    distortions: np.ndarray
+
+
+def training_calibration(run: TrainingRun) -> Calibration:
+    """The calibration of the run's training views, read again from its scene folder (a run stores its intrinsics
+    only at the training resolution, after undistortion).
+
+    Raises:
+        WarpbagsError: the scene folder is gone, or no longer holds one of the run's training views.
+    """
+    for key in ("scene_root", "image_names"):
+        if key not in run.info:
+            raise WarpbagsError(f"{run.path / 'config.json'} has no {key!r}: written by an older warpbags")
+    root = Path(run.info["scene_root"])
+    if not root.is_dir():
+        raise WarpbagsError(f"the run's scene folder {root} is gone: the COLMAP model takes the cameras' calibration "
+                            "from it (--no-colmap exports without it)")
+    cameras = read_layout_cameras(root)
+    index = {name: position for position, name in enumerate(cameras.image_names)}
+    missing = [name for name in run.info["image_names"] if name not in index]
+    if missing:
+        raise WarpbagsError(f"{root} no longer holds the run's training view {missing[0]!r}: was the scene changed?")
+    picked = [index[name] for name in run.info["image_names"]]
+    names, folder = list(run.info["image_names"]), "images"
+    if cameras.layout == "transforms":  # names relative to the scene folder: COLMAP's are relative to one image folder
+        folder = os.path.commonpath([str(PurePosixPath(name).parent) for name in names]) or "."
+        names = [str(PurePosixPath(name).relative_to(folder)) for name in names] if folder != "." else names
+    return Calibration(folder, names, cameras.Ks[picked], cameras.calibration_sizes[picked],
+                       cameras.distortions[picked])
+
+
+def export_run(path: str | Path, out: str | Path | None = None, colmap: bool = True) -> tuple[Path, Path | None]:
     """Write the run's Gaussians and final poses in the input scene's own frame (not the normalized one).
 
-    Writes `<out>/gaussians.ply` (standard 3DGS PLY) and `<out>/poses_final.npy` ([C,4,4] world-to-camera,
-    OpenCV axes, the training views in `config.json`'s image order). Default `out`: `<run>/export`.
+    Writes `<out>/gaussians.ply` (standard 3DGS PLY), `<out>/poses_final.npy` ([C,4,4] world-to-camera, OpenCV
+    axes, the training views in `config.json`'s image order) and, with `colmap`, `<out>/sparse/0/` (a COLMAP text
+    model: the training views with the input's calibration and their final poses, image names relative to the
+    scene folder's image folder, one point per Gaussian at its centre in its base colour), which COLMAP-reading
+    trainers take as they are. Default `out`: `<run>/export`.
+
+    Raises:
+        WarpbagsError: the run is unfinished or unreadable; with `colmap`, its scene folder is gone or changed.
+            Nothing is written then.
+
+    Returns:
+        The output folder, and with `colmap` the scene's image folder the model's image names are relative to.
     """
     run = load_run(path)
     if "normalization" not in run.info:
         raise WarpbagsError(f"{run.path / 'config.json'} has no normalization: written by an older warpbags")
-    normalization = SceneNormalization(tuple(run.info["normalization"]["center"]), run.info["normalization"]["scale"])
     out = Path(out) if out is not None else run.path / "export"
+    if out.exists() and not out.is_dir():
+        raise WarpbagsError(f"{out} is a file, not a folder to export into")
+    calibration = training_calibration(run) if colmap else None
+    normalization = SceneNormalization(tuple(run.info["normalization"]["center"]), run.info["normalization"]["scale"])
     out.mkdir(parents=True, exist_ok=True)
-    write_ply(out / "gaussians.ply", to_source_frame(run.params, normalization.center, normalization.scale))
-    poses = normalization.invert_viewmats(run.poses_final)
+    gaussians = to_source_frame(run.params, normalization.center, normalization.scale)
+    write_ply(out / "gaussians.ply", gaussians)
+    poses = normalization.invert_viewmats(run.poses_final.double()).numpy()
     with atomic_output(out / "poses_final.npy") as temporary:
-        np.save(temporary, poses.numpy())
-    return out
+        np.save(temporary, poses)
+    if calibration is not None:
+        colors = (0.5 + SH_C0 * gaussians["sh0"][:, 0, :].double()).clamp(0, 1).numpy()
+        model, staging = out / "sparse" / "0", out / "sparse" / "0.partial"  # a failed write leaves no model
+        shutil.rmtree(staging, ignore_errors=True)
+        write_model(staging, calibration.image_names, poses, calibration.Ks, calibration.sizes[:, 0],
+                    calibration.sizes[:, 1], gaussians["means"].double().numpy(), np.round(colors * 255).astype(np.uint8),
+                    binary=False, distortions=calibration.distortions)
+        shutil.rmtree(model, ignore_errors=True)
+        staging.rename(model)
+        return out, Path(run.info["scene_root"]) / calibration.image_folder
+    return out, None
 
 
 @torch_threads(1)

@@ -1,4 +1,4 @@
-"""COLMAP sparse models through pycolmap: read cameras/poses/points, write a model (for the synthetic scene).
+"""COLMAP sparse models through pycolmap: read cameras/poses/points, write a model (the synthetic scene, exports).
 
 COLMAP already uses OpenCV camera axes, world-to-camera poses and pixel centres at (x+0.5, y+0.5), so its
 poses and principal points are used as they are. pycolmap is imported where a model is read or written: it adds
@@ -144,31 +144,40 @@ def write_model(
     image_names: list[str],
     viewmats: np.ndarray,
     Ks: np.ndarray,
-    width: int,
-    height: int,
+    width: int | np.ndarray,
+    height: int | np.ndarray,
     points: np.ndarray | None = None,
     colors: np.ndarray | None = None,
     binary: bool = True,
+    distortions: np.ndarray | None = None,
 ) -> None:
-    """Write a PINHOLE COLMAP model (one camera per image).
+    """Write a COLMAP model, one camera per image: PINHOLE, or OPENCV where the image has a distortion.
 
     Args:
         model_dir: output folder (created).
         image_names: C names.
         viewmats: [C,4,4] world-to-camera, OpenCV axes.
         Ks: [C,3,3] intrinsics at (width, height), pixel centres at +0.5.
+        width, height: the image size the intrinsics refer to, one for all images or [C] each.
         points: [P,3] optional points; colors: [P,3] uint8.
         binary: .bin files (default) or .txt.
+        distortions: [C,4] OpenCV (k1, k2, p1, p2) per image; None = none.
     """
     import pycolmap
 
+    count = len(image_names)
+    widths, heights = np.broadcast_to(width, (count,)), np.broadcast_to(height, (count,))
+    distortions = np.zeros((count, 4)) if distortions is None else np.asarray(distortions, dtype=np.float64)
     reconstruction = pycolmap.Reconstruction()
-    for index, (name, viewmat, K) in enumerate(zip(image_names, np.asarray(viewmats), np.asarray(Ks)), start=1):
+    for index, (name, viewmat, K, distortion) in enumerate(
+            zip(image_names, np.asarray(viewmats), np.asarray(Ks), distortions), start=1):
+        params = [K[0, 0], K[1, 1], K[0, 2], K[1, 2]]
+        distorted = bool(np.any(distortion != 0))
         camera = pycolmap.Camera(
-            model="PINHOLE",
-            width=int(width),
-            height=int(height),
-            params=[K[0, 0], K[1, 1], K[0, 2], K[1, 2]],
+            model="OPENCV" if distorted else "PINHOLE",
+            width=int(widths[index - 1]),
+            height=int(heights[index - 1]),
+            params=params + list(distortion) if distorted else params,
             camera_id=index,
         )
         reconstruction.add_camera_with_trivial_rig(camera)
