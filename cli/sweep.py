@@ -19,9 +19,12 @@ stdout = Console(highlight=False)
 
 def _numbers(text: str, kind=float) -> tuple:
     try:
-        return tuple(kind(item) for item in text.split(",") if item.strip())
+        numbers = tuple(kind(item) for item in text.split(",") if item.strip())
     except ValueError:
-        raise WarpbagsError(f"expected comma-separated numbers, got {text!r}") from None
+        numbers = ()
+    if not numbers:
+        raise WarpbagsError(f"expected comma-separated numbers, got {text!r}")
+    return numbers
 
 
 def sweep(

@@ -421,6 +421,29 @@ def test_sweep_bad_values_one_line(tmp_path):
     assert result.exit_code == 2 and "comma-separated numbers" in result.output
     result = runner.invoke(app, ["sweep", "maryrose", "--views", "1", "--out", str(tmp_path / "s")])
     assert result.exit_code == 2 and "--views must be >= 2" in result.output
+    result = runner.invoke(app, ["sweep", "maryrose", "--views", ",", "--out", str(tmp_path / "s")])
+    assert result.exit_code == 2 and "expected comma-separated numbers, got ','" in result.output
+
+
+def test_a_sweep_with_two_views_reports_their_pairwise_errors(finished_run, tmp_path):
+    from warpbags.sweep import SweepSpec, run_sweep
+
+    info = json.loads((finished_run / "config.json").read_text())
+    spec = SweepSpec(scene=info["scene_root"], out=tmp_path / "sweep", rot_noises=(5,), views=(2,), seeds=(0,),
+                     refine_iters=0, overrides=(("iters", 3),))
+    rows = run_sweep(spec, log=lambda message: None)
+    for row in rows:
+        report = json.loads((spec.out / row["run"] / "eval.json").read_text())
+        assert report["alignment"] == "pairwise"
+        assert row["rot_err_initial"] == report["poses"]["pairwise"]["initial"]["rotation_deg_mean"] > 0.5
+
+
+def test_json_outputs_write_a_non_finite_number_as_null():
+    from warpbags.files import finite_json
+
+    text = finite_json({"psnr": float("inf"), "views": [1.5, float("nan")], "nested": ({"flip": -float("inf")},)})
+    assert json.loads(text) == {"psnr": None, "views": [1.5, None], "nested": [{"flip": None}]}
+    assert "Infinity" not in text and "NaN" not in text
 
 
 def test_atomic_output_replaces_only_on_success(tmp_path):

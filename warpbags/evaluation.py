@@ -19,8 +19,6 @@ overfit with 4-9 cameras; both are reported and labelled.
 from __future__ import annotations
 
 import dataclasses
-import json
-import math
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -34,7 +32,7 @@ from warpbags.configs.train import TrainConfig
 from warpbags.data import ORBIT_RADIUS, Scene, SceneNormalization, load_scene
 from warpbags.devices import torch_device
 from warpbags.errors import WarpbagsError
-from warpbags.files import atomic_output
+from warpbags.files import atomic_output, finite_json
 from warpbags.gaussians import read_ply, render_gaussians, sh_degree_of
 from warpbags.losses import load_lpips, photometric_loss
 from warpbags.report import write_image_grid, write_run_report
@@ -320,12 +318,7 @@ def evaluate_run(path: str | Path, *, alignment: str = "procrustes", refine_iter
     for file_name, target, image in zip(comparison_file_names(test.image_names), targets, images):
         _save_comparison(out / file_name, target, image)
     with atomic_output(run.path / "eval.json") as temporary:
-        temporary.write_text(json.dumps(result, indent=2, default=_json_default))
+        temporary.write_text(finite_json(result))
     write_run_report(run.path, result)
     return result
 
-
-def _json_default(value):
-    if isinstance(value, float) and not math.isfinite(value):
-        return None
-    raise TypeError(f"not JSON serializable: {type(value).__name__}")

@@ -25,7 +25,7 @@ from warpbags.data import Scene, open_scene
 from warpbags.devices import checked_device_name
 from warpbags.errors import WarpbagsError
 from warpbags.evaluation import evaluate_run
-from warpbags.files import atomic_output
+from warpbags.files import atomic_output, finite_json
 from warpbags.report import plot_sweep
 from warpbags.run_folder import RunFolder
 from warpbags.threads import usable_cores
@@ -297,7 +297,7 @@ def _quiet(message: str) -> None:
 
 def _row(run_dir: Path, run: SweepRun) -> dict:
     report = json.loads((run_dir / "eval.json").read_text())
-    poses = report["poses"]["procrustes"]
+    poses = report["poses"][report["alignment"]]  # pairwise below 3 training views
     refined = report.get("images_after_test_pose_refinement", report["images"])
     return {
         "method": run.method, "views": run.views, "rot_noise_deg": run.rot_noise_deg, "seed": run.seed,
@@ -311,7 +311,7 @@ def _row(run_dir: Path, run: SweepRun) -> dict:
 
 def _write_tables(rows: list[dict], out: Path) -> None:
     with atomic_output(out / "sweep.json") as temporary:
-        temporary.write_text(json.dumps(rows, indent=2))
+        temporary.write_text(finite_json(rows))
     with atomic_output(out / "sweep.csv") as temporary, open(temporary, "w", newline="") as handle:
         writer = csv.DictWriter(handle, fieldnames=list(rows[0]))
         writer.writeheader()
