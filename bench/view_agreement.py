@@ -49,7 +49,7 @@ def register_left_out(views: TrainingViews, reference: torch.Tensor, left_out: i
     fit.train_until(fit_iters, should_stop=lambda: False)
     one = slice(left_out, left_out + 1)
     return refine_poses(fit.model.params, reference[one], views.Ks[one], views.targets[one], views.scene.width,
-                        views.scene.height, fit.schedule.sh_degree(fit_iters), refine_iters)[0]
+                        views.scene.height, fit.schedule.sh_degree(fit_iters - 1), refine_iters)[0]
 
 
 def view_agreement(scene, views: int, size: int, fit_iters: int, refine_iters: int, preset: str,
