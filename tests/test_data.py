@@ -628,6 +628,9 @@ def test_cli_synth_writes_a_loadable_scene(tmp_path):
     assert scene.num_views == 6 and scene.width == 24 and scene.depths is not None
     again = CliRunner().invoke(app, ["synth", str(tmp_path / "out"), "--views", "6", "--size", "24"])
     assert again.exit_code == 2 and "not empty" in again.output
+    (tmp_path / "a-file").write_text("")
+    onto_a_file = CliRunner().invoke(app, ["synth", str(tmp_path / "a-file"), "--views", "6", "--size", "24"])
+    assert onto_a_file.exit_code == 2 and "a-file is a file, not a folder" in " ".join(onto_a_file.output.split())
 
 
 def test_synthetic_preset_generated_once_into_cache(tmp_path, monkeypatch):

@@ -91,7 +91,8 @@ class RepairStage:
         elif pairs_path.is_file() and repairer_path.is_file():  # a resumed run: reuse what it made
             self.repairer = make_repairer(self.config, config.seed, device)
             pairs = RepairPairs.load(pairs_path)
-            self.repairer.load_state_dict(torch.load(repairer_path, weights_only=False))
+            # saved on whichever device the run used before
+            self.repairer.load_state_dict(torch.load(repairer_path, map_location="cpu", weights_only=False))
             log(f"repair: loaded {len(pairs.kinds)} pairs and the fitted repairer from {self.folder}")
         else:
             self.repairer = make_repairer(self.config, config.seed, device)
