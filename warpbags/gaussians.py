@@ -17,8 +17,6 @@ from warpbags.errors import WarpbagsError
 from warpbags.files import atomic_output
 from warpbags.rendering import rasterization
 
-PARAMETER_NAMES = ("means", "scales", "quats", "opacities", "sh0", "shN")
-
 
 def sh_coefficients(params: dict[str, torch.Tensor]) -> torch.Tensor:
     """[N,K,3] all SH coefficients."""

@@ -57,25 +57,25 @@ class RunFolder:
 
     # ----------------------------------------------------------------------------------------------- setup, results
     def write_setup(self, config: TrainConfig, scene: Scene, device: str, viewmats_true: torch.Tensor,
-                    viewmats_init: torch.Tensor, viewmats_start: torch.Tensor, extra: dict | None = None) -> None:
-        """config.json, poses_true/init/start.npy and intrinsics.npy.
+                    viewmats_init: torch.Tensor, viewmats_start: torch.Tensor) -> None:
+        """config.json, poses_true/init/start.npy and intrinsics.npy, each written atomically.
 
         Args:
             scene: the training views at the full training resolution (their intrinsics are saved).
             viewmats_true, viewmats_init, viewmats_start: [C,4,4] world-to-camera.
-            extra: more entries for config.json.
         """
         self.path.mkdir(parents=True, exist_ok=True)
         normalization = scene.normalization
         info = {"config": config.to_dict(), "scene": scene.name, "image_names": scene.image_names,
                 "scene_root": str(Path(scene.root).resolve()), "resolution": scene.resolution,
                 "normalization": {"center": list(normalization.center), "scale": normalization.scale},
-                "width": scene.width, "height": scene.height, "device": device, **(extra or {})}
-        (self.path / "config.json").write_text(json.dumps(info, indent=2))
-        np.save(self.path / "poses_true.npy", viewmats_true.cpu().numpy())
-        np.save(self.path / "poses_init.npy", viewmats_init.cpu().numpy())
-        np.save(self.path / "poses_start.npy", viewmats_start.cpu().numpy())
-        np.save(self.path / "intrinsics.npy", scene.Ks.cpu().numpy())
+                "width": scene.width, "height": scene.height, "device": device}
+        with atomic_output(self.path / "config.json") as temporary:
+            temporary.write_text(json.dumps(info, indent=2))
+        for name, array in (("poses_true", viewmats_true), ("poses_init", viewmats_init),
+                            ("poses_start", viewmats_start), ("intrinsics", scene.Ks)):
+            with atomic_output(self.path / f"{name}.npy") as temporary:
+                np.save(temporary, array.cpu().numpy())
 
     def read_info(self) -> dict:
         """config.json: the TrainConfig (under "config") and the scene and view information written with it.

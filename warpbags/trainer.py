@@ -300,12 +300,12 @@ class Trainer:
         self.log(f"resumed from {path} (iteration {self.iteration})")
         return True
 
-    def write_run_files(self, extra: dict | None = None, folder: Path | None = None) -> None:
+    def write_run_files(self, folder: Path | None = None) -> None:
         """config.json, poses_true/init/start.npy, intrinsics.npy into `folder` (default: the run folder)."""
         run_folder = self.run_folder if folder is None else RunFolder(folder)
         # The full training resolution, whatever level a round trains at.
         run_folder.write_setup(self.config, self.full_scene, str(self.device), self.viewmats_true, self.viewmats_init,
-                               self.viewmats_start, extra)
+                               self.viewmats_start)
 
     def write_results(self, folder: Path | None = None) -> None:
         """gaussians.ply and poses_final.npy into `folder` (default: the run folder)."""
