@@ -282,6 +282,8 @@ class TrainConfig:
         pose_round_window: (start, end) shares of every round in which poses are updated; outside it only the
             Gaussians are (fresh Gaussians first fit the images before their gradients steer the poses, and a
             round can end fitting the Gaussians to the poses it found). (0, 1) = the whole round.
+        pose_round_windows: one (start, end) per coarse round, the last repeated for later rounds; when given it
+            replaces `pose_round_window`. () = `pose_round_window` in every round.
         depth_until: the depth term is used for each round's first `depth_until` iterations (0 = never).
         rot_noise_deg: injected rotation noise, std in degrees (an N(0, sigma^2) angle about a random axis).
         trans_noise: injected camera-centre noise, std (N(0, sigma^2) per coordinate, in normalized scene units

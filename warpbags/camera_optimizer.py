@@ -2,7 +2,8 @@
 
 It holds the per-camera parameters, the gauge, the optional CamP preconditioner, the Adam optimizer with its two
 groups (rotation, translation) and its learning rate, and turns the parameters into corrected world-to-camera
-matrices with `apply(views)`. The trainer, evaluation's test-pose refinement and export all go through it.
+matrices with `apply(views)`. The trainer and evaluation's test-pose refinement go through it; export writes
+the poses it left.
 
 Parameterizations (`kernels/pose.py` has the maths, one Warp kernel each):
     "camera"  se(3) twist [w, v] composed on the left of world-to-camera: a rotation about the camera centre (BARF).

@@ -319,6 +319,6 @@ def evaluate_run(path: str | Path, *, alignment: str = "procrustes", refine_iter
         _save_comparison(out / file_name, target, image)
     with atomic_output(run.path / "eval.json") as temporary:
         temporary.write_text(finite_json(result))
-    write_run_report(run.path, result)
+    write_run_report(run.path, result, alignment_for(len(run.poses_final), run.config.pose_alignment))
     return result
 

@@ -31,9 +31,9 @@ def read_log(run_dir: Path) -> list[dict]:
     return [json.loads(line) for line in path.read_text().splitlines() if line.strip()] if path.is_file() else []
 
 
-def plot_training_curves(records: list[dict], path: Path) -> None:
-    """Total loss and pose errors over iterations (the report's Figs. 6 and 7 for one run); a dotted line marks
-    the start of the repair stage."""
+def plot_training_curves(records: list[dict], path: Path, alignment: str) -> None:
+    """Total loss and pose errors over iterations (the report's Figs. 6 and 7 for one run), the errors as training
+    logged them, after `alignment`; a dotted line marks the start of the repair stage."""
     iters = [r["iter"] for r in records]
     plt = _pyplot()
     figure, (loss_axis, pose_axis) = plt.subplots(1, 2, figsize=(10, 3.6))
@@ -42,7 +42,7 @@ def plot_training_curves(records: list[dict], path: Path) -> None:
     pose_axis.plot(iters, [r["rot_err_deg"] for r in records], label="rotation (deg)")
     twin = pose_axis.twinx()
     twin.plot(iters, [r["trans_err"] for r in records], color="tab:orange", label="translation")
-    pose_axis.set(xlabel="iteration", ylabel="rotation error (deg)", title="pose error (Procrustes-aligned)")
+    pose_axis.set(xlabel="iteration", ylabel="rotation error (deg)", title=f"pose error ({alignment} alignment)")
     twin.set_ylabel("translation error")
     repair = [r["iter"] for r in records if r.get("stage") == "repair"]
     if repair:  # where the repair stage starts
@@ -73,8 +73,9 @@ def write_image_grid(path: Path, rows: list[list]) -> None:
             raise OSError(f"could not write {path}")
 
 
-def write_run_report(run_dir: Path, result: dict) -> Path:
-    """report.md: the metrics table, training curves, held-out comparisons and (if rendered) a turntable strip."""
+def write_run_report(run_dir: Path, result: dict, training_alignment: str) -> Path:
+    """report.md: the metrics table, training curves (whose pose errors training logged after
+    `training_alignment`), held-out comparisons and (if rendered) a turntable strip."""
     run_dir = Path(run_dir)
     records = read_log(run_dir)
     lines = [f"# {result['scene']}: {result['views']} views", "", f"Run folder: `{run_dir}`", ""]
@@ -112,7 +113,7 @@ def write_run_report(run_dir: Path, result: dict) -> Path:
         if result.get(f"{name}_unavailable"):
             lines += ["", f"{name.upper()} unavailable: {result[f'{name}_unavailable']}"]
     if records:
-        plot_training_curves(records, run_dir / "curves.png")
+        plot_training_curves(records, run_dir / "curves.png", training_alignment)
         lines += ["", "## Training", "", "![loss and pose error](curves.png)"]
     comparisons = sorted((run_dir / "eval").glob("*.png"))
     if comparisons:
