@@ -33,7 +33,7 @@ from warpbags.data import ORBIT_RADIUS, Scene, SceneNormalization, load_scene
 from warpbags.devices import torch_device
 from warpbags.errors import WarpbagsError
 from warpbags.files import atomic_output, finite_json
-from warpbags.gaussians import read_ply, render_gaussians, sh_degree_of
+from warpbags.gaussians import opacity_weighted_center, read_ply, render_gaussians, sh_degree_of
 from warpbags.losses import load_lpips, photometric_loss
 from warpbags.report import write_image_grid, write_run_report
 from warpbags.run_folder import RunFolder
@@ -151,9 +151,7 @@ def refine_poses(params, viewmats, Ks, targets, width, height, sh_degree, iters:
     """
     frozen = {name: value.detach() for name, value in params.items()}
     settings = dataclasses.replace(settings or CameraOptimizerSettings(), fix_first_camera=False)
-    weights = torch.sigmoid(frozen["opacities"])[:, None]
-    center = (frozen["means"] * weights).sum(0) / weights.sum().clamp_min(1e-12)
-    cameras = CameraOptimizer(viewmats, settings, center, Ks, width, height, frozen["means"])
+    cameras = CameraOptimizer(viewmats, settings, opacity_weighted_center(frozen), Ks, width, height, frozen["means"])
     background = torch.ones(1, 3, device=viewmats.device)
 
     def loss_of_view(view: int):

@@ -153,6 +153,12 @@ def read_ply(path: str | Path) -> dict[str, torch.Tensor]:
     return params
 
 
+def opacity_weighted_center(params: dict[str, torch.Tensor]) -> torch.Tensor:
+    """[3] the Gaussians' centres averaged with their opacities as weights: where the object is."""
+    weights = torch.sigmoid(params["opacities"])[:, None]
+    return (params["means"] * weights).sum(0) / weights.sum().clamp_min(1e-12)
+
+
 def sh_degree_of(params: dict[str, torch.Tensor]) -> int:
     """The highest SH degree the parameters hold."""
     count = 1 + (params["shN"].shape[1] if "shN" in params else 0)

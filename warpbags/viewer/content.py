@@ -18,7 +18,7 @@ import torch
 from warpbags.alignment import align_viewmats, alignment_for, pose_errors
 from warpbags.camera_paths import mean_up_axis
 from warpbags.errors import WarpbagsError
-from warpbags.gaussians import read_ply, sh_degree_of
+from warpbags.gaussians import opacity_weighted_center, read_ply, sh_degree_of
 from warpbags.pose_history import read_pose_history
 from warpbags.run_folder import RunFolder
 
@@ -76,8 +76,7 @@ class ViewerContent:
 
     def center(self) -> np.ndarray:
         """[3] opacity-weighted mean of the Gaussian centres: where the viewer's camera looks first."""
-        weights = torch.sigmoid(self.params["opacities"])[:, None]
-        return ((self.params["means"] * weights).sum(0) / weights.sum().clamp_min(1e-12)).double().numpy()
+        return opacity_weighted_center(self.params).double().numpy()
 
     def up(self) -> np.ndarray | None:
         """[3] the training cameras' mean up direction, or None without cameras."""
