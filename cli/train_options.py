@@ -59,6 +59,9 @@ TRAIN_OPTIONS = (
     ConfigOption("--blur-until", "blur_until"),
     ConfigOption("--pose-opt-start", "pose_opt_start"),
     ConfigOption("--rot-noise-deg", "rot_noise_deg"),
+    ConfigOption("--rot-noise-fixed", "rot_noise_fixed", sets=True,
+                 help="Turn every camera by exactly --rot-noise-deg (about a random axis), not by a normal angle of "
+                      "that std."),
     ConfigOption("--trans-noise", "trans_noise"),
     ConfigOption("--no-pose-opt", "pose_opt", sets=False, help="Keep poses fixed (GaussianObject baseline)."),
     ConfigOption("--fix-first-camera", "camera.fix_first_camera", sets=True,

@@ -286,6 +286,8 @@ class TrainConfig:
             replaces `pose_round_window`. () = `pose_round_window` in every round.
         depth_until: the depth term is used for each round's first `depth_until` iterations (0 = never).
         rot_noise_deg: injected rotation noise, std in degrees (an N(0, sigma^2) angle about a random axis).
+        rot_noise_fixed: every camera turned by exactly `rot_noise_deg` (about a random axis) instead of a normal
+            angle of that std: each camera starts that far off, none nearly right.
         trans_noise: injected camera-centre noise, std (N(0, sigma^2) per coordinate, in normalized scene units
             where the orbit radius is 4).
         noise_seed: seeds the injected pose noise.
@@ -334,6 +336,7 @@ class TrainConfig:
     pose_round_windows: tuple[tuple[float, float], ...] = ()
     depth_until: int = 1000
     rot_noise_deg: float = 0.0
+    rot_noise_fixed: bool = False
     trans_noise: float = 0.0
     noise_seed: int = 0
     seed: int = 0

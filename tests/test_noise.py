@@ -30,6 +30,22 @@ def test_perturb_fixed_angle_gives_exact_rotation_error(dtype, atol):
     torch.testing.assert_close(noisy[:, 3], reference[:, 3], rtol=0, atol=0)
 
 
+def test_rot_noise_fixed_gives_every_training_camera_exactly_that_angle():
+    from types import SimpleNamespace
+
+    from warpbags.camera_setup import given_viewmats
+    from warpbags.configs.train import load_preset
+
+    scene = SimpleNamespace(viewmats=random_viewmats(12, generator(3)))
+    fixed = given_viewmats(scene, load_preset("quick", rot_noise_deg=15.0, rot_noise_fixed=True, trans_noise=0.3))
+    errors = pose_errors(fixed, scene.viewmats, alignment="none")["rotation_errors_deg"]
+    torch.testing.assert_close(errors, torch.full((12,), 15.0, dtype=F64), rtol=0, atol=1e-9)
+    normal = given_viewmats(scene, load_preset("quick", rot_noise_deg=15.0, trans_noise=0.3))
+    assert pose_errors(normal, scene.viewmats, alignment="none")["rotation_errors_deg"].std() > 2.0
+    # the same centre noise either way: the angles are drawn all the same
+    torch.testing.assert_close(camera_centers(fixed), camera_centers(normal))
+
+
 def test_perturb_rotation_rms_matches_sigma():
     # The geodesic error of a camera is |angle| with angle ~ N(0, sigma^2): E[error^2] = sigma^2 and
     # mean(error^2) / sigma^2 ~ chi^2_n / n, so RMS / sigma has standard deviation ~ 1 / sqrt(2 n) = 0.005 for

@@ -10,7 +10,7 @@ from warpbags.configs.train import RepairConfig, TrainConfig, paper, quick
 PAPER = {
     "preset": "paper", "views": 4, "iters": 5000, "rounds": 1, "pose_opt": True, "pose_opt_start": 1000,
     "pose_round_window": (0.0, 1.0), "pose_round_windows": (), "depth_until": 1000,
-    "rot_noise_deg": 0.0, "trans_noise": 0.0, "noise_seed": 0,
+    "rot_noise_deg": 0.0, "rot_noise_fixed": False, "trans_noise": 0.0, "noise_seed": 0,
     "seed": 0, "resolution": None, "max_image_size": 0, "pyramid_levels": 1, "views_per_step": 1, "background": "white",
     "sh_degree": 2, "sh_degree_every": 1000, "init": "hull", "init_points": 20000, "hull_resolution": 64,
     "hull_dilation_px": 0, "hull_missed_views": 1, "blur_sigma_px": 0.0, "blur_until": 0, "lambda_dssim": 0.2,
@@ -38,7 +38,7 @@ PAPER = {
 QUICK = {
     "preset": "quick", "views": 4, "iters": 600, "rounds": 3, "pose_opt": True, "pose_opt_start": 0,
     "pose_round_window": (0.25, 1.0), "pose_round_windows": (), "depth_until": 100,
-    "rot_noise_deg": 0.0, "trans_noise": 0.0, "noise_seed": 0,
+    "rot_noise_deg": 0.0, "rot_noise_fixed": False, "trans_noise": 0.0, "noise_seed": 0,
     "seed": 0, "resolution": None, "max_image_size": 128, "pyramid_levels": 1, "views_per_step": 0,
     "background": "white", "sh_degree": 0, "sh_degree_every": 1000, "init": "hull", "init_points": 3000,
     "hull_resolution": 48, "hull_dilation_px": 2, "hull_missed_views": 1, "blur_sigma_px": 0.0, "blur_until": 0,

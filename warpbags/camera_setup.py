@@ -21,8 +21,11 @@ from warpbags.silhouette import SilhouetteTargets, centroid_start, rays_meeting_
 
 def given_viewmats(scene: Scene, config: TrainConfig) -> torch.Tensor:
     """[C,4,4] the poses given to training: the scene's true poses with the config's noise injected (`rot_noise_deg`,
-    `trans_noise`, `noise_seed`)."""
-    viewmats = noisy_viewmats(scene, PoseNoise(config.rot_noise_deg, config.trans_noise, config.noise_seed))
+    `rot_noise_fixed`, `trans_noise`, `noise_seed`)."""
+    fixed = config.rot_noise_fixed
+    noise = PoseNoise(0.0 if fixed else config.rot_noise_deg, config.trans_noise, config.noise_seed,
+                      rot_fixed_deg=config.rot_noise_deg if fixed else None)
+    viewmats = noisy_viewmats(scene, noise)
     if config.camera.fix_first_camera:
         # The gauge camera defines the world frame (as the first camera in bundle adjustment): it is taken as
         # known, since its delta stays zero and its noise could never be corrected.

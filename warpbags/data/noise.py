@@ -24,7 +24,8 @@ class PoseNoise:
         rot_std_deg: rotation angle ~ N(0, rot_std_deg^2) degrees about a uniformly random axis (--rot-noise-deg).
         trans_std: camera-centre offset ~ N(0, trans_std^2 I) (--trans-noise).
         seed: seeds the draw.
-        rot_fixed_deg: instead of rot_std_deg, rotate every camera by exactly this angle (random axis).
+        rot_fixed_deg: instead of rot_std_deg, rotate every camera by exactly this angle (random axis;
+            --rot-noise-fixed).
     """
 
     rot_std_deg: float = 0.0
@@ -54,8 +55,8 @@ def perturb_viewmats(
 
     * rotation: ``R_i' = R_noise @ R_i`` with ``R_noise = so3_exp(angle * axis)``, i.e. a rotation in the
       camera frame about the camera's own centre. ``axis`` is uniform on the unit sphere; ``angle`` is drawn
-      from ``N(0, rot_std_deg^2)`` degrees, or is exactly ``rot_fixed_deg`` (the BAGS report's fixed-15-degree
-      experiment). The geodesic error of camera ``i`` is then ``|angle|`` (for ``|angle| <= 180``).
+      from ``N(0, rot_std_deg^2)`` degrees, or is exactly ``rot_fixed_deg`` (``--rot-noise-fixed``). The
+      geodesic error of camera ``i`` is then ``|angle|`` (for ``|angle| <= 180``).
     * centre: ``c_i' = c_i + n_i`` with ``n_i ~ N(0, trans_std^2 I_3)`` in world units; ``t_i' = -R_i' c_i'``.
 
     Randomness comes from a local CPU ``torch.Generator`` seeded with ``seed`` (the global RNG state is left
