@@ -216,18 +216,19 @@ def test_export_is_in_the_source_frame(finished_run, tmp_path):
     np.testing.assert_allclose(cam_src * scale, cam_norm, atol=1e-4)
 
 
-def _run_on_scene(finished_run, tmp_path, scene_root):
-    """A copy of `finished_run` whose config.json names `scene_root` as its scene folder."""
+def _run_on_scene(finished_run, tmp_path, scene_root, **entries):
+    """A copy of `finished_run` whose config.json names `scene_root` as its scene folder (and holds `entries`)."""
     run = tmp_path / "run"
     shutil.copytree(finished_run, run)
     info = json.loads((run / "config.json").read_text())
-    (run / "config.json").write_text(json.dumps({**info, "scene_root": str(scene_root)}))
+    (run / "config.json").write_text(json.dumps({**info, "scene_root": str(scene_root), **entries}))
     return run, info
 
 
 def test_export_writes_the_training_cameras_with_the_inputs_calibration_as_a_colmap_model(finished_run, tmp_path):
-    # A scene whose model calibrates the images at twice their size with a radial distortion: the export must carry
-    # that calibration, not the run's (training resolution, undistorted) intrinsics.
+    # A scene whose model calibrates full-size images of twice the size, with a radial distortion, and which holds
+    # only the images downsampled by 2 (as maryrose ships only images_8/): the model must name the images that are
+    # there, with the given calibration scaled to them and its distortion, not the run's undistorted intrinsics.
     info = json.loads((finished_run / "config.json").read_text())
     scene = tmp_path / "scene"
     shutil.copytree(info["scene_root"], scene)
@@ -236,21 +237,23 @@ def test_export_writes_the_training_cameras_with_the_inputs_calibration_as_a_col
     distortions = np.tile([0.01, -0.002, 0.0, 0.0], (len(Ks), 1))
     shutil.rmtree(scene / "sparse" / "0")
     write_model(scene / "sparse" / "0", source.image_names, source.viewmats, Ks, 128, 128, distortions=distortions)
-    run, _ = _run_on_scene(finished_run, tmp_path, scene)
+    (scene / "images").rename(scene / "images_2")
+    run, _ = _run_on_scene(finished_run, tmp_path, scene, resolution=2)
 
     result = runner.invoke(app, ["export", str(run), "--out", str(tmp_path / "export")])
     assert result.exit_code == 0, result.output
-    assert f"the model's images are in {scene / 'images'}" in " ".join(result.output.split())
+    assert f"the model's images are in {scene / 'images_2'}" in " ".join(result.output.split())
     model = read_model(tmp_path / "export" / "sparse" / "0")
     names = info["image_names"]
     assert model.image_names == sorted(names) and len(names) == 4
+    assert all((scene / "images_2" / name).is_file() for name in model.image_names)
     poses = np.load(tmp_path / "export" / "poses_final.npy")
     # poses_final.npy is float32: its rotations are orthonormal to ~1e-7, COLMAP stores quaternions
     np.testing.assert_allclose(model.viewmats, poses[[names.index(name) for name in model.image_names]], atol=1e-6)
     given = dict(zip(source.image_names, Ks))
     for name, camera in zip(model.image_names, model.cameras):
-        np.testing.assert_allclose(camera.K, given[name], atol=1e-9)
-        assert (camera.width, camera.height, camera.model) == (128, 128, "OPENCV")
+        np.testing.assert_allclose(camera.K, given[name] * np.array([0.5, 0.5, 1.0])[:, None], atol=1e-9)
+        assert (camera.width, camera.height, camera.model) == (64, 64, "OPENCV")
         np.testing.assert_allclose(camera.distortion, [0.01, -0.002, 0.0, 0.0])
     gaussians = read_ply(tmp_path / "export" / "gaussians.ply")
     assert len(model.points) == len(gaussians["means"])
@@ -271,7 +274,8 @@ def test_exported_image_names_are_relative_to_one_image_folder_for_a_transforms_
     (scene / "transforms.json").write_text(json.dumps({"fl_x": K[0, 0], "fl_y": K[1, 1], "cx": K[0, 2], "cy": K[1, 2],
                                                        "w": width, "h": height, "frames": frames}))
     names = [f"pictures/{name}" for name in info["image_names"]]
-    run = types.SimpleNamespace(path=finished_run, info={"scene_root": str(scene), "image_names": names})
+    run = types.SimpleNamespace(path=finished_run, info={"scene_root": str(scene), "image_names": names,
+                                                         "resolution": 1})
     calibration = training_calibration(run)
     assert calibration.image_folder == "pictures" and calibration.image_names == info["image_names"]
     np.testing.assert_allclose(calibration.Ks, np.tile(K, (len(names), 1, 1)), atol=1e-9)

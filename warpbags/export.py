@@ -19,6 +19,7 @@ import torch
 from warpbags.camera_paths import turntable_viewmats
 from warpbags.data import SceneNormalization
 from warpbags.data.colmap import write_model
+from warpbags.data.images import image_size, resolution_path
 from warpbags.data.layouts import read_layout_cameras
 from warpbags.errors import WarpbagsError
 from warpbags.evaluation import TrainingRun, load_run
@@ -30,12 +31,14 @@ from warpbags.threads import torch_threads
 
 @dataclass
 class Calibration:
-    """The training views' cameras as the input scene folder gives them (full resolution, before undistortion).
+    """The training views' cameras as the input scene folder gives them, for the image files it holds.
 
     Attributes:
-        image_folder: the folder, relative to the scene folder, that the names are relative to (COLMAP's image path).
+        image_folder: the folder, relative to the scene folder, that the names are relative to (COLMAP's image path):
+            `images/` where the full-size images are, else the downsampled folder the run read (`images_8/`).
         image_names: C names.
-        Ks: [C,3,3] float64 at `sizes`; sizes: [C,2] (width, height); distortions: [C,4] OpenCV (k1, k2, p1, p2).
+        Ks: [C,3,3] float64 at `sizes`, the size of those files; sizes: [C,2] (width, height);
+        distortions: [C,4] OpenCV (k1, k2, p1, p2), as the scene gives them (the images are not undistorted).
     """
 
     image_folder: str
@@ -47,12 +50,12 @@ class Calibration:
 
 def training_calibration(run: TrainingRun) -> Calibration:
     """The calibration of the run's training views, read again from its scene folder (a run stores its intrinsics
-    only at the training resolution, after undistortion).
+    only at the training resolution, after undistortion), scaled to the image files the folder holds.
 
     Raises:
-        WarpbagsError: the scene folder is gone, or no longer holds one of the run's training views.
+        WarpbagsError: the scene folder is gone, or no longer holds one of the run's training views or its image.
     """
-    for key in ("scene_root", "image_names"):
+    for key in ("scene_root", "image_names", "resolution"):
         if key not in run.info:
             raise WarpbagsError(f"{run.path / 'config.json'} has no {key!r}: written by an older warpbags")
     root = Path(run.info["scene_root"])
@@ -65,12 +68,19 @@ def training_calibration(run: TrainingRun) -> Calibration:
     if missing:
         raise WarpbagsError(f"{root} no longer holds the run's training view {missing[0]!r}: was the scene changed?")
     picked = [index[name] for name in run.info["image_names"]]
-    names, folder = list(run.info["image_names"]), "images"
-    if cameras.layout == "transforms":  # names relative to the scene folder: COLMAP's are relative to one image folder
-        folder = os.path.commonpath([str(PurePosixPath(name).parent) for name in names]) or "."
-        names = [str(PurePosixPath(name).relative_to(folder)) for name in names] if folder != "." else names
-    return Calibration(folder, names, cameras.Ks[picked], cameras.calibration_sizes[picked],
-                       cameras.distortions[picked])
+    files = []
+    for position in picked:
+        full = cameras.image_paths[position]
+        file = full if full.is_file() else resolution_path(root, full, run.info["resolution"])
+        if not file.is_file():
+            raise WarpbagsError(f"image {full} is missing: was the scene changed?")
+        files.append(file.relative_to(root))
+    folder = PurePosixPath(os.path.commonpath([file.parent.as_posix() for file in files]) or ".")
+    sizes = np.array([image_size(root / file) for file in files], dtype=np.float64)
+    Ks = cameras.Ks[picked].copy()
+    Ks[:, :2, :] *= (sizes / cameras.calibration_sizes[picked])[:, :, None]
+    return Calibration(str(folder), [PurePosixPath(file.as_posix()).relative_to(folder).as_posix() for file in files],
+                       Ks, sizes, cameras.distortions[picked])
 
 
 def export_run(path: str | Path, out: str | Path | None = None, colmap: bool = True) -> tuple[Path, Path | None]:
@@ -78,9 +88,9 @@ def export_run(path: str | Path, out: str | Path | None = None, colmap: bool = T
 
     Writes `<out>/gaussians.ply` (standard 3DGS PLY), `<out>/poses_final.npy` ([C,4,4] world-to-camera, OpenCV
     axes, the training views in `config.json`'s image order) and, with `colmap`, `<out>/sparse/0/` (a COLMAP text
-    model: the training views with the input's calibration and their final poses, image names relative to the
-    scene folder's image folder, one point per Gaussian at its centre in its base colour), which COLMAP-reading
-    trainers take as they are. Default `out`: `<run>/export`.
+    model: the training views with the input's calibration, for the image files the scene folder holds, and their
+    final poses, one point per Gaussian at its centre in its base colour), which COLMAP-reading trainers take as
+    they are with the scene's image folder. Default `out`: `<run>/export`.
 
     Raises:
         WarpbagsError: the run is unfinished or unreadable; with `colmap`, its scene folder is gone or changed.
