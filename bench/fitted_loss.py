@@ -24,7 +24,6 @@ Rotation errors are after sim(3) Procrustes alignment of the camera centres, as 
 from __future__ import annotations
 
 import argparse
-import json
 import tempfile
 import time
 from pathlib import Path
@@ -33,11 +32,12 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from pose_recovery import _load, _merge, _numbers, _with_depth
+from common import (add_training_options, merge_settings, open_bench_scene, parse_numbers, training_overrides,
+                    with_depth, write_json)
 from warpbags.alignment import pose_errors
 from warpbags.cameras import pixel_directions, project_points
 from warpbags.cli.common import clean_errors
-from warpbags.configs.train import load_preset, parse_settings
+from warpbags.configs.train import load_preset
 from warpbags.errors import WarpbagsError
 from warpbags.trainer import Trainer, training_scene
 
@@ -119,7 +119,7 @@ def cross_view_consistency(images: torch.Tensor, masks: torch.Tensor, depths: to
 def fitted_at(scene, poses: torch.Tensor, settings: dict, preset: str, fit_seed: int) -> dict:
     """Fit the preset's Gaussians with the training cameras frozen at [C,4,4] `poses`; the training loss over all
     views at the end, its terms, and the images' consistency across views through the fitted depth."""
-    config = load_preset(preset, **_merge(settings, dict(pose_opt=False, seed=fit_seed, repair={"iters": 0})))
+    config = load_preset(preset, **merge_settings(settings, dict(pose_opt=False, seed=fit_seed, repair={"iters": 0})))
     with tempfile.TemporaryDirectory() as out:
         trainer = Trainer(training_scene(scene, config), config, out, viewmats_init=poses, log=lambda message: None)
         trainer.train()
@@ -156,33 +156,36 @@ def main() -> None:
     parser.add_argument("--depth", choices=("true", "monocular", "none"), default="true",
                         help="the scene's depth maps, degraded as a monocular network's, or none")
     parser.add_argument("--fit-seeds", default="0,1", help="training seeds of the frozen fits, averaged")
-    parser.add_argument("--preset", default="quick")
-    parser.add_argument("--set", dest="settings", action="append", default=[], metavar="NAME=VALUE",
-                        help="a training setting, as `warpbags train --set`")
-    parser.add_argument("--json", type=Path, help="also write every fit's numbers here")
+    add_training_options(parser, "a TrainConfig field for every run and fit (repeatable), as `warpbags train --set`",
+                         json_help="also write every fit's numbers here")
     args = parser.parse_args()
     torch.set_num_threads(1)
-    overrides = parse_settings(args.settings)
-    load_preset(args.preset, **overrides)  # a bad preset or setting fails before the first line of the table
-    scenes = {name: _with_depth(_load(name), args.depth) for name in args.scenes}
+    seeds, fit_seeds = parse_numbers(args.seeds, "--seeds", int), parse_numbers(args.fit_seeds, "--fit-seeds", int)
+    # a bad preset or setting fails before the first line of the table
+    overrides = training_overrides(args, fixed={"views": "from --views", "rot_noise_deg": "from --rot",
+                                                "trans_noise": "from --trans", "noise_seed": "from --seeds",
+                                                "seed": "from --seeds and --fit-seeds",
+                                                "pose_opt": "on to recover the poses, off for the fits",
+                                                "repair.iters": "0: no repair stage"},
+                                   runs=[dict(views=args.views)])
+    scenes = {name: with_depth(open_bench_scene(name), args.depth) for name in args.scenes}
     for name, scene in scenes.items():
         if scene.masks is None:
             raise WarpbagsError(f"scene {name} has no masks: the comparison across views counts pixels on the object")
-    fit_seeds = _numbers(args.fit_seeds, int)
     results: dict = {"preset": args.preset, "overrides": overrides, "depth": args.depth, "rows": []}
     header = (f"{'scene':<24} {'poses':<14} {'rot (deg)':>9} {'loss':>9} {'vs ref':>7} {'px/pair':>7} {'L1':>7} "
               f"{'NCC':>6} {'min':>5}")
     print(f"preset {args.preset}, overrides {overrides}, {args.views} views, noise {args.rot:g} deg / {args.trans:g}, "
           f"depth maps: {args.depth}, fits averaged over training seeds {args.fit_seeds}")
     print(header + "\n" + "-" * len(header), flush=True)
-    base = _merge(overrides, dict(views=args.views))
+    base = merge_settings(overrides, dict(views=args.views))
     with tempfile.TemporaryDirectory() as root:
         for name, scene in scenes.items():
             truth = training_scene(scene, load_preset(args.preset, **base)).viewmats
             pose_sets = [("reference", None, truth)]
-            for seed in _numbers(args.seeds, int):
-                settings = _merge(base, dict(rot_noise_deg=args.rot, trans_noise=args.trans, noise_seed=seed, seed=seed,
-                                             repair={"iters": 0}))
+            for seed in seeds:
+                settings = merge_settings(base, dict(rot_noise_deg=args.rot, trans_noise=args.trans, noise_seed=seed,
+                                                     seed=seed, repair={"iters": 0}))
                 start, end = recovered_poses(scene, settings, args.preset, Path(root) / f"{name}-{seed}")
                 pose_sets += [(f"seed {seed} start", seed, start), (f"seed {seed} end", seed, end)]
             reference_loss = None
@@ -200,8 +203,7 @@ def main() -> None:
                 print(f"{name:<24} {label:<14} {rotation:>9.2f} {row['loss']:>9.5f} {row['vs_reference_pct']:>+6.1f}% "
                       f"{row['pixels']:>7.0f} {row['l1']:>7.4f} {row['ncc']:>6.3f} {row['minutes']:>5.1f}", flush=True)
                 if args.json:
-                    args.json.parent.mkdir(parents=True, exist_ok=True)
-                    args.json.write_text(json.dumps(results, indent=1))
+                    write_json(args.json, results)
     print("rot: the pose set's mean rotation error after sim(3) Procrustes alignment; loss: the training loss over all\n"
           "views of Gaussians fitted with the poses frozen there (vs ref: relative to the reference poses'); px/pair,\n"
           "L1, NCC: each view's image carried into the others through the fitted depth (pixels counted per ordered pair,\n"

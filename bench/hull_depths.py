@@ -30,7 +30,7 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from pose_recovery import _load  # noqa: E402
+from common import open_bench_scene  # noqa: E402
 from warpbags.cameras import camera_centers, pixel_directions, project_points  # noqa: E402
 from warpbags.cli.common import clean_errors  # noqa: E402
 from warpbags.errors import WarpbagsError  # noqa: E402
@@ -106,7 +106,7 @@ def main() -> None:
     args = parser.parse_args()
     if args.out.exists():
         raise WarpbagsError(f"{args.out} exists; choose a new folder")
-    scene = _load(args.scene)
+    scene = open_bench_scene(args.scene)
     if scene.masks is None:
         raise WarpbagsError(f"scene {args.scene} has no masks to carve a hull from")
     carved = torch.arange(scene.num_views)

@@ -1,11 +1,14 @@
 """How the visual-hull initialization degrades with pose noise, and what dilation / a looser vote buy.
 
-    python bench/hull_noise.py [SCENE] [--views 4] [--size 128]
+    python bench/hull_noise.py [SCENE] [--views 4] [--size 128] [--resolution 48]
 
-For each rotation-noise level (std, degrees; seeded; camera 0 is the noise-free gauge as in training) and each
-carving variant, the hull is carved from the noisy poses and compared with the hull carved from the true poses
-(GaussianObject's vote): voxel count, precision (fraction of the noisy hull within one voxel of the true hull)
-and recall (fraction of the true hull within one voxel of the noisy hull). Three seeds are averaged.
+SCENE: as bench/pose_recovery.py (a preset, a folder, or one of its small synthetic scenes; default
+`synthetic-small`). For each rotation-noise level (std, degrees; seeded; no centre noise) and each carving variant,
+the hull is carved from the noisy poses and compared with the hull carved from the true poses (GaussianObject's
+vote): voxel count, precision (fraction of the noisy hull within one voxel of the true hull) and recall (fraction of
+the true hull within one voxel of the noisy hull). Three seeds are averaged. This bench puts camera 0 back at its
+true pose (a gauge that keeps the noisy hull where the true one is); training does that only with
+`camera.fix_first_camera` (off by default: every camera is perturbed, errors measured after sim(3) alignment).
 """
 
 from __future__ import annotations
@@ -14,7 +17,7 @@ import argparse
 
 import torch
 
-from warpbags.data import SyntheticOptions, ensure_synthetic_scene, load_scene, open_scene
+from common import open_bench_scene
 from warpbags.data.noise import PoseNoise, noisy_viewmats
 from warpbags.init import visual_hull
 from warpbags.cli.common import clean_errors
@@ -41,10 +44,7 @@ def main() -> None:
     parser.add_argument("--size", type=int, default=128, help="longer image side the masks are carved at")
     parser.add_argument("--resolution", type=int, default=48, help="voxels per axis (fine pass)")
     args = parser.parse_args()
-    if args.scene == "synthetic-small":
-        scene = load_scene(ensure_synthetic_scene(SyntheticOptions(views=16, width=96, height=96)))
-    else:
-        scene = open_scene(args.scene)
+    scene = open_bench_scene(args.scene)
     scene = scene.subset(scene.train_views(args.views)).downscaled(args.size)
     truth, voxel = visual_hull(scene.masks, scene.viewmats, scene.Ks, resolution=args.resolution)
     print(f"{args.scene}: {args.views} views at {scene.width}x{scene.height}; true-pose hull {len(truth)} voxels "

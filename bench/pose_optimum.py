@@ -17,6 +17,9 @@ of a model that fits the reference is.
 This separates the two things a joint optimization mixes: how far a model's own pose optimum sits from the
 reference (the bias of a half-fitted model, the resolution, the data) and how far the joint optimization
 wanders from it when the Gaussians follow the poses (bench/pose_recovery.py's truth-start variant).
+
+`--set` takes any TrainConfig field but those this setup fixes (`FIXED`: views, the noise, rounds, iters, pose_opt,
+pose_opt_start, repair.iters, camera.centroid_start and camera.coherence_iters), a one-line error.
 """
 
 from __future__ import annotations
@@ -24,21 +27,28 @@ from __future__ import annotations
 import argparse
 import copy
 import dataclasses
-import json
 import tempfile
 import time
-from pathlib import Path
 
 import numpy as np
 import torch
 
-from pose_recovery import _load, _numbers
+from common import add_training_options, merge_settings, open_bench_scene, parse_numbers, training_overrides, write_json
 from warpbags.alignment import centre_floor_errors, pose_errors
-from warpbags.configs.train import load_preset, parse_settings
+from warpbags.configs.train import load_preset
 from warpbags.data import ORBIT_RADIUS
 from warpbags.data.noise import perturb_viewmats
+from warpbags.errors import WarpbagsError
 from warpbags.trainer import Trainer, training_scene
 from warpbags.cli.common import clean_errors
+
+# The fields this benchmark sets itself (`run_settings`), and where each value comes from.
+FIXED = {"views": "from --views", "rot_noise_deg": "0: the fits start at the reference, see --start-noise",
+         "trans_noise": "0: the fits start at the reference, see --start-noise", "rounds": "1",
+         "iters": "from --fit-iters", "pose_opt": "on, for the pose-only steps",
+         "pose_opt_start": "never: the fits keep the poses frozen", "repair.iters": "0: no repair stage",
+         "camera.centroid_start": "off: the fits start at the reference",
+         "camera.coherence_iters": "0: the fits start at the reference"}
 
 
 def _errors(trainer: Trainer, viewmats: torch.Tensor) -> dict:
@@ -78,14 +88,39 @@ def pose_only_optimum(trainer: Trainer, steps: int, lr: float, start_noise: tupl
     return {"start_rotation_mean": start["rotation_mean"], **_errors(trainer, cameras.viewmats())}
 
 
-def run_scene(name: str, scene, views: int, fit_iters: list[int], pose_iters: int, lr: float, preset: str,
-              overrides: dict, start_noises: list[tuple[float, float]], optimizer: str = "adam") -> list[dict]:
+def run_settings(views: int, fit_iters: list[int], overrides: dict) -> dict:
+    """The `load_preset` settings of a scene's model: the reference poses frozen (no noise, no mask-centroid start,
+    no coherence solve), one round long enough for every --fit-iters value, `overrides` (`--set`) on top."""
     settings = dict(views=views, rot_noise_deg=0.0, trans_noise=0.0, rounds=1, iters=max(fit_iters) + 1,
                     pose_opt=True, pose_opt_start=10**9, repair={"iters": 0},
                     camera={"centroid_start": False, "coherence_iters": 0})
-    for key, value in overrides.items():
-        settings[key] = {**settings.get(key, {}), **value} if isinstance(value, dict) else value
-    config = load_preset(preset, **settings)
+    return merge_settings(settings, overrides)
+
+
+def parse_start_noise(text: str) -> list[tuple[float, float]]:
+    """--start-noise: comma-separated ROT_DEG/TRANS pairs, e.g. "0/0,5/0.1".
+
+    Raises:
+        WarpbagsError: an item that is not two numbers joined by "/", or no pair at all.
+    """
+    pairs = []
+    for item in text.split(","):
+        if not item.strip():
+            continue
+        try:
+            rot, trans = (float(value) for value in item.split("/"))
+        except ValueError:
+            raise WarpbagsError(f"--start-noise {text!r}: {item.strip()!r} is not ROT_DEG/TRANS "
+                                "(comma-separated pairs such as 0/0,5/0.1)") from None
+        pairs.append((rot, trans))
+    if not pairs:
+        raise WarpbagsError(f"--start-noise {text!r}: expected comma-separated ROT_DEG/TRANS pairs, got none")
+    return pairs
+
+
+def run_scene(name: str, scene, views: int, fit_iters: list[int], pose_iters: int, lr: float, preset: str,
+              overrides: dict, start_noises: list[tuple[float, float]], optimizer: str = "adam") -> list[dict]:
+    config = load_preset(preset, **run_settings(views, fit_iters, overrides))
     trainer = Trainer(training_scene(scene, config), config, tempfile.mkdtemp(prefix="pose-optimum-"),
                       log=lambda message: None)
     rows, started = [], time.time()
@@ -116,25 +151,24 @@ def main() -> None:
                              "--pose-iters counts its iterations")
     parser.add_argument("--start-noise", default="0/0", help="comma-separated ROT_DEG/TRANS pairs")
     parser.add_argument("--max-image-size", type=int, default=None, help="default: the preset's")
-    parser.add_argument("--preset", default="quick")
-    parser.add_argument("--set", action="append", default=[], metavar="NAME=VALUE")
-    parser.add_argument("--json", type=Path)
+    add_training_options(parser, "a TrainConfig field for every model (repeatable), as `warpbags train --set`",
+                         json_help="also write every row's numbers here")
     args = parser.parse_args()
     torch.set_num_threads(1)
-    overrides = parse_settings(args.set)
+    fit_iters, start_noises = parse_numbers(args.fit_iters, "--fit-iters", int), parse_start_noise(args.start_noise)
+    overrides = training_overrides(args, fixed=FIXED)
     if args.max_image_size is not None:
         overrides["max_image_size"] = args.max_image_size
-    scenes = {name: _load(name) for name in args.scenes}  # a bad name fails before the table's header
+    load_preset(args.preset, **run_settings(args.views, fit_iters, overrides))  # a bad setting fails before the header
+    scenes = {name: open_bench_scene(name) for name in args.scenes}  # a bad name fails before the table's header
     print(f"{'scene':<22} {'views':>5} {'px':>5} {'fit its':>8} {'start noise':>11} {'rot start':>9} {'rot mean':>10}"
           f" {'rot max':>8} {'centre floor':>12} {'centres % orbit':>14} {'min':>8}")
     rows = []
     for name, scene in scenes.items():
-        rows += run_scene(name, scene, args.views, _numbers(args.fit_iters, int), args.pose_iters, args.pose_lr,
-                          args.preset, overrides, [tuple(float(v) for v in pair.split("/")) for pair in
-                                                   args.start_noise.split(",") if pair], args.optimizer)
+        rows += run_scene(name, scene, args.views, fit_iters, args.pose_iters, args.pose_lr, args.preset, overrides,
+                          start_noises, args.optimizer)
     if args.json:
-        args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps(rows, indent=2))
+        write_json(args.json, rows, indent=2)
 
 
 if __name__ == "__main__":

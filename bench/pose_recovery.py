@@ -39,8 +39,6 @@ the starting poses alone (seconds a run): what the silhouettes give before any G
 from __future__ import annotations
 
 import argparse
-import dataclasses
-import json
 import tempfile
 import time
 from pathlib import Path
@@ -48,11 +46,11 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from common import (add_training_options, merge_settings, open_bench_scene, parse_numbers, training_overrides,
+                    with_depth, write_json)
 from warpbags.alignment import pose_errors
-from warpbags.configs.train import load_preset, parse_settings
-from warpbags.data import ORBIT_RADIUS, SyntheticOptions, ensure_synthetic_scene, load_scene, open_scene
-from warpbags.data.noise import monocular_like_depths
-from warpbags.errors import WarpbagsError
+from warpbags.configs.train import load_preset
+from warpbags.data import ORBIT_RADIUS
 from warpbags.evaluation import evaluate_run
 from warpbags.trainer import Trainer, training_scene
 from warpbags.cli.common import clean_errors
@@ -76,13 +74,6 @@ VARIANTS = {
 }
 ABLATIONS = ["no-centroid-start", "no-coherence", "no-silhouette", "no-precondition", "camera-param", "poses-whole-round",
              "poses-first-half", "no-hypotheses"]
-
-
-def _merge(base: dict, extra: dict) -> dict:
-    merged = dict(base)
-    for key, value in extra.items():
-        merged[key] = {**merged.get(key, {}), **value} if isinstance(value, dict) else value
-    return merged
 
 
 def run_once(scene, settings: dict, preset: str, root: Path, train: bool = True) -> dict:
@@ -144,49 +135,6 @@ def summarize(runs: list[dict]) -> dict:
     }
 
 
-SMALL_SCENES = {
-    # the synthetic scene, small enough for many runs
-    "synthetic-small": SyntheticOptions(views=16, width=96, height=96),
-    # the same object with maryrose's optics and framing (configs/scenes.py: synthetic-tele)
-    "synthetic-tele-small": SyntheticOptions(views=16, width=128, height=128, fov_deg=18.6, radius=5.6),
-    # the same cameras at 256 px, for schedules whose last rounds train above the quick preset's 128 px
-    "synthetic-tele-256": SyntheticOptions(views=16, width=256, height=256, fov_deg=18.6, radius=5.6),
-    # synthetic-tele-small with the light turned by up to 30 deg and the colour channels scaled by ~10% per view,
-    # as on a capture whose object was moved between sequences (maryrose): the images disagree beyond the poses
-    "synthetic-tele-lit": SyntheticOptions(views=16, width=128, height=128, fov_deg=18.6, radius=5.6,
-                                           light_jitter_deg=30.0, gain_jitter=0.1),
-    # synthetic-tele-small lit as on a turntable (maryrose): the light turns with the camera, so each part of the
-    # object is shaded differently from each side it is seen from
-    "synthetic-tele-turntable": SyntheticOptions(views=16, width=128, height=128, fov_deg=18.6, radius=5.6,
-                                                 turntable_light=True),
-    # maryrose's optics and framing with a tankard like hers lying on its side instead of the excavator: a nearly
-    # symmetric silhouette and a low-contrast, repetitive grain
-    "synthetic-tele-tankard": SyntheticOptions(views=16, width=128, height=128, fov_deg=18.6, radius=5.6,
-                                               object="tankard"),
-}
-
-
-def _load(name: str):
-    if name in SMALL_SCENES:
-        return load_scene(ensure_synthetic_scene(SMALL_SCENES[name]), name=name)
-    return open_scene(name)
-
-
-def _with_depth(scene, depth: str):
-    """The scene with the depth maps of `--depth`: its own ("true"), degraded ("monocular", seed 0) or none."""
-    if depth == "true":
-        return scene
-    if depth == "none":
-        return dataclasses.replace(scene, depths=None)
-    if scene.depths is None:
-        raise WarpbagsError(f"--depth monocular: scene {scene.name} has no depth maps to degrade")
-    return dataclasses.replace(scene, depths=monocular_like_depths(scene.depths, seed=0))
-
-
-def _numbers(text: str, kind=float) -> list:
-    return [kind(item) for item in text.split(",") if item]
-
-
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("scenes", nargs="+")
@@ -200,24 +148,27 @@ def main() -> None:
     parser.add_argument("--start-only", action="store_true",
                         help="no training: only the poses training would start from (after the mask-centroid start "
                              "and the silhouette-coherence solve), in seconds a run")
-    parser.add_argument("--preset", default="quick")
-    parser.add_argument("--set", dest="settings", action="append", default=[], metavar="NAME=VALUE",
-                        help="a TrainConfig field for every run (repeatable), as `warpbags train --set`")
     parser.add_argument("--depth", choices=("true", "monocular", "none"), default="true",
                         help="depth maps seen in training: the scene's, degraded as a monocular network's, or none")
-    parser.add_argument("--json", type=Path, help="also write every run's numbers here")
+    add_training_options(parser, "a TrainConfig field for every run (repeatable), as `warpbags train --set`",
+                         json_help="also write every run's numbers here")
     args = parser.parse_args()
     torch.set_num_threads(1)
-    overrides = parse_settings(args.settings)
+    rots, view_counts = parse_numbers(args.rot, "--rot"), parse_numbers(args.views, "--views", int)
+    seeds = parse_numbers(args.seeds, "--seeds", int)
     variants = args.variants.split(",") + (ABLATIONS if args.ablations else [])
     unknown = [name for name in variants if name not in VARIANTS]
     if unknown:
         parser.error(f"unknown variant {unknown[0]!r}; choose from {', '.join(VARIANTS)}")
-    load_preset(args.preset, **overrides)  # a bad preset or setting fails before the first line of the table
-    scenes = {name: _with_depth(_load(name), args.depth) for name in args.scenes}
+    # a bad preset or setting fails before the first line of the table
+    overrides = training_overrides(args, fixed={"views": "from --views", "rot_noise_deg": "from --rot",
+                                                "trans_noise": "from --trans", "noise_seed": "from --seeds",
+                                                "seed": "from --seeds", "repair.iters": "0: no repair stage"},
+                                   runs=[dict(views=views) for views in view_counts])
+    scenes = {name: with_depth(open_bench_scene(name), args.depth) for name in args.scenes}
     results: dict = {"preset": args.preset, "overrides": overrides, "trans_noise": args.trans, "depth": args.depth,
                      "rows": []}
-    per_seed_width = max(len("per seed"), 6 * len(_numbers(args.seeds, int)) - 1)
+    per_seed_width = max(len("per seed"), 6 * len(seeds) - 1)
     if args.start_only:
         header = (f"{'scene':<20} {'views':>5} {'noise':>9} {'variant':<18} {'rot init':>8} {'rot start':>9} "
                   f"{'per seed':<{per_seed_width}} {'t init %':>8} {'t start %':>9}")
@@ -230,21 +181,23 @@ def main() -> None:
     print(header + "\n" + "-" * len(header), flush=True)
     with tempfile.TemporaryDirectory() as root:
         for scene_name, scene in scenes.items():
-            for views in _numbers(args.views, int):
+            for views in view_counts:
                 true_pose = {}
                 if not (args.no_true_pose or args.start_only):
-                    for seed in _numbers(args.seeds, int):
-                        settings = _merge(overrides, dict(views=views, seed=seed, pose_opt=False, repair={"iters": 0}))
+                    for seed in seeds:
+                        settings = merge_settings(overrides, dict(views=views, seed=seed, pose_opt=False,
+                                                                  repair={"iters": 0}))
                         true_pose[seed] = run_once(scene, settings, args.preset,
                                                    Path(root) / f"{scene_name}-{views}-true-{seed}")
                 true_psnr = float(np.mean([r["psnr"] for r in true_pose.values()])) if true_pose else float("nan")
-                for rot in _numbers(args.rot):
+                for rot in rots:
                     for variant in variants:
                         runs = []
-                        for seed in _numbers(args.seeds, int):
-                            settings = _merge(overrides, dict(views=views, rot_noise_deg=rot, trans_noise=args.trans,
-                                                              noise_seed=seed, seed=seed, repair={"iters": 0}))
-                            settings = _merge(settings, VARIANTS[variant])
+                        for seed in seeds:
+                            settings = merge_settings(overrides, dict(views=views, rot_noise_deg=rot,
+                                                                      trans_noise=args.trans, noise_seed=seed,
+                                                                      seed=seed, repair={"iters": 0}))
+                            settings = merge_settings(settings, VARIANTS[variant])
                             folder = Path(root) / f"{scene_name}-{views}-{rot}-{variant}-{seed}"
                             runs.append(run_once(scene, settings, args.preset, folder, train=not args.start_only))
                         row = summarize(runs)
@@ -265,8 +218,7 @@ def main() -> None:
                                   f"{row['psnr']:>6.2f} {row['ssim']:>6.3f} {row['psnr_refined']:>6.2f} {true_psnr:>9.2f} "
                                   f"{row['minutes']:>5.1f}", flush=True)
                         if args.json:
-                            args.json.parent.mkdir(parents=True, exist_ok=True)
-                            args.json.write_text(json.dumps(results, indent=1))
+                            write_json(args.json, results)
     print("rotation in degrees and translation in % of the orbit radius, after sim(3) Procrustes alignment, means over\n"
           "noise seeds (per seed: each seed's mean, in the order given; rot max: the worst camera of a run); start: the\n"
           "poses training starts from, after the mask-centroid start and the silhouette-coherence solve; floor: the\n"

@@ -130,6 +130,15 @@ def _block(text: str) -> tuple[int, int] | None:
     return int(width), int(height)
 
 
+def _counts(text: str) -> list[int]:
+    """Comma-separated positive integers (argparse turns the ValueError into a usage error before any timing; this
+    bench does not import bench/common.py, which loads OpenCV into the timed process)."""
+    counts = [int(item) for item in text.split(",") if item.strip()]
+    if not counts or min(counts) < 1:
+        raise ValueError(text)
+    return counts
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--quick", action="store_true", help="only 128x128")
@@ -139,9 +148,9 @@ def main() -> None:
     parser.add_argument("--blocks", type=lambda text: [_block(b) for b in text.split(",")], default=None,
                         help="compare CPU pixel blocks (pixels per rasterizer thread), e.g. 1x1,default,2x2: each row "
                              "times every block in turn and prints the first block's f+b time over each other's")
-    parser.add_argument("--sizes", default=None, help="comma-separated image sizes (default 128,256,432)")
-    parser.add_argument("--gaussians", default="1000,10000,50000", help="comma-separated N")
-    parser.add_argument("--cameras", default="1,4", help="comma-separated C")
+    parser.add_argument("--sizes", type=_counts, default=None, help="comma-separated image sizes (default 128,256,432)")
+    parser.add_argument("--gaussians", type=_counts, default="1000,10000,50000", help="comma-separated N")
+    parser.add_argument("--cameras", type=_counts, default="1,4", help="comma-separated C")
     parser.add_argument("--device", default="cpu", help="cpu or cuda (the dense reference runs on the CPU only)")
     args = parser.parse_args()
     device = torch_device(args.device)
@@ -149,7 +158,7 @@ def main() -> None:
         raise WarpbagsError("--blocks compares CPU pixel blocks: it needs --device cpu")
     torch.set_num_threads(1)  # Warp uses its own host threads; idle torch OpenMP workers would spin against them
 
-    sizes = [int(v) for v in args.sizes.split(",")] if args.sizes else [128] if args.quick else [128, 256, 432]
+    sizes = args.sizes if args.sizes else [128] if args.quick else [128, 256, 432]
     blocks = args.blocks or [None]
     print(f"warpbags {warpbags.__version__}, torch {torch.__version__}, device {device}, threads "
           f"{torch.get_num_threads()} (torch) / default (Warp), tile size {args.tile_size or 'default'}")
@@ -163,8 +172,8 @@ def main() -> None:
     print(header)
     print("-" * len(header))
     for size in sizes:
-        for n in (int(v) for v in args.gaussians.split(",")):
-            for cams in (int(v) for v in args.cameras.split(",")):
+        for n in args.gaussians:
+            for cams in args.cameras:
                 scene = bench_scene(n, cams, size, device=device)
                 results = time_warpbags(scene, args.repeats, args.tile_size, blocks)
                 visits = results[blocks[0]][2]

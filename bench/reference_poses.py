@@ -22,7 +22,6 @@ real capture is blamed on the method, this says whether the reference itself hol
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import tempfile
 import time
@@ -34,7 +33,7 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from pose_recovery import _load  # noqa: E402
+from common import open_bench_scene, write_json  # noqa: E402
 from warpbags.alignment import pose_errors  # noqa: E402
 from warpbags.cli.common import clean_errors  # noqa: E402
 from warpbags.data import ORBIT_RADIUS  # noqa: E402
@@ -107,7 +106,7 @@ def main() -> None:
     parser.add_argument("--json", type=Path, help="also write the rows here")
     args = parser.parse_args()
     torch.set_num_threads(1)
-    scenes = {name: _load(name) for name in args.scenes}  # a bad name fails before the first line
+    scenes = {name: open_bench_scene(name) for name in args.scenes}  # a bad name fails before the first line
     rows = []
     for name, scene in scenes.items():
         started = time.time()
@@ -129,8 +128,7 @@ def main() -> None:
         for key, errors in row["splits"].items():
             print(f"  sparse_{key}: " + ", ".join(f"{error:.2f}" for error in errors))
     if args.json:
-        args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps(rows, indent=1))
+        write_json(args.json, rows)
 
 
 if __name__ == "__main__":

@@ -3,7 +3,8 @@
     python bench/repair.py SCENE [SCENE ...] [--views 4] [--rot 0] [--trans 0] [--repair-iters 300]
                            [--preset quick] [--set name=value ...]
 
-SCENE: a preset (maryrose, synthetic), a scene folder, or `synthetic-small` (16 views, 96 px, cached).
+SCENE: as bench/pose_recovery.py (a preset such as maryrose or synthetic, a scene folder, or one of its small
+synthetic scenes: `synthetic-small`, 16 views, 96 px, cached).
 Per scene, one run trains the coarse stage, then the repair stage. Two controls continue the same coarse model
 for the same number of iterations:
     real      the real views alone (pseudo-view ratio 0): what the pseudo views add over more iterations;
@@ -15,7 +16,7 @@ held-out renders before and after the repairer (does it move novel views towards
 L1 to the real images on its own training pairs (identity vs repaired), and the seconds spent in the coarse
 stage, in building pairs and fitting the repairer, and in the repair iterations. `--set name=value` /
 `--set group.name=value` overrides TrainConfig fields (JSON values, as `warpbags train --set`), e.g.
-`--set seed=1 --set repair.fit_steps=800`.
+`--set seed=1 --set repair.fit_steps=800` (views, rot_noise_deg and trans_noise: --views, --rot and --trans).
 """
 
 from __future__ import annotations
@@ -30,19 +31,13 @@ from pathlib import Path
 
 import torch
 
+from common import add_training_options, merge_settings, open_bench_scene, training_overrides
 from warpbags.alignment import align_viewmats, pose_errors
-from warpbags.configs.train import load_preset, parse_settings
-from warpbags.data import SyntheticOptions, ensure_synthetic_scene, load_scene, open_scene
+from warpbags.configs.train import load_preset
 from warpbags.evaluation import evaluate_run, held_out_views, load_run
 from warpbags.gaussians import render_gaussians, sh_degree_of
 from warpbags.trainer import Trainer, training_scene
 from warpbags.cli.common import clean_errors
-
-
-def _scene(name: str):
-    if name == "synthetic-small":
-        return load_scene(ensure_synthetic_scene(SyntheticOptions(views=16, width=96, height=96)), name=name)
-    return open_scene(name)
 
 
 def _metrics(run_dir: Path) -> dict:
@@ -108,24 +103,26 @@ def main() -> None:
     parser.add_argument("--rot", type=float, default=0.0, help="rotation noise std, degrees")
     parser.add_argument("--trans", type=float, default=0.0, help="camera-centre noise std (orbit radius 4)")
     parser.add_argument("--repair-iters", type=int, default=300)
-    parser.add_argument("--preset", default="quick")
     parser.add_argument("--keep", type=Path, help="keep the run folders under this folder (to look at the samples)")
     # An option, not trailing positionals: those would be taken as more scenes.
-    parser.add_argument("--set", dest="settings", action="append", default=[], metavar="NAME=VALUE",
-                        help="a TrainConfig field as name=value or group.name=value (JSON value); repeatable")
+    add_training_options(parser, "a TrainConfig field as name=value or group.name=value (JSON value) for every run "
+                                 "(repeatable), as `warpbags train --set`")
     args = parser.parse_args()
     torch.set_num_threads(1)
-    overrides = parse_settings(args.settings)
-    repair = {"iters": args.repair_iters, **overrides.pop("repair", {})}
-    scenes = {name: _scene(name) for name in args.scenes}  # a bad name fails before the first line
+    overrides = training_overrides(args, fixed={"views": "from --views", "rot_noise_deg": "from --rot",
+                                                "trans_noise": "from --trans"})
+    repair = {"iters": args.repair_iters, **overrides.pop("repair", {})}  # a repair.iters setting wins
+    settings = merge_settings(overrides, dict(views=args.views, rot_noise_deg=args.rot, trans_noise=args.trans,
+                                              repair=repair))
+    load_preset(args.preset, **settings)  # a bad preset or setting fails before the first line
+    scenes = {name: open_bench_scene(name) for name in args.scenes}  # a bad name fails before the first line
     print(f"{args.views} views, noise {args.rot} deg / {args.trans}, preset {args.preset}, repair {repair} {overrides}")
     header = (f"{'scene':<16} {'model':<8} {'PSNR':>6} {'SSIM':>6} {'LPIPS':>6} {'PSNR*':>6} {'SSIM*':>6} "
               f"{'rot':>6}")
     with tempfile.TemporaryDirectory() as scratch:
         root = args.keep or Path(scratch)
         for name, scene in scenes.items():
-            config = load_preset(args.preset, views=args.views, rot_noise_deg=args.rot, trans_noise=args.trans,
-                                 repair=repair, **overrides)
+            config = load_preset(args.preset, **settings)
             out = root / f"{name}-{args.views}v-repair"
             trainer = Trainer(training_scene(scene, config), config, out, log=lambda message: None)
             trainer.write_run_files()

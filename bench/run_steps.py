@@ -34,11 +34,32 @@ from warpbags.run_folder import RunFolder
 from warpbags.trainer import start_or_resume, training_scene
 
 
-def _serial_launch_timer() -> tuple[dict, collections.Counter]:
-    """Time Warp CPU launches made on the main thread, per (kernel, adjoint). Warp has no public hook for this; the
-    bench wraps its CPU launch function and says so when a Warp version moves it."""
-    import warp._src.context as context  # private: see the docstring
+def _warp_cpu_launch():
+    """The module holding Warp's CPU launch function, `warp._src.context.invoke(kernel, hooks, params, adjoint)`:
+    private, since Warp has no public hook for timing launches.
 
+    Raises:
+        WarpbagsError: this Warp version has no such function (moved or renamed), checked before any work.
+    """
+    import inspect  # noqa: PLC0415
+
+    import warp  # noqa: PLC0415
+
+    try:
+        import warp._src.context as context  # noqa: PLC0415 - private: see the docstring
+
+        parameters = list(inspect.signature(context.invoke).parameters)
+    except (ImportError, AttributeError, TypeError, ValueError):
+        parameters = None
+    if parameters != ["kernel", "hooks", "params", "adjoint"]:
+        raise WarpbagsError(f"Warp {warp.__version__} has no warp._src.context.invoke(kernel, hooks, params, adjoint), "
+                            "the CPU launch function this bench wraps to time launches: update _serial_launch_timer")
+    return context
+
+
+def _serial_launch_timer(context) -> tuple[dict, collections.Counter]:
+    """Time Warp CPU launches made on the main thread, per (kernel, adjoint), by wrapping `context.invoke`
+    (`context`: `_warp_cpu_launch()`)."""
     totals: dict = collections.defaultdict(float)
     counts: collections.Counter = collections.Counter()
     launch = context.invoke
@@ -62,6 +83,9 @@ def main() -> None:
     parser.add_argument("--warmup", type=int, default=5, help="untimed steps first")
     parser.add_argument("--iteration", type=int, default=None, help="start here instead of the checkpoint's")
     args = parser.parse_args()
+    if args.steps < 1 or args.warmup < 0:
+        raise WarpbagsError(f"--steps must be >= 1 and --warmup >= 0, got {args.steps} and {args.warmup}")
+    context = _warp_cpu_launch()  # a Warp version without it fails before any step
     if not RunFolder(args.run).has_checkpoint():
         raise WarpbagsError(f"{args.run}: no checkpoint to time steps from")
     with tempfile.TemporaryDirectory(prefix="run-steps-") as scratch:
@@ -82,7 +106,7 @@ def main() -> None:
         torch.set_num_threads(1)  # as the trainer: Warp runs its own host threads
         for _ in range(args.warmup):
             trainer.train_step()
-        totals, counts = _serial_launch_timer()
+        totals, counts = _serial_launch_timer(context)
         wall, cpu = [], []
         for _ in range(args.steps):
             started, started_cpu = time.perf_counter(), time.process_time()

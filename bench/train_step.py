@@ -6,13 +6,17 @@
     python bench/train_step.py --inits random --views 1 --pixel-blocks 1x1,2x2   # rasterizer pixel blocks compared
     python bench/train_step.py --inits random --views 1 --points 100000 --sh-degree 2   # the paper preset's size
 
-The step is built from the pieces `warpbags.trainer.Trainer` runs (as the speed comparison with OpenSplat
-configures it: SH degree 0 unless --sh-degree, no densification, the object on a white background, loss
-(1-0.2) L1 + 0.2 (1-SSIM) + 0.01 mask BCE on the rendered alpha, no depth term (render mode RGB, as the trainer
-renders once the depth term is off), pose deltas optimized):
-`warpbags.init` points and `initial_gaussians`, `warpbags.gaussians.render_gaussians`, `warpbags.losses`, the
-Gaussians' Adam groups (`warpbags.model.gaussian_optimizer`), `DensifyStrategy.accumulate`. Every configuration runs in its own process, so
-each peak RSS is its own.
+The step is assembled here from pieces `warpbags.trainer.Trainer` uses, not run through `Trainer.train_step`
+(configured as the speed comparison with OpenSplat: SH degree 0 unless --sh-degree, no densification, the object on
+a white background): `warpbags.init` points and `initial_gaussians`, `warpbags.gaussians.render_gaussians`,
+`warpbags.losses`, the Gaussians' Adam groups (`warpbags.model.gaussian_optimizer`), `DensifyStrategy.accumulate`.
+The loss is (1-0.2) L1 + 0.2 (1-SSIM) + 0.01 mask BCE on the rendered alpha: no depth term (render mode RGB, as the
+trainer renders once the depth term is off) and no silhouette chamfer (the quick preset's `lambda_chamfer` 1). The
+poses move by per-camera se(3) deltas (a rotation about the camera centre and a translation) passed straight to
+`render_gaussians(pose_deltas=...)` and stepped every iteration by a plain Adam (rotation at the quick preset's
+lr.pose, translation at lr.pose x lr.pose_translation_scale), not by the trainer's `CameraOptimizer` (no object-
+centric parameterization, preconditioner, pose window or pose lr schedule). Every configuration runs in its own
+process, so each peak RSS is its own.
 
 Phases. The rendering stages are timed by wrapping the functions `warpbags.rendering.rasterization` calls
 (forward: wall time of each call; backward: identity markers on each stage's inputs and outputs stamp the time
@@ -199,7 +203,8 @@ def build_problem(init: str, points: int, seed: int = 0, sh_degree: int = 0) -> 
 
 
 def training_step(problem: dict, views_per_step: int, clock: PhaseClock | None = None) -> dict:
-    """One iteration as `Trainer.train_step` runs it; returns the render's meta."""
+    """One step of the problem (the module docstring: not `Trainer.train_step`, whose poses move through its
+    `CameraOptimizer` and whose loss has the chamfer term); returns the render's meta."""
     from warpbags.gaussians import render_gaussians
     from warpbags.losses import mask_loss, photometric_loss
 
@@ -423,11 +428,25 @@ def main() -> None:
         print(json.dumps(run_configuration(args.one[0], int(args.one[1]), args.points, args.steps, args.warmup,
                                            block, args.sh_degree)))
         return
+    from common import parse_numbers, write_json  # noqa: PLC0415 - not in the children: their peak RSS is measured
+    from warpbags.errors import WarpbagsError  # noqa: PLC0415
+
+    inits = [init for init in args.inits.split(",") if init]
+    if not inits or any(init not in ("random", "hull") for init in inits):
+        raise WarpbagsError(f"--inits {args.inits!r}: expected comma-separated random, hull")
+    views_per_step = parse_numbers(args.views, "--views", int)
+    blocks = [block for block in args.pixel_blocks.split(",") if block] if args.pixel_blocks else [None]
+    for block in blocks:
+        if block is not None and not re.fullmatch(r"[1-9][0-9]*x[1-9][0-9]*", block):
+            raise WarpbagsError(f"--pixel-blocks {args.pixel_blocks!r}: {block!r} is not WIDTHxHEIGHT (e.g. 2x2)")
+    if args.steps < 1 or args.warmup < 0 or args.points < 1:
+        raise WarpbagsError(f"--steps and --points must be >= 1 and --warmup >= 0, got {args.steps}, {args.points} "
+                            f"and {args.warmup}")
     rows = []
-    for init in args.inits.split(","):
-        for views in args.views.split(","):
-            for block in (args.pixel_blocks.split(",") if args.pixel_blocks else [None]):
-                rows.append(_child(["--one", init, views, "--points", str(args.points), "--steps", str(args.steps),
+    for init in inits:
+        for views in views_per_step:
+            for block in blocks:
+                rows.append(_child(["--one", init, str(views), "--points", str(args.points), "--steps", str(args.steps),
                                     "--warmup", str(args.warmup), "--sh-degree", str(args.sh_degree),
                                     *(["--block", block] if block else [])]))
     opensplat = None
@@ -435,11 +454,17 @@ def main() -> None:
         opensplat = run_opensplat(args.opensplat, args.points, args.steps, args.warmup)
     first = rows[0]
     print(f"maryrose {first['width']}x{first['height']}, 4 training views, torch {torch.__version__} (1 thread), "
-          f"{len(os.sched_getaffinity(0))} cores; init: " + "; ".join(f"{r['init']}: {r['init_note']}" for r in rows[::len(args.views.split(','))]))
+          f"{len(os.sched_getaffinity(0))} cores; init: "
+          + "; ".join(f"{r['init']}: {r['init_note']}" for r in rows[::len(views_per_step)]))
     print_table(rows, opensplat)
     if args.json is not None:
-        args.json.write_text(json.dumps({"rows": rows, "opensplat": opensplat}, indent=2))
+        write_json(args.json, {"rows": rows, "opensplat": opensplat}, indent=2)
 
 
 if __name__ == "__main__":
-    main()
+    if "--one" in sys.argv[1:]:  # a child (see _child): nothing more imported, its peak RSS is the configuration's
+        main()
+    else:
+        from warpbags.cli.common import clean_errors  # bad input: one line and exit code 2, as the CLI
+
+        clean_errors(main)()

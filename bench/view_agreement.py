@@ -23,16 +23,14 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import json
 import time
-from pathlib import Path
 
 import numpy as np
 import torch
 
-from pose_recovery import _load, _numbers, _with_depth
+from common import add_training_options, open_bench_scene, parse_numbers, training_overrides, with_depth, write_json
 from warpbags.alignment import pose_errors
-from warpbags.configs.train import load_preset, parse_settings
+from warpbags.configs.train import load_preset
 from warpbags.data import ORBIT_RADIUS
 from warpbags.evaluation import refine_poses
 from warpbags.model import TrainingViews
@@ -81,22 +79,24 @@ def main() -> None:
     parser.add_argument("--refine-iters", type=int, default=60, help="L-BFGS iterations of each registration")
     parser.add_argument("--depth", choices=("true", "none"), default="true",
                         help="the fits use the scene's depth maps (if it has any) or none")
-    parser.add_argument("--preset", default="quick")
-    parser.add_argument("--set", dest="settings", action="append", default=[], metavar="NAME=VALUE",
-                        help="a TrainConfig field for every fit (repeatable), as `warpbags train --set`")
-    parser.add_argument("--json", type=Path, help="also write every view's numbers here")
+    add_training_options(parser, "a TrainConfig field for every fit (repeatable), as `warpbags train --set`",
+                         json_help="also write every view's numbers here")
     args = parser.parse_args()
     torch.set_num_threads(1)
-    overrides = parse_settings(args.settings)
-    load_preset(args.preset, **overrides)  # a bad preset or setting fails before the first line of the table
-    scenes = {name: _with_depth(_load(name), args.depth) for name in args.scenes}
+    sizes = parse_numbers(args.sizes, "--sizes", int)
+    # a bad preset or setting fails before the first line of the table
+    overrides = training_overrides(args, fixed={"views": "from --views", "max_image_size": "from --sizes",
+                                                "iters": "from --fit-iters", "rounds": "1", "pose_opt": "off"},
+                                   runs=[dict(views=args.views, max_image_size=size, iters=args.fit_iters, rounds=1,
+                                              pose_opt=False) for size in sizes])
+    scenes = {name: with_depth(open_bench_scene(name), args.depth) for name in args.scenes}
     rows = []
     header = f"{'scene':<20} {'views':>5} {'px':>5} {'rot mean':>8} {'median':>7} {'max':>7} {'centre %':>8}  per view (deg)"
     print(f"preset {args.preset}, overrides {overrides}, fit {args.fit_iters} iterations, "
           f"{args.refine_iters} L-BFGS iterations, depth maps: {args.depth}")
     print(header + "\n" + "-" * len(header), flush=True)
     for name, scene in scenes.items():
-        for size in _numbers(args.sizes, int):
+        for size in sizes:
             result = view_agreement(scene, args.views, size, args.fit_iters, args.refine_iters, args.preset, overrides)
             rotations = np.array(result["rotation_deg"])
             rows.append({"scene": name, "views": args.views, "size": size, **result})
@@ -104,9 +104,8 @@ def main() -> None:
                   f"{rotations.max():>7.2f} {np.mean(result['centre_pct']):>8.2f}  "
                   f"{', '.join(f'{r:.2f}' for r in rotations)}  ({result['minutes']:.1f} min)", flush=True)
             if args.json:
-                args.json.parent.mkdir(parents=True, exist_ok=True)
-                args.json.write_text(json.dumps({"fit_iters": args.fit_iters, "refine_iters": args.refine_iters,
-                                                 "depth": args.depth, "overrides": overrides, "rows": rows}, indent=1))
+                write_json(args.json, {"fit_iters": args.fit_iters, "refine_iters": args.refine_iters,
+                                       "depth": args.depth, "overrides": overrides, "rows": rows})
     print("each view registered by L-BFGS against Gaussians fitted to the other views at their reference poses;\n"
           "distances from its own reference pose: rotation in degrees, camera centre in % of the orbit radius")
 

@@ -1,5 +1,5 @@
-"""The benchmarks that take scene names answer a bad one as the CLI does: one line on stderr and exit code 2, before
-any table line is printed."""
+"""The benchmarks answer bad input as the CLI does: one line on stderr and exit code 2, before any work and any
+table line: a bad scene name, a bad number list, a bad or clashing `--set`."""
 
 from __future__ import annotations
 
@@ -24,6 +24,36 @@ def test_an_unknown_scene_is_one_error_line(script, tmp_path):
     errors = [line for line in result.stderr.splitlines() if line.startswith("error:")]
     assert len(errors) == 1 and "nosuchscene" in errors[0] and "Traceback" not in result.stderr
     assert result.stdout == "" and not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize("script, arguments, message", [
+    ("pose_optimum.py", ["--start-noise", "5"], "--start-noise '5': '5' is not ROT_DEG/TRANS"),
+    ("pose_optimum.py", ["--start-noise", ","], "--start-noise ','"),
+    ("pose_optimum.py", ["--set", "views=4"], "--set views: this benchmark sets views itself"),
+    ("pose_optimum.py", ["--set", "camera.centroid_start=true"], "--set camera.centroid_start:"),
+    ("repair.py", ["--set", "views=4"], "--set views: this benchmark sets views itself (from --views)"),
+    ("repair.py", ["--set", "rot_noise_deg=5"], "--set rot_noise_deg:"),
+    ("repair.py", ["--set", "trans_noise=0.1"], "--set trans_noise:"),
+    ("repair.py", ["--set", "nosuchfield=1"], "nosuchfield"),
+    ("pose_recovery.py", ["--rot", "a"], "--rot 'a': 'a' is not a number"),
+    ("pose_recovery.py", ["--seeds", ","], "--seeds ','"),
+    ("pose_recovery.py", ["--set", "seed=1"], "--set seed:"),
+    ("fitted_loss.py", ["--seeds", ","], "--seeds ','"),
+    ("fitted_loss.py", ["--set", "views=6"], "--set views:"),
+    ("view_agreement.py", ["--sizes", "128,big"], "--sizes '128,big': 'big' is not an integer"),
+    ("view_agreement.py", ["--set", "max_image_size=64"], "--set max_image_size:"),
+    ("train_step.py", ["--views", ","], "--views ','"),
+    ("train_step.py", ["--inits", "sphere"], "--inits 'sphere'"),
+])
+def test_bad_input_is_one_error_line_before_any_work(script, arguments, message, tmp_path):
+    """Checked before the scene is loaded (its name here is unknown too) and before any line of a table."""
+    scene = [] if script == "train_step.py" else ["nosuchscene"]
+    result = subprocess.run([sys.executable, str(BENCH / script), *scene, *arguments], capture_output=True,
+                            text=True, timeout=300, cwd=tmp_path)
+    assert result.returncode == 2, result.stderr
+    errors = [line for line in result.stderr.splitlines() if line.startswith("error:")]
+    assert len(errors) == 1 and message in errors[0] and "Traceback" not in result.stderr, result.stderr
+    assert result.stdout == ""
 
 
 @pytest.mark.parametrize("device, message", [("tpu", "--device must be cpu or cuda"),

@@ -1,0 +1,128 @@
+"""What the benchmarks share: their small synthetic scenes, the scene loader, the `--depth` maps, the `--preset` /
+`--set` / `--json` options, comma-separated number lists, and the settings merge.
+
+The scripts run as `python bench/NAME.py`, so this folder is on `sys.path` and they import it as `common`. Bad
+input raises `WarpbagsError` (one line); each script wraps its `main` in `clean_errors`, which prints it as
+`error: ...` and exits with code 2, as the CLI does.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+from pathlib import Path
+from typing import Any, Callable, Iterable
+
+from warpbags.configs.train import load_preset, parse_settings
+from warpbags.data import SyntheticOptions, ensure_synthetic_scene, load_scene, open_scene
+from warpbags.data.noise import monocular_like_depths
+from warpbags.errors import WarpbagsError
+
+SMALL_SCENES = {
+    # the synthetic scene, small enough for many runs
+    "synthetic-small": SyntheticOptions(views=16, width=96, height=96),
+    # the same object with maryrose's optics and framing (configs/scenes.py: synthetic-tele)
+    "synthetic-tele-small": SyntheticOptions(views=16, width=128, height=128, fov_deg=18.6, radius=5.6),
+    # the same cameras at 256 px, for schedules whose last rounds train above the quick preset's 128 px
+    "synthetic-tele-256": SyntheticOptions(views=16, width=256, height=256, fov_deg=18.6, radius=5.6),
+    # synthetic-tele-small with the light turned by up to 30 deg and the colour channels scaled by ~10% per view,
+    # as on a capture whose object was moved between sequences (maryrose): the images disagree beyond the poses
+    "synthetic-tele-lit": SyntheticOptions(views=16, width=128, height=128, fov_deg=18.6, radius=5.6,
+                                           light_jitter_deg=30.0, gain_jitter=0.1),
+    # synthetic-tele-small lit as on a turntable (maryrose): the light turns with the camera, so each part of the
+    # object is shaded differently from each side it is seen from
+    "synthetic-tele-turntable": SyntheticOptions(views=16, width=128, height=128, fov_deg=18.6, radius=5.6,
+                                                 turntable_light=True),
+    # maryrose's optics and framing with a tankard like hers lying on its side instead of the excavator: a nearly
+    # symmetric silhouette and a low-contrast, repetitive grain
+    "synthetic-tele-tankard": SyntheticOptions(views=16, width=128, height=128, fov_deg=18.6, radius=5.6,
+                                               object="tankard"),
+}
+
+
+def open_bench_scene(name: str):
+    """A scene by name: one of `SMALL_SCENES` (generated once and cached), else a preset or a scene folder
+    (`warpbags.data.open_scene`, which raises `WarpbagsError` for an unknown one)."""
+    if name in SMALL_SCENES:
+        return load_scene(ensure_synthetic_scene(SMALL_SCENES[name]), name=name)
+    return open_scene(name)
+
+
+def with_depth(scene, depth: str):
+    """The scene with the depth maps of `--depth`: its own ("true"), degraded ("monocular", seed 0) or none."""
+    if depth == "true":
+        return scene
+    if depth == "none":
+        return dataclasses.replace(scene, depths=None)
+    if scene.depths is None:
+        raise WarpbagsError(f"--depth monocular: scene {scene.name} has no depth maps to degrade")
+    return dataclasses.replace(scene, depths=monocular_like_depths(scene.depths, seed=0))
+
+
+def merge_settings(base: dict, extra: dict) -> dict:
+    """`base` with `extra`'s settings on top; a group given as a dict (`camera`, `repair`, ...) is merged field by
+    field, `extra`'s fields winning."""
+    merged = dict(base)
+    for key, value in extra.items():
+        merged[key] = {**merged.get(key, {}), **value} if isinstance(value, dict) else value
+    return merged
+
+
+def parse_numbers(text: str, option: str, kind: Callable = float) -> list:
+    """The comma-separated numbers of option `option` (empty items skipped): `kind` (float or int) of each.
+
+    Raises:
+        WarpbagsError: an item that is not a `kind`, or no number at all.
+    """
+    numbers = []
+    for item in text.split(","):
+        if not item.strip():
+            continue
+        try:
+            numbers.append(kind(item))
+        except ValueError:
+            what = "an integer" if kind is int else "a number"
+            raise WarpbagsError(f"{option} {text!r}: {item.strip()!r} is not {what}") from None
+    if not numbers:
+        raise WarpbagsError(f"{option} {text!r}: expected comma-separated numbers, got none")
+    return numbers
+
+
+def add_training_options(parser: argparse.ArgumentParser, set_help: str, json_help: str | None = None) -> None:
+    """Add `--preset`, `--set NAME=VALUE` (dest "settings", repeatable) and, with `json_help`, `--json PATH`."""
+    parser.add_argument("--preset", default="quick", help="the TrainConfig preset (default: quick)")
+    parser.add_argument("--set", dest="settings", action="append", default=[], metavar="NAME=VALUE", help=set_help)
+    if json_help is not None:
+        parser.add_argument("--json", type=Path, help=json_help)
+
+
+def training_overrides(args: argparse.Namespace, fixed: dict[str, str] | None = None,
+                       runs: Iterable[dict] = ({},)) -> dict[str, Any]:
+    """The `--set` settings of `args` as `load_preset` overrides, checked before any work.
+
+    Args:
+        args: parsed options with `preset` and `settings` (`add_training_options`).
+        fixed: the fields the script sets itself ("name" or "group.name"), each with where its value comes from
+            ("from --views"); a `--set` of one of them is an error instead of being ignored or clashing.
+        runs: the script's own settings of each kind of run, each validated merged over the overrides
+            (`merge_settings(overrides, run)`); the default validates the overrides alone.
+
+    Raises:
+        WarpbagsError: a malformed `--set`, one of `fixed`, an unknown preset or field, or a bad value.
+    """
+    overrides = parse_settings(args.settings)
+    for name, source in (fixed or {}).items():
+        group, _, field = name.rpartition(".")
+        settings = overrides.get(group, {}) if group else overrides
+        if isinstance(settings, dict) and field in settings:
+            raise WarpbagsError(f"--set {name}: this benchmark sets {name} itself ({source})")
+    for run in runs:
+        load_preset(args.preset, **merge_settings(overrides, run))
+    return overrides
+
+
+def write_json(path: Path, data: Any, indent: int = 1) -> None:
+    """Write `data` as JSON to `path`, creating its folder."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(data, indent=indent))

@@ -1,0 +1,70 @@
+"""bench/common.py: the number lists, the settings merge and the `--set` checks the benchmarks share."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+import pytest
+
+from warpbags.errors import WarpbagsError
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
+from common import add_training_options, merge_settings, parse_numbers, training_overrides  # noqa: E402
+
+
+def test_parse_numbers_reads_comma_separated_numbers_and_skips_empty_items():
+    assert parse_numbers("5,10,15", "--rot") == [5.0, 10.0, 15.0]
+    assert parse_numbers("0,1,", "--seeds", int) == [0, 1]
+    assert parse_numbers("2.5", "--rot") == [2.5]
+
+
+@pytest.mark.parametrize("text, kind, message", [
+    ("a", float, "--opt 'a': 'a' is not a number"),
+    ("1,x", int, "--opt '1,x': 'x' is not an integer"),
+    ("1.5", int, "--opt '1.5': '1.5' is not an integer"),
+    (",", int, "--opt ',': expected comma-separated numbers, got none"),
+    ("", float, "--opt '': expected comma-separated numbers, got none"),
+])
+def test_parse_numbers_names_the_option_and_the_bad_text(text, kind, message):
+    with pytest.raises(WarpbagsError) as error:
+        parse_numbers(text, "--opt", kind)
+    assert str(error.value) == message
+
+
+def test_merge_settings_merges_groups_field_by_field_and_leaves_its_inputs():
+    base = {"views": 4, "repair": {"iters": 300, "fit_steps": 800}, "camera": {"precondition": False}}
+    extra = {"views": 6, "repair": {"iters": 0}, "seed": 1}
+    merged = merge_settings(base, extra)
+    assert merged == {"views": 6, "repair": {"iters": 0, "fit_steps": 800}, "camera": {"precondition": False},
+                      "seed": 1}
+    assert base["repair"] == {"iters": 300, "fit_steps": 800} and base["views"] == 4
+
+
+def _args(*settings: str, preset: str = "quick") -> argparse.Namespace:
+    parser = argparse.ArgumentParser()
+    add_training_options(parser, "a TrainConfig field", json_help="also write here")
+    return parser.parse_args(["--preset", preset, *(item for setting in settings for item in ("--set", setting))])
+
+
+def test_training_overrides_parses_and_validates_the_settings():
+    assert training_overrides(_args("lambda_chamfer=3", "repair.fit_steps=5")) == {
+        "lambda_chamfer": 3, "repair": {"fit_steps": 5}}
+    with pytest.raises(WarpbagsError, match="unknown training option"):
+        training_overrides(_args("nosuchfield=1"))
+    with pytest.raises(WarpbagsError, match="--preset"):
+        training_overrides(_args(preset="nosuchpreset"))
+    with pytest.raises(WarpbagsError, match="views must be >= 2"):  # the script's own settings of a run, checked too
+        training_overrides(_args(), runs=[{"views": 1}])
+
+
+def test_training_overrides_refuses_a_field_the_script_sets_itself():
+    fixed = {"views": "from --views", "repair.iters": "0: no repair stage"}
+    with pytest.raises(WarpbagsError) as error:
+        training_overrides(_args("views=4"), fixed)
+    assert str(error.value) == "--set views: this benchmark sets views itself (from --views)"
+    with pytest.raises(WarpbagsError, match="--set repair.iters:"):
+        training_overrides(_args("repair.iters=5"), fixed)
+    # other fields of the same group are the user's
+    assert training_overrides(_args("repair.fit_steps=5"), fixed) == {"repair": {"fit_steps": 5}}
