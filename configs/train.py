@@ -610,7 +610,7 @@ def parse_settings(settings: list[str]) -> dict[str, Any]:
     "repair.b=2" -> {"repair": {"b": 2}}. Values are JSON (numbers, true/false, lists); anything else is a string.
 
     Raises:
-        WarpbagsError: an item without "=".
+        WarpbagsError: an item without "=", or a group's field after the group was set to a value.
     """
     overrides: dict[str, Any] = {}
     for item in settings:
@@ -623,7 +623,10 @@ def parse_settings(settings: list[str]) -> dict[str, Any]:
             value = text
         group, _, name = key.rpartition(".")
         if group:
-            overrides.setdefault(group, {})[name] = value
+            fields = overrides.setdefault(group, {})
+            if not isinstance(fields, dict):
+                raise WarpbagsError(f"--set {item!r}: {group} was set to {fields!r}, not a group of fields")
+            fields[name] = value
         else:
             overrides[key] = value
     return overrides

@@ -108,3 +108,14 @@ def test_values_that_would_break_training_later_are_refused_up_front():
         with pytest.raises(WarpbagsError, match=message):
             load_preset("quick", **overrides)
     assert load_preset("quick", lr={"sh_rest": 0}).lr.sh_rest == 0  # a group held still is allowed
+
+
+def test_parse_settings_refuses_a_field_of_a_group_set_to_a_value():
+    """The benchmarks' `--set`: `repair=3` then `repair.iters=1` is one clear error, not a TypeError."""
+    import pytest
+    from warpbags.configs.train import parse_settings
+    from warpbags.errors import WarpbagsError
+
+    assert parse_settings(["repair.iters=1", "views=6"]) == {"repair": {"iters": 1}, "views": 6}
+    with pytest.raises(WarpbagsError, match="--set 'repair.iters=1': repair was set to 3, not a group of fields"):
+        parse_settings(["repair=3", "repair.iters=1"])
