@@ -10,6 +10,7 @@ from rich.console import Console
 from rich.table import Table
 
 from warpbags.cli.common import clean_errors
+from warpbags.configs.scenes import SCENES
 from warpbags.data import ORBIT_RADIUS, SyntheticOptions, generate_synthetic_scene, open_scene
 from warpbags.data.scene import Scene
 
@@ -46,7 +47,7 @@ def scene_summary(scene: Scene) -> Table:
 
 
 def info(
-    scene: str = typer.Argument(..., help="Preset name (kitchen, maryrose, synthetic) or a scene folder."),
+    scene: str = typer.Argument(..., help=f"Preset name ({', '.join(sorted(SCENES))}) or a scene folder."),
     data_root: Optional[Path] = typer.Option(
         None, "--data-root", help="Folder holding datasets (default $WARPBAGS_DATA or data/)."
     ),

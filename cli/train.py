@@ -12,15 +12,18 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 
 from warpbags.cli.common import clean_errors
 from warpbags.cli.train_options import resumed_config, train_config, with_train_options
+from warpbags.configs.scenes import SCENES
 from warpbags.errors import WarpbagsError
-from warpbags.trainer import default_run_dir, saved_run_config, start_or_resume, training_scene
+from warpbags.trainer import default_run_dir, saved_run_config, saved_run_scene, start_or_resume, training_scene
 
 stdout = Console(highlight=False)
 
 
 @with_train_options(after="preset")
 def train(
-    scene: str = typer.Argument(..., help="Preset name (kitchen, maryrose, synthetic) or a scene folder."),
+    scene: Optional[str] = typer.Argument(
+        None, help=f"Preset name ({', '.join(sorted(SCENES))}) or a scene folder; with --resume, the run's own "
+                   "when left out.", show_default=False),
     *,
     preset: Optional[str] = typer.Option(
         None, "--preset", help="paper (the report's schedule) or quick (CPU-sized; the default)."),
@@ -40,10 +43,13 @@ def train(
         raise WarpbagsError(f"--log-every must be >= 1, got {log_every}")
     if resume and out is None:
         raise WarpbagsError("--resume needs --out (the run folder to continue)")
+    if scene is None and not resume:
+        raise WarpbagsError("give the scene to train: a preset name or a scene folder (`warpbags train --help`)")
     # A resumed run goes on with the config it was started with; options given again must agree with it.
     config = (resumed_config(saved_run_config(out), preset, config_options, settings or []) if resume else
               train_config(preset or "quick", config_options, settings or []))
-    scene_data = training_scene(scene, config, data_root, log=stdout.print)
+    scene_data = training_scene(scene if scene is not None else saved_run_scene(out), config, data_root,
+                                log=stdout.print)
     views = config.views
     out = out or default_run_dir(scene_data.name, views)
     trainer = start_or_resume(scene_data, config, out, device=device, resume=resume, log=stdout.print)

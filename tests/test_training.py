@@ -485,6 +485,11 @@ def test_cli_resume_goes_on_with_the_runs_config(scene_dir, tmp_path):
     assert again.exit_code == 0, again.output
     assert "already finished its 4 iterations" in again.output and "nan" not in again.output
     assert len((out / "log.jsonl").read_text().splitlines()) == 4
+    # the scene left out, as the message after Ctrl-C suggests: the run's own
+    bare = runner.invoke(app, ["train", "--resume", "--out", str(out)])
+    assert bare.exit_code == 0 and "already finished its 4 iterations" in bare.output, bare.output
+    missing = runner.invoke(app, ["train", "--out", str(tmp_path / "fresh")])
+    assert missing.exit_code == 2 and "give the scene to train" in missing.output
     # anything that would change the run half-way is refused, before the scene is loaded at another size
     for extra, message in [(["--views", "5"], "trained with views=4, not 5"),
                            (["--preset", "paper"], "trained with --preset quick, not paper"),

@@ -492,6 +492,21 @@ def saved_run_config(out_dir: str | Path) -> TrainConfig:
     return run_folder.saved_config()
 
 
+def saved_run_scene(out_dir: str | Path) -> str:
+    """The scene the run in `out_dir` trained on, as `training_scene` takes it: its preset name if it was one (the
+    preset also fixes the resolution and published splits), else its folder.
+
+    Raises:
+        WarpbagsError: no readable config.json in `out_dir`, or one without the scene.
+    """
+    from warpbags.configs.scenes import SCENES
+
+    info = RunFolder(out_dir).read_info()
+    if "scene_root" not in info:
+        raise WarpbagsError(f"{Path(out_dir) / 'config.json'} names no scene folder: give the scene")
+    return info["scene"] if info.get("scene") in SCENES else info["scene_root"]
+
+
 def start_or_resume(scene: Scene, config: TrainConfig, out_dir: str | Path, device: str = "cpu", resume: bool = False,
                     log: Callable[[str], None] = print) -> Trainer:
     """A Trainer for `out_dir`: fresh (run files written) or, with `resume`, continued from its last checkpoint

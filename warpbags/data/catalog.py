@@ -66,7 +66,7 @@ def open_scene(
     normalize: bool = True,
     cache_dir: Path | None = None,
 ) -> Scene:
-    """Load a scene by preset name (kitchen, maryrose, synthetic) or folder path.
+    """Load a scene by preset name (`warpbags.configs.scenes.SCENES`) or folder path.
 
     Args:
         scene: preset name or folder.
