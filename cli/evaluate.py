@@ -62,7 +62,9 @@ def evaluate(
         images.add_row(label, _fmt(mean["psnr"], 2), _fmt(mean["ssim"], 4), _fmt(mean.get("flip"), 4),
                        _fmt(mean["lpips"], 4))
     stdout.print(images)
-    stdout.print(f"wrote {Path(result['run']) / 'eval.json'} and {Path(result['run']) / 'eval'}/")
+    run = Path(result["run"])
+    curves = " and curves.png" if (run / "curves.png").is_file() else ""
+    stdout.print(f"wrote {run / 'eval.json'}, {run / 'eval'}/ and {run / 'report.md'}{curves}")
 
 
 def register(app: typer.Typer) -> None:

@@ -143,7 +143,7 @@ class CameraConfig:
             that is below the unturned camera's by more than `hypothesis_margin`; training goes on from the kept trial
             (the issue's "outlier views"). The mask-centroid start fixes pan and tilt, not roll, and without depth maps
             a camera left 15-20 deg off in roll stays there, which the loss tells (telephoto synthetic scene, seed 0:
-            0.087 against 0.075-0.076 for the seeds that converge). Costs one round per turn.
+            0.083 against 0.075-0.076 for the seeds that converge). Costs one round per turn.
         hypothesis_axes, hypothesis_angles, hypothesis_margin: the axes of the camera's frame turned about ("z": roll
             about the line of sight to the object centre; "x", "y": an orbit), the angles (degrees, each with both
             signs), and the relative loss decrease a turn must bring to be kept.
