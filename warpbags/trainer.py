@@ -32,6 +32,7 @@ import torch
 from warpbags.alignment import alignment_for, pose_errors
 from warpbags.camera_optimizer import hypothesis_turns
 from warpbags.camera_setup import coherent_start, given_viewmats, starting_poses, training_cameras
+from warpbags.configs.scenes import SCENES
 from warpbags.configs.train import TrainConfig
 from warpbags.data.scene import Scene
 from warpbags.devices import torch_device
@@ -499,8 +500,6 @@ def saved_run_scene(out_dir: str | Path) -> str:
     Raises:
         WarpbagsError: no readable config.json in `out_dir`, or one without the scene.
     """
-    from warpbags.configs.scenes import SCENES
-
     info = RunFolder(out_dir).read_info()
     if "scene_root" not in info:
         raise WarpbagsError(f"{Path(out_dir) / 'config.json'} names no scene folder: give the scene")
