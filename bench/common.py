@@ -14,10 +14,14 @@ import json
 from pathlib import Path
 from typing import Any, Callable, Iterable
 
-from warpbags.configs.train import load_preset, parse_settings
-from warpbags.data import SyntheticOptions, ensure_synthetic_scene, load_scene, open_scene
-from warpbags.data.noise import monocular_like_depths
-from warpbags.errors import WarpbagsError
+from warpbags.devices import init_warp_quietly
+
+init_warp_quietly()  # the tables, not Warp's banner and module loads, as the CLI
+
+from warpbags.configs.train import load_preset, parse_settings  # noqa: E402
+from warpbags.data import SyntheticOptions, ensure_synthetic_scene, load_scene, open_scene  # noqa: E402
+from warpbags.data.noise import monocular_like_depths  # noqa: E402
+from warpbags.errors import WarpbagsError  # noqa: E402
 
 SMALL_SCENES = {
     # the synthetic scene, small enough for many runs

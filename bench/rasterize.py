@@ -35,6 +35,10 @@ sys.path.insert(0, str(ROOT / "tests"))
 from conftest import look_at  # noqa: E402
 from reference import composite_reference, pixel_centers, project_reference  # noqa: E402
 
+from warpbags.devices import init_warp_quietly  # noqa: E402
+
+init_warp_quietly()  # the table, not Warp's banner and module loads, as the CLI
+
 import warpbags  # noqa: E402
 from warpbags.cli.common import clean_errors  # noqa: E402
 from warpbags.devices import torch_device  # noqa: E402

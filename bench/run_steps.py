@@ -27,11 +27,15 @@ from pathlib import Path
 
 import torch
 
-from warpbags.cli.common import clean_errors
-from warpbags.data import load_scene
-from warpbags.errors import WarpbagsError
-from warpbags.run_folder import RunFolder
-from warpbags.trainer import start_or_resume, training_scene
+from warpbags.devices import init_warp_quietly
+
+init_warp_quietly()  # the table, not Warp's banner and module loads, as the CLI
+
+from warpbags.cli.common import clean_errors  # noqa: E402
+from warpbags.data import load_scene  # noqa: E402
+from warpbags.errors import WarpbagsError  # noqa: E402
+from warpbags.run_folder import RunFolder  # noqa: E402
+from warpbags.trainer import start_or_resume, training_scene  # noqa: E402
 
 
 def _warp_cpu_launch():

@@ -5,12 +5,10 @@ Each module of COMMAND_GROUPS holds one group of commands and adds them to the a
 
 from __future__ import annotations
 
-import os
-import sys
-
 import typer
 
 from warpbags.cli import evaluate, export, info, sweep, train, view
+from warpbags.devices import init_warp_quietly
 
 # In `warpbags --help` order: info, synth, train, eval, export, render, sweep, view.
 COMMAND_GROUPS = (info, train, evaluate, export, sweep, view)
@@ -19,23 +17,8 @@ COMMAND_GROUPS = (info, train, evaluate, export, sweep, view)
 def configure(verbose: bool = typer.Option(False, "--verbose", help="Show Warp's own output: its banner, module "
                                            "loads and CUDA driver notes.")) -> None:
     """Bundle-Adjusting Gaussian Splatting with NVIDIA Warp kernels."""
-    import warp as wp  # noqa: PLC0415 - only the command line silences Warp; library users keep its defaults
-
-    if verbose:
-        return
-    wp.config.log_level = wp.LOG_WARNING  # no init banner or per-module load lines between the progress bars
-    wp.config.quiet = True
-    # On a machine without a CUDA driver Warp's native library prints a warning straight to file descriptor 2 when
-    # it initializes; --device cuda without a driver is reported by warpbags itself.
-    sys.stderr.flush()
-    saved = os.dup(2)
-    try:
-        with open(os.devnull, "w") as devnull:
-            os.dup2(devnull.fileno(), 2)
-            wp.init()
-    finally:
-        os.dup2(saved, 2)
-        os.close(saved)
+    if not verbose:  # only the command line silences Warp; library users keep its defaults
+        init_warp_quietly()
 
 
 def build_app() -> typer.Typer:
