@@ -1,6 +1,10 @@
-"""Densification statistics: what `DensifyStrategy.accumulate` needs and what it adds up."""
+"""Densification: what `DensifyStrategy.accumulate` needs and adds up, and what clone, split, prune, the
+Gaussian budget and the opacity reset do to the parameters and their Adam moments."""
 
 from __future__ import annotations
+
+import dataclasses
+import math
 
 import pytest
 import torch
@@ -46,3 +50,64 @@ def test_accumulate_is_independent_of_the_views_per_step():
     batched.accumulate(0, batch_meta)
     torch.testing.assert_close(batched.grad_sum / batched.grad_count.clamp_min(1),
                                single.grad_sum / single.grad_count.clamp_min(1))
+
+
+def _four_gaussians():
+    """G0 small with a large gradient (cloned), G1 large with a large gradient (split), G2 small gradient (kept),
+    G3 nearly transparent (pruned); Adam holds moments for all after one step."""
+    logit = lambda p: math.log(p / (1 - p))  # noqa: E731
+    params = {
+        "means": torch.tensor([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]),
+        "scales": torch.log(torch.tensor([[0.005] * 3, [0.1, 0.05, 0.05], [0.05] * 3, [0.05] * 3])),
+        "quats": torch.tensor([[1.0, 0.0, 0.0, 0.0]] * 4),
+        "opacities": torch.tensor([logit(0.5), logit(0.6), logit(0.7), logit(0.01)]),
+        "sh0": torch.arange(12.0).reshape(4, 1, 3),
+    }
+    params = {name: torch.nn.Parameter(value) for name, value in params.items()}
+    optimizer = torch.optim.Adam([{"params": [value], "lr": 1e-3, "name": name} for name, value in params.items()])
+    sum(value.sum() for value in params.values()).backward()
+    optimizer.step()
+    config = DensifyConfig(start=0, stop=100, every=1, grad_threshold=1e-3, percent_dense=0.01, prune_opacity=0.05,
+                           prune_scale=0.5, opacity_reset_every=0, floater_every=0)
+    strategy = DensifyStrategy(config, scene_extent=1.0)
+    strategy.grad_sum, strategy.grad_count = torch.tensor([2.0, 1.0, 0.0, 0.0]), torch.ones(4)
+    return params, optimizer, strategy
+
+
+def test_clone_split_and_prune_change_the_rows_as_3dgs_does():
+    params, optimizer, strategy = _four_gaussians()
+    before = {name: value.detach().clone() for name, value in params.items()}
+    moments = {name: optimizer.state[value]["exp_avg"].clone() for name, value in params.items()}
+    report = strategy.step(1, params, optimizer, torch.Generator().manual_seed(0))
+    assert report == {"cloned": 1, "split": 1, "pruned": 1}
+    # rows: G0, G2 kept; G0's clone; G1's two children (G1 itself replaced, G3 pruned)
+    assert len(params["means"]) == 5
+    for name in params:
+        torch.testing.assert_close(params[name][[0, 1, 2]].detach(), before[name][[0, 2, 0]])
+    children = params["means"][3:].detach()
+    assert not torch.equal(children[0], children[1])
+    assert ((children - before["means"][1]).abs().max(dim=0).values < 4 * before["scales"][1].exp()).all()
+    torch.testing.assert_close(params["scales"][3:].detach(), (before["scales"][1].exp() / 1.6).log().expand(2, 3))
+    torch.testing.assert_close(params["opacities"][3:].detach(), before["opacities"][1].expand(2))
+    # Adam's moments follow their rows; new rows start at zero
+    for name, value in params.items():
+        state = optimizer.state[value]["exp_avg"]
+        torch.testing.assert_close(state[[0, 1]], moments[name][[0, 2]])
+        assert not state[2:].any()
+
+
+def test_a_short_budget_keeps_the_largest_gradients():
+    params, optimizer, strategy = _four_gaussians()
+    strategy.config = dataclasses.replace(strategy.config, max_gaussians=5)  # room for one more
+    report = strategy.step(1, params, optimizer, torch.Generator().manual_seed(0))
+    assert report == {"cloned": 1, "split": 0, "pruned": 1}  # G0's gradient (2.0) beats G1's (1.0)
+
+
+def test_the_opacity_reset_caps_opacities_and_zeroes_their_moments():
+    params, optimizer, strategy = _four_gaussians()
+    strategy.config = dataclasses.replace(strategy.config, start=50, opacity_reset_every=1)
+    report = strategy.step(1, params, optimizer, torch.Generator().manual_seed(0))
+    assert report == {"opacity_reset": 1}
+    assert torch.sigmoid(params["opacities"]).max() <= 0.01 + 1e-6
+    state = optimizer.state[params["opacities"]]
+    assert not state["exp_avg"].any() and not state["exp_avg_sq"].any()
