@@ -104,3 +104,24 @@ def test_a_failure_that_is_not_unavailability_propagates(monkeypatch):
     _lpips_package_raising(monkeypatch, TypeError("LPIPS() got an unexpected keyword argument 'verbose'"))
     with pytest.raises(TypeError, match="verbose"):
         load_lpips()
+
+
+def test_ssim_matches_an_independent_gaussian_filter_ssim():
+    """Wang et al.'s SSIM as 3DGS computes it (11-tap Gaussian window, sigma 1.5, zero padding, C1 = 0.01^2,
+    C2 = 0.03^2), written with scipy's Gaussian filter instead of the window `warpbags.losses` builds."""
+    from scipy.ndimage import gaussian_filter
+
+    generator = torch.Generator().manual_seed(3)
+    images = torch.rand(2, 20, 17, 3, generator=generator, dtype=torch.float64)
+    targets = (images + 0.2 * torch.randn(images.shape, generator=generator, dtype=torch.float64)).clamp(0, 1)
+    x, y = images.numpy(), targets.numpy()
+
+    def blur(array):  # over H and W only; radius int(truncate * sigma + 0.5) = 5 taps each side
+        return gaussian_filter(array, sigma=(0, 1.5, 1.5, 0), truncate=5 / 1.5, mode="constant", cval=0.0)
+
+    mu_x, mu_y = blur(x), blur(y)
+    var_x, var_y, cov = blur(x * x) - mu_x**2, blur(y * y) - mu_y**2, blur(x * y) - mu_x * mu_y
+    c1, c2 = 0.01**2, 0.03**2
+    expected = ((2 * mu_x * mu_y + c1) * (2 * cov + c2) / ((mu_x**2 + mu_y**2 + c1) * (var_x + var_y + c2))).mean()
+    assert ssim(images, targets).item() == pytest.approx(float(expected), rel=1e-10, abs=1e-12)
+    assert 0.1 < expected < 0.9  # neither identical nor unrelated images
