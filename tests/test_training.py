@@ -198,12 +198,18 @@ def test_the_chamfer_computed_beside_the_render_is_the_steps_own(scene_dir, tmp_
     assert not torch.equal(trainer.cameras.rotations.grad, with_chamfer)
 
 
-@pytest.mark.parametrize("init, note", [("sfm", "SfM points"), ("random", "random points"), ("hull", "visual hull")])
+@pytest.mark.parametrize("init, note", [("sfm", "SfM points: 500 of "), ("random", "random points (500)"),
+                                        ("hull", "visual hull: ")])
 def test_initializations(scene_dir, tmp_path, init, note):
+    """Each initialization is the one asked for, not its fallback to random points (whose notes also name it)."""
     notes = []
     config = tiny_config(init=init, init_points=500)
-    Trainer(training_scene(load_scene(scene_dir, name="tiny"), config), config, tmp_path, log=notes.append)
-    assert any(note in line for line in notes), notes
+    scene = training_scene(load_scene(scene_dir, name="tiny"), config)
+    trainer = Trainer(scene, config, tmp_path, log=notes.append)
+    assert any(line.startswith(f"initialization: {note}") for line in notes), notes
+    if init == "sfm":  # the Gaussians sit on the scene's SfM points
+        distances = torch.cdist(trainer.params["means"].detach().double(), scene.points.double()).min(dim=1).values
+        assert distances.max() < 1e-5
 
 
 def test_two_cameras_say_that_the_logged_pose_error_is_pairwise(scene_dir, tmp_path):
@@ -535,6 +541,7 @@ def test_cli_bad_values_one_line(scene_dir, tmp_path, arguments, message):
 def test_cli_unknown_scene_one_line(tmp_path):
     result = runner.invoke(app, ["train", str(tmp_path / "nope")])
     assert result.exit_code == 2 and len(result.output.strip().splitlines()) == 1
+    assert result.output.startswith("error: scene ") and "nope" in result.output and "no preset" in result.output
 
 
 def test_cli_any_view_count_through_the_farthest_point_split(scene_dir, tmp_path):

@@ -287,7 +287,8 @@ class CameraOptimizer(torch.nn.Module):
         self.optimizer.state.clear()
 
     def state(self) -> dict:
-        """Checkpoint content: parameters, buffers and optimizer state."""
+        """Checkpoint content: parameters, buffers and optimizer state, as live tensors (the optimizer's moments
+        go on changing with each step: `copy.deepcopy` it to keep a snapshot in memory)."""
         return {"module": self.state_dict(), "optimizer": self.optimizer.state_dict()}
 
     def load_state(self, state: dict) -> None:
