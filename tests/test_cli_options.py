@@ -159,17 +159,3 @@ def test_python_dash_m_runs_the_command_line():
     result = subprocess.run([sys.executable, "-m", "warpbags.cli.main", "--help"], capture_output=True, text=True,
                             timeout=300)
     assert result.returncode == 0 and "train" in result.stdout, result.stderr
-
-
-def test_the_command_line_shows_warps_own_output_only_with_verbose(tmp_path):
-    """Warp's banner and module-load lines stay out of the commands' output (`devices.init_warp_quietly`)."""
-    def train(*flags: str, out: str) -> subprocess.CompletedProcess:
-        return subprocess.run([sys.executable, "-m", "warpbags.cli.main", *flags, "train", "maryrose", "--iters", "2",
-                               "--rounds", "1", "--no-pose-opt", "--out", str(tmp_path / out)],
-                              capture_output=True, text=True, timeout=300)
-
-    quiet = train(out="quiet")
-    assert quiet.returncode == 0 and "done:" in quiet.stdout, quiet.stderr
-    assert "Warp " not in quiet.stdout + quiet.stderr and "Module " not in quiet.stdout + quiet.stderr
-    verbose = train("--verbose", out="verbose")
-    assert verbose.returncode == 0 and "Module " in verbose.stdout + verbose.stderr, verbose.stderr

@@ -687,6 +687,10 @@ def test_cli_without_a_terminal_prints_compact_lines_and_no_warp_driver_warning(
     assert [line.split()[1] for line in lines] == ["2/4", "4/4"], result.stdout
     assert all("loss" in line and "rot" in line and "s/it" in line and "eta" in line for line in lines)
     assert "CUDA driver" not in result.stderr + result.stdout and "Warp 1." not in result.stdout
+    assert "Module " not in result.stdout + result.stderr  # no module-load lines either (devices.init_warp_quietly)
+    again = [str(tmp_path / "verbose") if argument == str(out) else argument for argument in command[3:]]
+    verbose = subprocess.run([*command[:3], "--verbose", *again], capture_output=True, text=True, timeout=600)
+    assert verbose.returncode == 0 and "Module " in verbose.stdout + verbose.stderr, verbose.stderr
 
 
 def test_configs_of_older_runs_still_load():
