@@ -3,6 +3,7 @@ table line: a bad scene name, a bad number list, a bad or clashing `--set`."""
 
 from __future__ import annotations
 
+import runpy
 import subprocess
 import sys
 from pathlib import Path
@@ -45,15 +46,25 @@ def test_an_unknown_scene_is_one_error_line(script, tmp_path):
     ("train_step.py", ["--views", ","], "--views ','"),
     ("train_step.py", ["--inits", "sphere"], "--inits 'sphere'"),
 ])
-def test_bad_input_is_one_error_line_before_any_work(script, arguments, message, tmp_path):
-    """Checked before the scene is loaded (its name here is unknown too) and before any line of a table."""
+def test_bad_input_is_one_error_line_before_any_work(script, arguments, message, tmp_path, monkeypatch, capsys):
+    """Checked before the scene is loaded (its name here is unknown too) and before any line of a table. Run in
+    this process as `python bench/SCRIPT` runs it (`__main__`, its `clean_errors` entry point), which spares a
+    process start per case; the test above starts each script as a process."""
     scene = [] if script == "train_step.py" else ["nosuchscene"]
-    result = subprocess.run([sys.executable, str(BENCH / script), *scene, *arguments], capture_output=True,
-                            text=True, timeout=300, cwd=tmp_path)
-    assert result.returncode == 2, result.stderr
-    errors = [line for line in result.stderr.splitlines() if line.startswith("error:")]
-    assert len(errors) == 1 and message in errors[0] and "Traceback" not in result.stderr, result.stderr
-    assert result.stdout == ""
+    monkeypatch.setattr(sys, "argv", [str(BENCH / script), *scene, *arguments])
+    monkeypatch.syspath_prepend(str(BENCH))
+    monkeypatch.chdir(tmp_path)
+    threads = torch.get_num_threads()  # the scripts set torch's threads for their own process
+    try:
+        with pytest.raises(SystemExit) as exit_:
+            runpy.run_path(str(BENCH / script), run_name="__main__")
+    finally:
+        torch.set_num_threads(threads)
+    output = capsys.readouterr()
+    assert exit_.value.code == 2, output.err
+    errors = [line for line in output.err.splitlines() if line.startswith("error:")]
+    assert len(errors) == 1 and message in errors[0] and "Traceback" not in output.err, output.err
+    assert output.out == ""
 
 
 @pytest.mark.parametrize("device, message", [("tpu", "--device must be cpu or cuda"),
