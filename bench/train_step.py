@@ -455,7 +455,7 @@ def main() -> None:
     first = rows[0]
     print(f"maryrose {first['width']}x{first['height']}, 4 training views, torch {torch.__version__} (1 thread), "
           f"{len(os.sched_getaffinity(0))} cores; init: "
-          + "; ".join(f"{r['init']}: {r['init_note']}" for r in rows[::len(views_per_step)]))
+          + "; ".join(f"{r['init']}: {r['init_note']}" for r in rows[::len(views_per_step) * len(blocks)]))
     print_table(rows, opensplat)
     if args.json is not None:
         write_json(args.json, {"rows": rows, "opensplat": opensplat}, indent=2)
