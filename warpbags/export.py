@@ -20,7 +20,7 @@ from warpbags.camera_paths import turntable_viewmats
 from warpbags.data import SceneNormalization
 from warpbags.data.colmap import write_model
 from warpbags.data.images import image_size, resolution_path
-from warpbags.data.layouts import read_layout_cameras
+from warpbags.data.layouts import read_layout_cameras, scaled_intrinsics
 from warpbags.errors import WarpbagsError
 from warpbags.evaluation import TrainingRun, load_run
 from warpbags.files import atomic_output
@@ -77,8 +77,7 @@ def training_calibration(run: TrainingRun) -> Calibration:
         files.append(file.relative_to(root))
     folder = PurePosixPath(os.path.commonpath([file.parent.as_posix() for file in files]) or ".")
     sizes = np.array([image_size(root / file) for file in files], dtype=np.float64)
-    Ks = cameras.Ks[picked].copy()
-    Ks[:, :2, :] *= (sizes / cameras.calibration_sizes[picked])[:, :, None]
+    Ks = scaled_intrinsics(cameras.Ks[picked], cameras.calibration_sizes[picked], sizes)
     return Calibration(str(folder), [PurePosixPath(file.as_posix()).relative_to(folder).as_posix() for file in files],
                        Ks, sizes, cameras.distortions[picked])
 

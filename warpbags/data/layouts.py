@@ -39,6 +39,14 @@ class LayoutCameras:
     test_names: set[str] | None = None
 
 
+def scaled_intrinsics(Ks: np.ndarray, calibration_sizes: np.ndarray, sizes: np.ndarray) -> np.ndarray:
+    """[C,3,3] intrinsics calibrated at [C,2] (width, height) `calibration_sizes`, for images of `sizes` ([C,2], or
+    one (width, height) for all): the first row scaled by the widths' ratio, the second by the heights'."""
+    scaled = Ks.copy()
+    scaled[:, :2, :] *= (np.asarray(sizes, dtype=np.float64) / calibration_sizes)[:, :, None]
+    return scaled
+
+
 def read_layout_cameras(root: Path) -> LayoutCameras:
     """The cameras of scene folder `root`, from whichever layout it holds (COLMAP first, then LLFF, then
     transforms.json).

@@ -25,7 +25,7 @@ from warpbags.cameras import camera_centers
 from warpbags.data.images import (FACTORS, IMAGE_MEMORY_BUDGET, default_resolution, factor_within_budget, image_size,
                                   physical_memory, read_depths, read_images, read_masks, resolution_path, scene_bytes,
                                   undistort)
-from warpbags.data.layouts import LayoutCameras, read_layout_cameras
+from warpbags.data.layouts import LayoutCameras, read_layout_cameras, scaled_intrinsics
 from warpbags.data.scene import ORBIT_RADIUS, Scene, SceneNormalization
 from warpbags.data.splits import read_splits
 from warpbags.errors import WarpbagsError
@@ -71,9 +71,7 @@ def load_scene(
         raise WarpbagsError(f"no images_{resolution}/ or images/ folder in {root} (resolution {resolution})")
     image_files = [resolution_path(root, path, resolution) for path in cameras.image_paths]
     images, alphas, width, height = read_images(image_files, cameras.image_paths, resolution)
-    Ks = cameras.Ks.copy()
-    Ks[:, 0, :] *= (width / cameras.calibration_sizes[:, 0])[:, None]
-    Ks[:, 1, :] *= (height / cameras.calibration_sizes[:, 1])[:, None]
+    Ks = scaled_intrinsics(cameras.Ks, cameras.calibration_sizes, np.array([width, height]))
 
     masks = read_masks(root, cameras.image_names, width, height, resolution)
     if masks is None and alphas is not None:
