@@ -16,7 +16,7 @@ BENCH = Path(__file__).resolve().parents[1] / "bench"
 
 @pytest.mark.parametrize("script", ["pose_recovery.py", "pose_optimum.py", "repair.py", "hull_noise.py",
                                     "reference_poses.py", "view_agreement.py", "hull_depths.py",
-                                    "fitted_loss.py"])
+                                    "fitted_loss.py", "view_matches.py"])
 def test_an_unknown_scene_is_one_error_line(script, tmp_path):
     more = [str(tmp_path / "out")] if script == "hull_depths.py" else []  # its second argument: the copy to write
     result = subprocess.run([sys.executable, str(BENCH / script), "nosuchscene", *more], capture_output=True,
@@ -43,6 +43,9 @@ def test_an_unknown_scene_is_one_error_line(script, tmp_path):
     ("fitted_loss.py", ["--set", "views=6"], "--set views:"),
     ("view_agreement.py", ["--sizes", "128,big"], "--sizes '128,big': 'big' is not an integer"),
     ("view_agreement.py", ["--set", "max_image_size=64"], "--set max_image_size:"),
+    ("view_matches.py", ["--views", "4,1"], "--views 4,1: at least 2 views make a pair"),
+    ("view_matches.py", ["--ratio", "1.5"], "--ratio must be in (0, 1], got 1.5"),
+    ("view_matches.py", ["--min-inliers", "7"], "--min-inliers must be at least 8, got 7"),
     ("train_step.py", ["--views", ","], "--views ','"),
     ("train_step.py", ["--inits", "sphere"], "--inits 'sphere'"),
 ])

@@ -1,0 +1,184 @@
+"""Do the training views share feature matches? SIFT between every pair, checked against the reference poses.
+
+    python bench/view_matches.py SCENE [SCENE ...] [--views 4,6,9] [--features 4000] [--ratio 0.85]
+        [--true-px 2] [--ransac-px 1.5] [--min-inliers 15] [--pairs] [--json PATH]
+
+SCENE: as bench/pose_recovery.py (a preset, a folder, or one of its small synthetic scenes). For each scene and view
+count, OpenCV SIFT finds features inside each training view's mask (eroded by 2 px, so the background's edge does
+not count) at the resolution the scene is read at, and for every pair of views:
+
+- the ratio test (Lowe) keeps a match whose nearest descriptor is closer than `--ratio` times the second nearest;
+- a match is *true* when its Sampson distance to the epipolar geometry of the reference poses is under `--true-px`
+  pixels: what a correspondence loss on the poses (SPARF's idea, without its network) would need;
+- MAGSAC (OpenCV's USAC) fits a fundamental matrix to the matches (`--ransac-px`): what a method that does not know
+  the poses would keep. A pair is *kept* with at least `--min-inliers` inliers, and *right* when most of its inliers
+  are true.
+
+The table gives, per scene and view count, the pairs, those with at least 10 true matches, those kept, how many of
+the kept are right, and the true share of all kept inliers: where it is low, the matches that survive geometric
+verification are mostly wrong, and a correspondence term would pull the poses towards them.
+"""
+
+from __future__ import annotations
+
+import argparse
+import itertools
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from common import open_bench_scene, parse_numbers, write_json
+from warpbags.cli.common import clean_errors
+from warpbags.errors import WarpbagsError
+
+MASK_EROSION_PX = 2
+TRUE_PAIR_MATCHES = 10
+
+
+def fundamental_matrix(viewmat_a: np.ndarray, viewmat_b: np.ndarray, K_a: np.ndarray, K_b: np.ndarray) -> np.ndarray:
+    """[3,3] F with x_b^T F x_a = 0 for pixels x_a of view a and x_b of view b (world-to-camera [4,4], K [3,3])."""
+    relative = viewmat_b @ np.linalg.inv(viewmat_a)  # camera a -> camera b
+    rotation, translation = relative[:3, :3], relative[:3, 3]
+    cross = np.array([[0.0, -translation[2], translation[1]],
+                      [translation[2], 0.0, -translation[0]],
+                      [-translation[1], translation[0], 0.0]])
+    return np.linalg.inv(K_b).T @ cross @ rotation @ np.linalg.inv(K_a)
+
+
+def sampson_distance(F: np.ndarray, points_a: np.ndarray, points_b: np.ndarray) -> np.ndarray:
+    """[M] Sampson distances (pixels, first-order geometric error) of matches [M,2] a <-> [M,2] b under F."""
+    homogeneous_a = np.c_[points_a, np.ones(len(points_a))]
+    homogeneous_b = np.c_[points_b, np.ones(len(points_b))]
+    lines_b = homogeneous_a @ F.T  # epipolar lines in b, F x_a
+    lines_a = homogeneous_b @ F  # epipolar lines in a, F^T x_b
+    algebraic = np.sum(homogeneous_b * lines_b, axis=1)
+    gradient = lines_b[:, 0] ** 2 + lines_b[:, 1] ** 2 + lines_a[:, 0] ** 2 + lines_a[:, 1] ** 2
+    return np.abs(algebraic) / np.sqrt(np.maximum(gradient, 1e-30))
+
+
+def view_features(image: np.ndarray, mask: np.ndarray | None, sift) -> tuple[np.ndarray, np.ndarray | None]:
+    """SIFT keypoints [K,2] (pixel coordinates whose pixel centres are at +0.5, as the scene's intrinsics) and
+    descriptors [K,128] of an [H,W,3] image in [0, 1], inside its eroded [H,W] mask (None = everywhere)."""
+    grey = cv2.cvtColor((np.clip(image, 0, 1) * 255).round().astype(np.uint8), cv2.COLOR_RGB2GRAY)
+    region = None
+    if mask is not None:
+        size = 2 * MASK_EROSION_PX + 1
+        region = cv2.erode((mask > 0.5).astype(np.uint8) * 255, np.ones((size, size), np.uint8))
+    keypoints, descriptors = sift.detectAndCompute(grey, region)
+    # OpenCV puts the first pixel's centre at 0; the scene's K puts it at 0.5
+    return np.array([k.pt for k in keypoints], np.float64).reshape(-1, 2) + 0.5, descriptors
+
+
+def pair_matches(features_a, features_b, F_reference: np.ndarray, ratio: float, true_px: float, ransac_px: float,
+                 matcher) -> dict:
+    """The ratio-test matches of two views, how many are true under `F_reference`, MAGSAC's inliers and their
+    true ones."""
+    (points_a, descriptors_a), (points_b, descriptors_b) = features_a, features_b
+    empty = {"matches": 0, "true": 0, "inliers": 0, "true_inliers": 0}
+    if descriptors_a is None or descriptors_b is None or len(descriptors_a) < 2 or len(descriptors_b) < 2:
+        return empty
+    candidates = matcher.knnMatch(descriptors_a, descriptors_b, k=2)
+    good = [pair[0] for pair in candidates if len(pair) == 2 and pair[0].distance < ratio * pair[1].distance]
+    if len(good) < 8:  # the fundamental matrix needs 8 (7 minimal, but MAGSAC's refinement wants more)
+        return {**empty, "matches": len(good)}
+    matched_a = points_a[[m.queryIdx for m in good]]
+    matched_b = points_b[[m.trainIdx for m in good]]
+    true = sampson_distance(F_reference, matched_a, matched_b) < true_px
+    _, inlier_mask = cv2.findFundamentalMat(matched_a, matched_b, cv2.USAC_MAGSAC, ransac_px, 0.9999, 100_000)
+    inliers = np.zeros(len(good), bool) if inlier_mask is None else inlier_mask.ravel().astype(bool)
+    return {"matches": len(good), "true": int(true.sum()), "inliers": int(inliers.sum()),
+            "true_inliers": int((inliers & true).sum())}
+
+
+def view_matches(scene, views: int, features: int, ratio: float, true_px: float, ransac_px: float,
+                 min_inliers: int) -> dict:
+    """Every pair of the scene's `views` training views (as training picks them: its sparse_N split, else
+    farthest-point views): matches and their checks (`pair_matches`)."""
+    started = time.perf_counter()
+    chosen = scene.train_views(views)
+    cv2.setRNGSeed(0)  # MAGSAC samples at random: the same table every run
+    sift = cv2.SIFT_create(nfeatures=features, contrastThreshold=0.02)
+    matcher = cv2.BFMatcher(cv2.NORM_L2)
+    viewmats, Ks = scene.viewmats.double().numpy(), scene.Ks.double().numpy()
+    features_of = {i: view_features(scene.images[i].numpy(), None if scene.masks is None else scene.masks[i].numpy(),
+                                    sift) for i in chosen}
+    pairs = []
+    for a, b in itertools.combinations(chosen, 2):
+        F = fundamental_matrix(viewmats[a], viewmats[b], Ks[a], Ks[b])
+        axis_a, axis_b = viewmats[a][2, :3], viewmats[b][2, :3]  # optical axes in the world (rows of R)
+        angle = float(np.degrees(np.arccos(np.clip(axis_a @ axis_b, -1.0, 1.0))))
+        counts = pair_matches(features_of[a], features_of[b], F, ratio, true_px, ransac_px, matcher)
+        kept = counts["inliers"] >= min_inliers
+        pairs.append({"views": [a, b], "angle_deg": angle, **counts, "kept": kept,
+                      "right": kept and 2 * counts["true_inliers"] > counts["inliers"]})
+    kept_inliers = sum(p["inliers"] for p in pairs if p["kept"])
+    return {
+        "training_views": list(chosen), "size": [scene.width, scene.height],
+        "features": [len(points) for points, _ in features_of.values()],
+        "pairs": pairs,
+        "with_true": sum(p["true"] >= TRUE_PAIR_MATCHES for p in pairs),
+        "kept": sum(p["kept"] for p in pairs), "right": sum(p["right"] for p in pairs),
+        "kept_true_share": sum(p["true_inliers"] for p in pairs if p["kept"]) / kept_inliers if kept_inliers else None,
+        "minutes": (time.perf_counter() - started) / 60,
+    }
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("scenes", nargs="+")
+    parser.add_argument("--views", default="4,6,9", help="training view counts, comma-separated (the views training would pick)")
+    parser.add_argument("--features", type=int, default=4000, help="SIFT features per view at most")
+    parser.add_argument("--ratio", type=float, default=0.85, help="Lowe's ratio test")
+    parser.add_argument("--true-px", type=float, default=2.0,
+                        help="a match is true within this Sampson distance (px) of the reference epipolar geometry")
+    parser.add_argument("--ransac-px", type=float, default=1.5, help="MAGSAC's inlier threshold, px")
+    parser.add_argument("--min-inliers", type=int, default=15, help="a pair is kept with this many inliers")
+    parser.add_argument("--pairs", action="store_true", help="also print every pair with a true or kept match")
+    parser.add_argument("--json", type=Path, help="also write every pair's numbers here")
+    args = parser.parse_args()
+    views = parse_numbers(args.views, "--views", int)
+    checks = [(args.features > 0, f"--features must be positive, got {args.features}"),
+              (0 < args.ratio <= 1, f"--ratio must be in (0, 1], got {args.ratio}"),
+              (args.true_px > 0, f"--true-px must be positive, got {args.true_px}"),
+              (args.ransac_px > 0, f"--ransac-px must be positive, got {args.ransac_px}"),
+              (args.min_inliers >= 8, f"--min-inliers must be at least 8, got {args.min_inliers}"),
+              (min(views) >= 2, f"--views {args.views}: at least 2 views make a pair")]
+    for ok, message in checks:
+        if not ok:
+            raise WarpbagsError(message)
+    scenes = {name: open_bench_scene(name) for name in args.scenes}
+    for scene in scenes.values():  # too few views fails before the first line of the table
+        for count in views:
+            scene.train_views(count)
+    header = (f"{'scene':<22} {'views':>5} {'px':>5} {'pairs':>5} {'with true':>9} {'kept':>5} {'right':>5} "
+              f"{'true share of kept inliers':>26}")
+    print(f"SIFT {args.features} features inside the masks, ratio {args.ratio}; true within {args.true_px} px of the "
+          f"reference epipolar lines; MAGSAC {args.ransac_px} px, a pair kept with >= {args.min_inliers} inliers")
+    print(header + "\n" + "-" * len(header), flush=True)
+    rows = []
+    for name, scene in scenes.items():
+        for count in views:
+            result = view_matches(scene, count, args.features, args.ratio, args.true_px, args.ransac_px,
+                                  args.min_inliers)
+            rows.append({"scene": name, "views": count, **result})
+            share = result["kept_true_share"]
+            print(f"{name:<22} {count:>5} {max(result['size']):>5} {len(result['pairs']):>5} {result['with_true']:>9} "
+                  f"{result['kept']:>5} {result['right']:>5} {'-' if share is None else f'{share:.0%}':>26}"
+                  f"  ({result['minutes'] * 60:.0f} s)", flush=True)
+            if args.pairs:
+                for pair in result["pairs"]:
+                    if pair["true"] or pair["kept"]:
+                        a, b = pair["views"]
+                        print(f"    {a:>3}-{b:<3} {pair['angle_deg']:5.1f} deg apart: {pair['matches']:4d} matches, "
+                              f"{pair['true']:4d} true, {pair['inliers']:4d} inliers of which {pair['true_inliers']} "
+                              f"true{'' if pair['kept'] else ' (not kept)'}")
+            if args.json:
+                write_json(args.json, {"settings": {k: v for k, v in vars(args).items() if k != "json"}, "rows": rows})
+    print(f"pairs: of the training views; with true: at least {TRUE_PAIR_MATCHES} matches consistent with the reference "
+          "poses; kept: pairs MAGSAC keeps; right: kept pairs most of whose inliers are true")
+
+
+if __name__ == "__main__":
+    clean_errors(main)()  # a bad scene name or option: one line and exit code 2, as the CLI
