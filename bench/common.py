@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import json
 from pathlib import Path
 from typing import Any, Callable, Iterable
 
@@ -22,6 +21,7 @@ from warpbags.configs.train import load_preset, parse_settings  # noqa: E402
 from warpbags.data import SyntheticOptions, ensure_synthetic_scene, load_scene, open_scene  # noqa: E402
 from warpbags.data.noise import monocular_like_depths  # noqa: E402
 from warpbags.errors import WarpbagsError  # noqa: E402
+from warpbags.files import atomic_output, finite_json  # noqa: E402
 
 SMALL_SCENES = {
     # the synthetic scene, small enough for many runs
@@ -127,6 +127,8 @@ def training_overrides(args: argparse.Namespace, fixed: dict[str, str] | None = 
 
 
 def write_json(path: Path, data: Any, indent: int = 1) -> None:
-    """Write `data` as JSON to `path`, creating its folder."""
+    """Write `data` to `path` as strict JSON (a NaN, e.g. a PSNR not measured, as null), creating its folder. The
+    scripts rewrite it after every row; the write is atomic, so a run stopped mid-write leaves the last rows."""
     path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(json.dumps(data, indent=indent))
+    with atomic_output(path) as temporary:
+        temporary.write_text(finite_json(data, indent=indent))

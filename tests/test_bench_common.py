@@ -1,8 +1,11 @@
-"""bench/common.py: the number lists, the settings merge and the `--set` checks the benchmarks share."""
+"""bench/common.py: the number lists, the settings merge, the `--set` checks and the JSON files the benchmarks
+share."""
 
 from __future__ import annotations
 
 import argparse
+import json
+import math
 import sys
 from pathlib import Path
 
@@ -11,7 +14,7 @@ import pytest
 from warpbags.errors import WarpbagsError
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
-from common import add_training_options, merge_settings, parse_numbers, training_overrides  # noqa: E402
+from common import add_training_options, merge_settings, parse_numbers, training_overrides, write_json  # noqa: E402
 
 
 def test_parse_numbers_reads_comma_separated_numbers_and_skips_empty_items():
@@ -68,3 +71,11 @@ def test_training_overrides_refuses_a_field_the_script_sets_itself():
         training_overrides(_args("repair.iters=5"), fixed)
     # other fields of the same group are the user's
     assert training_overrides(_args("repair.fit_steps=5"), fixed) == {"repair": {"fit_steps": 5}}
+
+
+def test_write_json_writes_strict_json_with_nan_as_null(tmp_path):
+    path = tmp_path / "tables" / "rows.json"
+    write_json(path, {"rows": [{"psnr": math.nan, "rotation": 0.5, "seeds": (0, 1)}], "inf": math.inf})
+    assert "NaN" not in path.read_text() and "Infinity" not in path.read_text()
+    assert json.loads(path.read_text()) == {"rows": [{"psnr": None, "rotation": 0.5, "seeds": [0, 1]}], "inf": None}
+    assert sorted(p.name for p in path.parent.iterdir()) == ["rows.json"]  # no temporary left beside it
