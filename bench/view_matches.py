@@ -23,72 +23,29 @@ from __future__ import annotations
 
 import argparse
 import itertools
+import math
 import time
 from pathlib import Path
 
 import cv2
-import numpy as np
+import torch
 
 from common import open_bench_scene, parse_numbers, write_json
 from warpbags.cli.common import clean_errors
+from warpbags.correspondences import (RANSAC_PX, RATIO, SIFT_CONTRAST, SIFT_FEATURES, fundamental_matrices, match_pair,
+                                      sampson_distances, view_features)
 from warpbags.errors import WarpbagsError
 
-MASK_EROSION_PX = 2
 TRUE_PAIR_MATCHES = 10
 
 
-def fundamental_matrix(viewmat_a: np.ndarray, viewmat_b: np.ndarray, K_a: np.ndarray, K_b: np.ndarray) -> np.ndarray:
-    """[3,3] F with x_b^T F x_a = 0 for pixels x_a of view a and x_b of view b (world-to-camera [4,4], K [3,3])."""
-    relative = viewmat_b @ np.linalg.inv(viewmat_a)  # camera a -> camera b
-    rotation, translation = relative[:3, :3], relative[:3, 3]
-    cross = np.array([[0.0, -translation[2], translation[1]],
-                      [translation[2], 0.0, -translation[0]],
-                      [-translation[1], translation[0], 0.0]])
-    return np.linalg.inv(K_b).T @ cross @ rotation @ np.linalg.inv(K_a)
-
-
-def sampson_distance(F: np.ndarray, points_a: np.ndarray, points_b: np.ndarray) -> np.ndarray:
-    """[M] Sampson distances (pixels, first-order geometric error) of matches [M,2] a <-> [M,2] b under F."""
-    homogeneous_a = np.c_[points_a, np.ones(len(points_a))]
-    homogeneous_b = np.c_[points_b, np.ones(len(points_b))]
-    lines_b = homogeneous_a @ F.T  # epipolar lines in b, F x_a
-    lines_a = homogeneous_b @ F  # epipolar lines in a, F^T x_b
-    algebraic = np.sum(homogeneous_b * lines_b, axis=1)
-    gradient = lines_b[:, 0] ** 2 + lines_b[:, 1] ** 2 + lines_a[:, 0] ** 2 + lines_a[:, 1] ** 2
-    return np.abs(algebraic) / np.sqrt(np.maximum(gradient, 1e-30))
-
-
-def view_features(image: np.ndarray, mask: np.ndarray | None, sift) -> tuple[np.ndarray, np.ndarray | None]:
-    """SIFT keypoints [K,2] (pixel coordinates whose pixel centres are at +0.5, as the scene's intrinsics) and
-    descriptors [K,128] of an [H,W,3] image in [0, 1], inside its eroded [H,W] mask (None = everywhere)."""
-    grey = cv2.cvtColor((np.clip(image, 0, 1) * 255).round().astype(np.uint8), cv2.COLOR_RGB2GRAY)
-    region = None
-    if mask is not None:
-        size = 2 * MASK_EROSION_PX + 1
-        region = cv2.erode((mask > 0.5).astype(np.uint8) * 255, np.ones((size, size), np.uint8))
-    keypoints, descriptors = sift.detectAndCompute(grey, region)
-    # OpenCV puts the first pixel's centre at 0; the scene's K puts it at 0.5
-    return np.array([k.pt for k in keypoints], np.float64).reshape(-1, 2) + 0.5, descriptors
-
-
-def pair_matches(features_a, features_b, F_reference: np.ndarray, ratio: float, true_px: float, ransac_px: float,
-                 matcher) -> dict:
+def pair_matches(features_a, features_b, F_reference: torch.Tensor, ratio: float, true_px: float, ransac_px: float
+                 ) -> dict:
     """The ratio-test matches of two views, how many are true under `F_reference`, MAGSAC's inliers and their
     true ones."""
-    (points_a, descriptors_a), (points_b, descriptors_b) = features_a, features_b
-    empty = {"matches": 0, "true": 0, "inliers": 0, "true_inliers": 0}
-    if descriptors_a is None or descriptors_b is None or len(descriptors_a) < 2 or len(descriptors_b) < 2:
-        return empty
-    candidates = matcher.knnMatch(descriptors_a, descriptors_b, k=2)
-    good = [pair[0] for pair in candidates if len(pair) == 2 and pair[0].distance < ratio * pair[1].distance]
-    if len(good) < 8:  # the fundamental matrix needs 8 (7 minimal, but MAGSAC's refinement wants more)
-        return {**empty, "matches": len(good)}
-    matched_a = points_a[[m.queryIdx for m in good]]
-    matched_b = points_b[[m.trainIdx for m in good]]
-    true = sampson_distance(F_reference, matched_a, matched_b) < true_px
-    _, inlier_mask = cv2.findFundamentalMat(matched_a, matched_b, cv2.USAC_MAGSAC, ransac_px, 0.9999, 100_000)
-    inliers = np.zeros(len(good), bool) if inlier_mask is None else inlier_mask.ravel().astype(bool)
-    return {"matches": len(good), "true": int(true.sum()), "inliers": int(inliers.sum()),
+    matched_a, matched_b, inliers = match_pair(features_a, features_b, ratio, ransac_px)
+    true = (sampson_distances(F_reference, torch.from_numpy(matched_a), torch.from_numpy(matched_b)) < true_px).numpy()
+    return {"matches": len(matched_a), "true": int(true.sum()), "inliers": int(inliers.sum()),
             "true_inliers": int((inliers & true).sum())}
 
 
@@ -99,17 +56,16 @@ def view_matches(scene, views: int, features: int, ratio: float, true_px: float,
     started = time.perf_counter()
     chosen = scene.train_views(views)
     cv2.setRNGSeed(0)  # MAGSAC samples at random: the same table every run
-    sift = cv2.SIFT_create(nfeatures=features, contrastThreshold=0.02)
-    matcher = cv2.BFMatcher(cv2.NORM_L2)
-    viewmats, Ks = scene.viewmats.double().numpy(), scene.Ks.double().numpy()
+    sift = cv2.SIFT_create(nfeatures=features, contrastThreshold=SIFT_CONTRAST)
+    viewmats, Ks = scene.viewmats.double(), scene.Ks.double()
     features_of = {i: view_features(scene.images[i].numpy(), None if scene.masks is None else scene.masks[i].numpy(),
                                     sift) for i in chosen}
     pairs = []
     for a, b in itertools.combinations(chosen, 2):
-        F = fundamental_matrix(viewmats[a], viewmats[b], Ks[a], Ks[b])
-        axis_a, axis_b = viewmats[a][2, :3], viewmats[b][2, :3]  # optical axes in the world (rows of R)
-        angle = float(np.degrees(np.arccos(np.clip(axis_a @ axis_b, -1.0, 1.0))))
-        counts = pair_matches(features_of[a], features_of[b], F, ratio, true_px, ransac_px, matcher)
+        F = fundamental_matrices(viewmats[a], viewmats[b], Ks[a], Ks[b])
+        axis_a, axis_b = viewmats[a, 2, :3], viewmats[b, 2, :3]  # optical axes in the world (rows of R)
+        angle = math.degrees(math.acos(float((axis_a @ axis_b).clamp(-1.0, 1.0))))
+        counts = pair_matches(features_of[a], features_of[b], F, ratio, true_px, ransac_px)
         kept = counts["inliers"] >= min_inliers
         pairs.append({"views": [a, b], "angle_deg": angle, **counts, "kept": kept,
                       "right": kept and 2 * counts["true_inliers"] > counts["inliers"]})
@@ -128,12 +84,13 @@ def view_matches(scene, views: int, features: int, ratio: float, true_px: float,
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("scenes", nargs="+")
-    parser.add_argument("--views", default="4,6,9", help="training view counts, comma-separated (the views training would pick)")
-    parser.add_argument("--features", type=int, default=4000, help="SIFT features per view at most")
-    parser.add_argument("--ratio", type=float, default=0.85, help="Lowe's ratio test")
+    parser.add_argument("--views", default="4,6,9",
+                        help="training view counts, comma-separated (the views training would pick)")
+    parser.add_argument("--features", type=int, default=SIFT_FEATURES, help="SIFT features per view at most")
+    parser.add_argument("--ratio", type=float, default=RATIO, help="Lowe's ratio test")
     parser.add_argument("--true-px", type=float, default=2.0,
                         help="a match is true within this Sampson distance (px) of the reference epipolar geometry")
-    parser.add_argument("--ransac-px", type=float, default=1.5, help="MAGSAC's inlier threshold, px")
+    parser.add_argument("--ransac-px", type=float, default=RANSAC_PX, help="MAGSAC's inlier threshold, px")
     parser.add_argument("--min-inliers", type=int, default=15, help="a pair is kept with this many inliers")
     parser.add_argument("--pairs", action="store_true", help="also print every pair with a true or kept match")
     parser.add_argument("--json", type=Path, help="also write every pair's numbers here")
@@ -152,7 +109,7 @@ def main() -> None:
     for scene in scenes.values():  # too few views fails before the first line of the table
         for count in views:
             scene.train_views(count)
-    header = (f"{'scene':<22} {'views':>5} {'px':>5} {'pairs':>5} {'with true':>9} {'kept':>5} {'right':>5} "
+    header = (f"{'scene':<24} {'views':>5} {'px':>5} {'pairs':>5} {'with true':>9} {'kept':>5} {'right':>5} "
               f"{'true share of kept inliers':>26}")
     print(f"SIFT {args.features} features inside the masks, ratio {args.ratio}; true within {args.true_px} px of the "
           f"reference epipolar lines; MAGSAC {args.ransac_px} px, a pair kept with >= {args.min_inliers} inliers")
@@ -164,7 +121,7 @@ def main() -> None:
                                   args.min_inliers)
             rows.append({"scene": name, "views": count, **result})
             share = result["kept_true_share"]
-            print(f"{name:<22} {count:>5} {max(result['size']):>5} {len(result['pairs']):>5} {result['with_true']:>9} "
+            print(f"{name:<24} {count:>5} {max(result['size']):>5} {len(result['pairs']):>5} {result['with_true']:>9} "
                   f"{result['kept']:>5} {result['right']:>5} {'-' if share is None else f'{share:.0%}':>26}"
                   f"  ({result['minutes'] * 60:.0f} s)", flush=True)
             if args.pairs:
@@ -175,7 +132,8 @@ def main() -> None:
                               f"{pair['true']:4d} true, {pair['inliers']:4d} inliers of which {pair['true_inliers']} "
                               f"true{'' if pair['kept'] else ' (not kept)'}")
             if args.json:
-                write_json(args.json, {"settings": {k: v for k, v in vars(args).items() if k != "json"}, "rows": rows})
+                settings = {name: value for name, value in vars(args).items() if name != "json"}
+                write_json(args.json, {"settings": settings, "rows": rows})
     print(f"pairs: of the training views; with true: at least {TRUE_PAIR_MATCHES} matches consistent with the reference "
           "poses; kept: pairs MAGSAC keeps; right: kept pairs most of whose inliers are true")
 
