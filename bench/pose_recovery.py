@@ -71,6 +71,8 @@ VARIANTS = {
     "frozen-orbit": dict(camera={"orbit_from_round": 99}),
     # no search over turns of the worst-fit camera (`camera.hypotheses_round`)
     "no-hypotheses": dict(camera={"hypotheses_round": 0}),
+    # the feature matches' epipolar residual in the coherence solve and the rounds (`warpbags.correspondences`)
+    "matches": dict(lambda_epipolar=0.01, camera={"coherence_epipolar": 1e-3}),
 }
 ABLATIONS = ["no-centroid-start", "no-coherence", "no-silhouette", "no-precondition", "camera-param", "poses-whole-round",
              "poses-first-half", "no-hypotheses"]

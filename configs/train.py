@@ -109,6 +109,10 @@ class CameraConfig:
             their epipolar tangencies from 6 views on (n (n - 1) against 6 n - 7); below that the frame's false
             border is a constraint the solve needs, above it the border pulls cameras away from poses at which a
             capture cut by the frame is coherent. 0 = always.
+        coherence_epipolar: weight of the feature matches' epipolar residual (`TrainConfig.lambda_epipolar`) added to
+            the silhouette-coherence solve's loss; 0 = off. The coherence loss is in image sizes and ends near
+            1e-5 per other view; the residual is a mean Cauchy loss of about 0.1 at the reference poses and 1-2 a
+            few degrees off.
         fix_first_camera: gauge; keep camera 0 at its starting pose (False: every camera is optimized and errors are
             measured after sim(3) alignment, the BAGS protocol).
         orbit_from_round: the object-centric orbit (wx, wy: the camera turned about the object centre, which stays
@@ -155,6 +159,7 @@ class CameraConfig:
     centroid_start: bool = True
     coherence_iters: int = 100
     coherence_continued_from_views: int = 6
+    coherence_epipolar: float = 0.0
     fix_first_camera: bool = False
     orbit_from_round: int = 0
     round_anchor: float = 0.0
@@ -319,6 +324,14 @@ class TrainConfig:
         lambda_chamfer: weight of the two-sided chamfer between projected Gaussian centres and mask edges (NeRS).
         silhouette_until: the two silhouette terms are used for each round's first `silhouette_until` iterations
             (0 = always).
+        lambda_epipolar: weight of the feature matches' epipolar residual under the current poses
+            (`warpbags.correspondences.epipolar_loss`: the mean Cauchy loss of their Sampson distances, in pixels at
+            the training resolution) while the poses move; it acts on the poses only. The matches are SIFT matches
+            between the training views at the resolution the scene is read at, from pairs of views whose
+            fundamental matrix (MAGSAC) holds at least `matches_min_inliers` of them (`training_scene`). Views about
+            90 deg apart share none, so with 4 views of an object the term finds nothing to do.
+        matches_min_inliers: a pair of views gives matches only with at least this many inliers: a fundamental
+            matrix fits 15-35 wrong matches of a pair by chance (`bench/view_matches.py`).
         depth_loss: "mad" (GaussianObject's median/MAD-normalized disparity L1) or "pearson" (1 - correlation).
         checkpoint_every: checkpoint interval in iterations.
         pose_alignment: alignment used for the logged pose error ("procrustes", "pairwise").
@@ -360,6 +373,8 @@ class TrainConfig:
     lambda_mask_distance: float = 0.0
     lambda_chamfer: float = 1.0
     silhouette_until: int = 0
+    lambda_epipolar: float = 0.0
+    matches_min_inliers: int = 40
     depth_loss: Literal["mad", "pearson"] = "mad"
     checkpoint_every: int = 500
     pose_alignment: Literal["procrustes", "pairwise"] = "procrustes"
@@ -373,6 +388,13 @@ class TrainConfig:
     def total_iters(self) -> int:
         """Coarse plus repair iterations."""
         return self.iters + self.repair.iters
+
+    @property
+    def uses_matches(self) -> bool:
+        """True when the poses are optimized with the feature matches' epipolar term, in training or in the
+        silhouette-coherence solve: the training views' matches are then found before training."""
+        return self.pose_opt and (self.lambda_epipolar > 0 or (self.camera.coherence_iters > 0
+                                                               and self.camera.coherence_epipolar > 0))
 
     @property
     def injects_pose_noise(self) -> bool:
@@ -449,6 +471,9 @@ class TrainConfig:
              "densify.floater_every and densify.opacity_reset_every must be >= 0 (0: never)"),
             (min(self.lambda_mask_distance, self.lambda_chamfer) >= 0, "silhouette loss weights must be >= 0"),
             (self.silhouette_until >= 0, f"silhouette_until must be >= 0, got {self.silhouette_until}"),
+            (min(self.lambda_epipolar, self.camera.coherence_epipolar) >= 0,
+             "lambda_epipolar and camera.coherence_epipolar must be >= 0"),
+            (self.matches_min_inliers >= 8, f"matches_min_inliers must be >= 8, got {self.matches_min_inliers}"),
             *self.repair.checks(),
             (self.repair.iters == 0 or self.views >= 3, "the repair stage needs at least 3 training views"),
             (self.repair.iters == 0 or self.background == "white",

@@ -17,7 +17,7 @@ from warpbags.configs.train import TrainConfig, load_preset, parse_settings
 
 from warpbags.data import SyntheticOptions, ensure_synthetic_scene, load_scene
 from warpbags.errors import WarpbagsError
-from warpbags import run_folder
+from warpbags import camera_setup, run_folder
 from warpbags.losses import depth_loss, ssim
 from warpbags.model import camera_viewmats
 from warpbags.pose_history import read_pose_history
@@ -263,6 +263,31 @@ def test_the_coherence_solve_continues_the_masks_beyond_the_frame_from_six_views
     Trainer(training_scene(load_scene(scene_dir, name="tiny"), config), config, tmp_path, log=lines.append)
     solve = [line for line in lines if "silhouette coherence of the starting poses" in line]
     assert len(solve) == 1 and ("masks continued beyond the image border" in solve[0]) == continued
+
+
+def test_feature_matches_are_found_for_a_run_that_uses_them_at_the_images_resolution(scene_dir):
+    """Found on the views as read (96 px here) and scaled with them to the training size; a run without the
+    epipolar term does not look for them."""
+    scene = load_scene(scene_dir, name="tiny")
+    assert training_scene(scene, tiny_config(views=6)).matches is None
+    wanted = dict(views=6, lambda_epipolar=0.01, matches_min_inliers=8)
+    half, full = (training_scene(scene, tiny_config(**wanted, max_image_size=size)) for size in (48, 96))
+    assert len(full.matches) > 0 and full.matches.size == (96, 96) and half.matches.size == (48, 48)
+    assert torch.equal(half.matches.pixels_a * 2, full.matches.pixels_a)
+    assert training_scene(scene, tiny_config(**wanted, pose_opt=False)).matches is None
+
+
+def test_the_epipolar_term_joins_the_loss_while_the_poses_move_and_the_solve_uses_it(scene_dir, tmp_path,
+                                                                                       monkeypatch):
+    solves = []
+    original = camera_setup.epipolar_loss
+    monkeypatch.setattr(camera_setup, "epipolar_loss", lambda *args: solves.append(1) or original(*args))
+    trainer = make_trainer(scene_dir, tmp_path, iters=6, pose_opt_start=3, views=6, lambda_epipolar=0.01,
+                           matches_min_inliers=8, camera={"coherence_iters": 2, "coherence_epipolar": 1e-3})
+    assert solves  # the coherence solve's loss has the term
+    records = [trainer.train_step() for _ in range(6)]
+    assert [("epipolar" in record) for record in records] == [False, False, False, True, True, True]
+    assert all(record["epipolar"] > 0 for record in records[3:])
 
 
 def test_a_resumed_run_does_not_solve_its_starting_poses_again(scene_dir, tmp_path):

@@ -14,6 +14,7 @@ import torch
 from warpbags.camera_optimizer import CameraOptimizer, CameraOptimizerSettings
 from warpbags.cameras import camera_centers
 from warpbags.configs.train import TrainConfig
+from warpbags.correspondences import ViewMatches, epipolar_loss
 from warpbags.data.noise import PoseNoise, noisy_viewmats
 from warpbags.data.scene import Scene
 from warpbags.silhouette import SilhouetteTargets, centroid_start, rays_meeting_point
@@ -61,7 +62,8 @@ def training_cameras(config: TrainConfig, viewmats: torch.Tensor, object_center:
 
 
 def coherent_start(cameras: CameraOptimizer, targets: SilhouetteTargets, Ks: torch.Tensor, object_center: torch.Tensor,
-                   iterations: int) -> tuple[float, float]:
+                   iterations: int, matches: ViewMatches | None = None, matches_weight: float = 0.0
+                   ) -> tuple[float, float]:
     """Solve every camera of `cameras` for silhouette coherence with the others (`SilhouetteTargets.coherence_loss`)
     by L-BFGS, and make that its starting pose (`CameraOptimizer.rebase`: corrections and moments at zero).
 
@@ -74,6 +76,8 @@ def coherent_start(cameras: CameraOptimizer, targets: SilhouetteTargets, Ks: tor
         targets: the masks' distance transforms (the training views' `silhouettes` where the silhouette terms use
             them). Ks: [C, 3, 3] at the masks' resolution. object_center: [3].
         iterations: L-BFGS iterations.
+        matches, matches_weight: feature matches between the views at the masks' resolution, whose epipolar residual
+            (`epipolar_loss`) joins the loss with this weight (None or 0: the silhouettes alone).
 
     Returns:
         (the coherence loss before, after), in image sizes.
@@ -83,7 +87,13 @@ def coherent_start(cameras: CameraOptimizer, targets: SilhouetteTargets, Ks: tor
     radius = targets.object_radius(solver.viewmats(), Ks, center)
     with torch.no_grad():
         before = float(targets.coherence_loss(solver.viewmats(), Ks, center, radius))
-    solver.refine(lambda viewmats: targets.coherence_loss(viewmats, Ks, center, radius), iterations)
+    def loss_of(viewmats: torch.Tensor) -> torch.Tensor:
+        loss = targets.coherence_loss(viewmats, Ks, center, radius)
+        if matches is not None and matches_weight > 0:
+            loss = loss + matches_weight * epipolar_loss(viewmats, Ks, matches)
+        return loss
+
+    solver.refine(loss_of, iterations)
     solved = solver.viewmats()
     with torch.no_grad():
         after = float(targets.coherence_loss(solved, Ks, center, radius))

@@ -20,6 +20,7 @@ from warpbags.camera_optimizer import CameraOptimizer, exponential_lr
 from warpbags.blur import gaussian_blur
 from warpbags.cameras import camera_centers
 from warpbags.configs.train import TrainConfig
+from warpbags.correspondences import epipolar_loss
 from warpbags.data.scene import Scene
 from warpbags.errors import WarpbagsError
 from warpbags.gaussians import render_gaussians
@@ -240,6 +241,12 @@ class GaussianModel:
         self.set_learning_rate(settings.gaussian_lr_fraction)
         views = self.sample_views()
         loss, terms, meta = self.loss(views, camera_viewmats(cameras, views, settings.pose_active), settings)
+        matches = self.training_views.scene.matches
+        if settings.pose_active and self.config.lambda_epipolar > 0 and matches is not None and len(matches):
+            # the poses only: every camera's, though only the rendered ones take a step
+            epipolar = epipolar_loss(cameras.apply(), self.training_views.Ks, matches)
+            loss = loss + self.config.lambda_epipolar * epipolar
+            terms["epipolar"] = epipolar.item()
         self.optimize(loss, cameras, views if settings.pose_active else None, settings.pose_anchor,
                       after_backward=lambda: self.strategy.accumulate(settings.round_iteration, meta))
         densified = self.strategy.step(settings.round_iteration + 1, self.params, self.optimizer, self.generator)

@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import contextlib
 import copy
+import dataclasses
 import signal
 import time
 from collections.abc import Callable, Iterator
@@ -34,6 +35,7 @@ from warpbags.camera_optimizer import hypothesis_turns
 from warpbags.camera_setup import coherent_start, given_viewmats, starting_poses, training_cameras
 from warpbags.configs.scenes import SCENES
 from warpbags.configs.train import TrainConfig
+from warpbags.correspondences import find_view_matches
 from warpbags.data.scene import Scene
 from warpbags.devices import torch_device
 from warpbags.errors import WarpbagsError
@@ -101,8 +103,9 @@ class Trainer:
             continued = self.num_cameras >= config.camera.coherence_continued_from_views
             targets = (full.silhouettes if full.silhouettes is not None and not continued
                        else SilhouetteTargets(full.masks, continued_beyond_frame=continued).to(self.device))
+            matches = full.scene.matches if config.camera.coherence_epipolar > 0 else None
             before, after = coherent_start(self.cameras, targets, full.Ks, self.object_center,
-                                           config.camera.coherence_iters)
+                                           config.camera.coherence_iters, matches, config.camera.coherence_epipolar)
             self.log(f"silhouette coherence of the starting poses: {before:.2e} -> {after:.2e}"
                      + (" (masks continued beyond the image border)" if continued else ""))
             self.viewmats_start = self.cameras.viewmats()
@@ -460,7 +463,8 @@ def training_scene(scene: Scene | str | Path, config: TrainConfig, data_root: st
                    log: Callable[[str], None] | None = None) -> Scene:
     """The training views of a scene (a loaded Scene, a preset name or a folder), downscaled per `config`.
 
-    The views are the scene's `sparse_{views}.txt` split, or else a farthest-point choice (said through `log`).
+    The views are the scene's `sparse_{views}.txt` split, or else a farthest-point choice (said through `log`). A
+    config that uses the feature matches' epipolar term gets the views' matches found here, before downscaling.
 
     Raises:
         WarpbagsError: unknown scene, missing data, or fewer images than `config.views`.
@@ -473,7 +477,14 @@ def training_scene(scene: Scene | str | Path, config: TrainConfig, data_root: st
     if log is not None and str(config.views) not in scene.splits:
         log(f"{scene.name} has no sparse_{config.views}.txt: {config.views} training views chosen by farthest-point "
             "sampling of the camera centres")
-    return scene.subset(views).downscaled(config.max_image_size)
+    scene = scene.subset(views)
+    if config.uses_matches:  # on the images as read: a training image of 128 px holds few features
+        scene = dataclasses.replace(scene, matches=find_view_matches(scene.images, scene.masks,
+                                                                     config.matches_min_inliers))
+        if log is not None:
+            log(f"feature matches between the training views: {len(scene.matches)} in "
+                f"{len(scene.matches.pairs)} of {len(views) * (len(views) - 1) // 2} pairs")
+    return scene.downscaled(config.max_image_size)
 
 
 def default_run_dir(scene_name: str, views: int, root: str | Path = "runs") -> Path:

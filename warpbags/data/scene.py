@@ -18,6 +18,7 @@ import numpy as np
 import torch
 
 from warpbags.cameras import camera_centers
+from warpbags.correspondences import ViewMatches
 from warpbags.errors import WarpbagsError
 
 DEFAULT_SPLIT_SIZES = (4, 6, 9)
@@ -105,6 +106,9 @@ class Scene:
         point_colors: [P,3] float32 RGB in [0,1], or None.
         normalization: the source-to-normalized similarity (invert it for export).
         resolution: the image pyramid level read (images_{resolution}; 1 = full size).
+        matches: feature matches between the views (`warpbags.correspondences`), found on the images as read and
+            carried along when the scene is cut to some views or downscaled; None until `training_scene` finds them
+            for a run that uses them.
     """
 
     name: str
@@ -125,6 +129,7 @@ class Scene:
     point_colors: torch.Tensor | None = None
     normalization: SceneNormalization = field(default_factory=SceneNormalization)
     resolution: int = 1
+    matches: ViewMatches | None = None
 
     @property
     def num_views(self) -> int:
@@ -171,6 +176,7 @@ class Scene:
             Ks=self.Ks[index],
             splits={},
             split_sources={},
+            matches=None if self.matches is None else self.matches.subset(indices),
         )
 
 
@@ -194,7 +200,8 @@ class Scene:
         masks = None if self.masks is None else (resize(self.masks, cv2.INTER_AREA) > 0.5).float()
         depths = None if self.depths is None else resize(self.depths, cv2.INTER_NEAREST)
         return replace(self, images=resize(self.images, cv2.INTER_AREA).clamp(0, 1), masks=masks, depths=depths,
-                       Ks=Ks, width=width, height=height)
+                       Ks=Ks, width=width, height=height,
+                       matches=None if self.matches is None else self.matches.scaled_to(width, height))
 
 
 def farthest_views(camera_centers: np.ndarray, count: int, excluded: Container[int] = ()) -> list[int]:
