@@ -87,6 +87,7 @@ def coherent_start(cameras: CameraOptimizer, targets: SilhouetteTargets, Ks: tor
     radius = targets.object_radius(solver.viewmats(), Ks, center)
     with torch.no_grad():
         before = float(targets.coherence_loss(solver.viewmats(), Ks, center, radius))
+
     def loss_of(viewmats: torch.Tensor) -> torch.Tensor:
         loss = targets.coherence_loss(viewmats, Ks, center, radius)
         if matches is not None and matches_weight > 0:
