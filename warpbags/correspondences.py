@@ -7,7 +7,10 @@ at (a 128 px training image holds few features): SIFT inside each view's mask, L
 matrix by MAGSAC for every pair. Only pairs whose fit holds many inliers are kept: a fundamental matrix has 7 degrees
 of freedom and fits 15-35 of 60-170 wrong matches by chance (`bench/view_matches.py` counts both kinds on the
 synthetic scenes and the real captures). Views about 90 deg apart, as four views of an object are, share no
-matches, so the term does nothing there.
+matches, so the term does nothing there. It is off by default (`TrainConfig.lambda_epipolar`,
+`CameraConfig.coherence_epipolar`): with 9 views it brings maryrose 2.4 deg closer to its reference poses, but a
+third of the telephoto synthetic scene's kept matches are wrong (repeated texture that a poorly conditioned
+fundamental matrix accepts) and cost it 0.2 deg (docs/pose-recovery.md).
 
 Pixel coordinates follow the intrinsics' convention (pixel centres at +0.5), so they scale with the image edges.
 """
