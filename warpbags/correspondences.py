@@ -24,6 +24,8 @@ import cv2
 import numpy as np
 import torch
 
+from warpbags.lie import skew
+
 __all__ = ["ViewMatches", "epipolar_loss", "find_view_matches", "fundamental_matrices", "match_pair",
            "sampson_distances", "view_features"]
 
@@ -130,19 +132,12 @@ def find_view_matches(images: torch.Tensor, masks: torch.Tensor | None, min_inli
         views_b += [b] * int(inliers.sum())
         pixels_a.append(matched_a[inliers])
         pixels_b.append(matched_b[inliers])
+
     def stacked(parts: list[np.ndarray]) -> torch.Tensor:
         return torch.from_numpy(np.concatenate(parts)) if parts else torch.zeros(0, 2, dtype=torch.float64)
 
     return ViewMatches(torch.tensor(views_a, dtype=torch.long), torch.tensor(views_b, dtype=torch.long),
                        stacked(pixels_a), stacked(pixels_b), (images.shape[2], images.shape[1]))
-
-
-def _skew(vectors: torch.Tensor) -> torch.Tensor:
-    """[..., 3] -> [..., 3, 3] the cross-product matrices."""
-    x, y, z = vectors.unbind(-1)
-    zero = torch.zeros_like(x)
-    return torch.stack([torch.stack([zero, -z, y], -1), torch.stack([z, zero, -x], -1),
-                        torch.stack([-y, x, zero], -1)], -2)
 
 
 def fundamental_matrices(viewmats_a: torch.Tensor, viewmats_b: torch.Tensor, Ks_a: torch.Tensor, Ks_b: torch.Tensor
@@ -151,7 +146,7 @@ def fundamental_matrices(viewmats_a: torch.Tensor, viewmats_b: torch.Tensor, Ks_
     (world-to-camera [..., 4, 4], intrinsics [..., 3, 3]); differentiable in the poses."""
     rotation = viewmats_b[..., :3, :3] @ viewmats_a[..., :3, :3].transpose(-1, -2)  # camera a -> camera b
     translation = viewmats_b[..., :3, 3] - (rotation @ viewmats_a[..., :3, 3:])[..., 0]
-    return torch.linalg.inv(Ks_b).transpose(-1, -2) @ _skew(translation) @ rotation @ torch.linalg.inv(Ks_a)
+    return torch.linalg.inv(Ks_b).transpose(-1, -2) @ skew(translation) @ rotation @ torch.linalg.inv(Ks_a)
 
 
 def sampson_distances(F: torch.Tensor, pixels_a: torch.Tensor, pixels_b: torch.Tensor) -> torch.Tensor:

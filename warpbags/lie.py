@@ -16,7 +16,7 @@ import math
 
 import torch
 
-__all__ = ["rotation_error_deg", "se3_exp", "so3_exp", "so3_log"]
+__all__ = ["rotation_error_deg", "se3_exp", "skew", "so3_exp", "so3_log"]
 
 # Below this squared angle (rad^2) the exp-map coefficients come from their Taylor series. The series below
 # (through theta^12) is exact to float64 rounding up to theta^2 = 0.25, and above it the closed forms lose at
@@ -24,7 +24,7 @@ __all__ = ["rotation_error_deg", "se3_exp", "so3_exp", "so3_log"]
 _SERIES_THETA2 = 0.25
 
 
-def _skew(vectors: torch.Tensor) -> torch.Tensor:
+def skew(vectors: torch.Tensor) -> torch.Tensor:
     """Cross-product matrices.
 
     Args:
@@ -44,7 +44,7 @@ def _skew(vectors: torch.Tensor) -> torch.Tensor:
 
 
 def _vee(matrices: torch.Tensor) -> torch.Tensor:
-    """Inverse of :func:`_skew` applied to the antisymmetric part: ``[..., 3, 3] -> [..., 3]``."""
+    """Inverse of :func:`skew` applied to the antisymmetric part: ``[..., 3, 3] -> [..., 3]``."""
     antisymmetric = 0.5 * (matrices - matrices.transpose(-1, -2))
     return torch.stack(
         [antisymmetric[..., 2, 1], antisymmetric[..., 0, 2], antisymmetric[..., 1, 0]], dim=-1
@@ -97,9 +97,9 @@ def so3_exp(omega: torch.Tensor) -> torch.Tensor:
         ``[..., 3, 3]`` rotation matrices ``I + a W + b W^2`` with ``W = skew(omega)``.
     """
     a, b, _ = _exp_coefficients(omega)
-    skew = _skew(omega)
+    w = skew(omega)
     identity = torch.eye(3, dtype=omega.dtype, device=omega.device)
-    return identity + a[..., None, None] * skew + b[..., None, None] * (skew @ skew)
+    return identity + a[..., None, None] * w + b[..., None, None] * (w @ w)
 
 
 def so3_log(rotations: torch.Tensor) -> torch.Tensor:
@@ -161,11 +161,11 @@ def se3_exp(xi: torch.Tensor) -> torch.Tensor:
     """
     omega, v = xi[..., :3], xi[..., 3:]
     a, b, c = _exp_coefficients(omega)
-    skew = _skew(omega)
-    skew2 = skew @ skew
+    w = skew(omega)
+    w2 = w @ w
     identity = torch.eye(3, dtype=xi.dtype, device=xi.device)
-    rotation = identity + a[..., None, None] * skew + b[..., None, None] * skew2
-    v_matrix = identity + b[..., None, None] * skew + c[..., None, None] * skew2
+    rotation = identity + a[..., None, None] * w + b[..., None, None] * w2
+    v_matrix = identity + b[..., None, None] * w + c[..., None, None] * w2
     translation = (v_matrix @ v[..., None])[..., 0]
     top = torch.cat([rotation, translation[..., None]], dim=-1)
     bottom = torch.zeros(*xi.shape[:-1], 1, 4, dtype=xi.dtype, device=xi.device)

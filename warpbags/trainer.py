@@ -103,9 +103,9 @@ class Trainer:
             continued = self.num_cameras >= config.camera.coherence_continued_from_views
             targets = (full.silhouettes if full.silhouettes is not None and not continued
                        else SilhouetteTargets(full.masks, continued_beyond_frame=continued).to(self.device))
-            matches = full.scene.matches if config.camera.coherence_epipolar > 0 else None
             before, after = coherent_start(self.cameras, targets, full.Ks, self.object_center,
-                                           config.camera.coherence_iters, matches, config.camera.coherence_epipolar)
+                                           config.camera.coherence_iters, full.scene.matches,
+                                           config.camera.coherence_epipolar)
             self.log(f"silhouette coherence of the starting poses: {before:.2e} -> {after:.2e}"
                      + (" (masks continued beyond the image border)" if continued else ""))
             self.viewmats_start = self.cameras.viewmats()
