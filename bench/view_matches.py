@@ -27,13 +27,12 @@ import math
 import time
 from pathlib import Path
 
-import cv2
 import torch
 
 from common import open_bench_scene, parse_numbers, write_json
 from warpbags.cli.common import clean_errors
-from warpbags.correspondences import (RANSAC_PX, RATIO, SIFT_CONTRAST, SIFT_FEATURES, fundamental_matrices, match_pair,
-                                      sampson_distances, view_features)
+from warpbags.correspondences import (RANSAC_PX, RATIO, SIFT_FEATURES, fundamental_matrices, match_pair,
+                                      sampson_distances, sift_detector, view_features)
 from warpbags.errors import WarpbagsError
 
 TRUE_PAIR_MATCHES = 10
@@ -55,8 +54,7 @@ def view_matches(scene, views: int, features: int, ratio: float, true_px: float,
     farthest-point views): matches and their checks (`pair_matches`)."""
     started = time.perf_counter()
     chosen = scene.train_views(views)
-    cv2.setRNGSeed(0)  # MAGSAC samples at random: the same table every run
-    sift = cv2.SIFT_create(nfeatures=features, contrastThreshold=SIFT_CONTRAST)
+    sift = sift_detector(features)
     viewmats, Ks = scene.viewmats.double(), scene.Ks.double()
     features_of = {i: view_features(scene.images[i].numpy(), None if scene.masks is None else scene.masks[i].numpy(),
                                     sift) for i in chosen}

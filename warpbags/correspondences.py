@@ -27,7 +27,7 @@ import torch
 from warpbags.lie import skew
 
 __all__ = ["ViewMatches", "epipolar_loss", "find_view_matches", "fundamental_matrices", "match_pair",
-           "sampson_distances", "view_features"]
+           "sampson_distances", "sift_detector", "view_features"]
 
 MASK_EROSION_PX = 2  # features at the mask's edge describe the background too
 SIFT_FEATURES = 4000
@@ -78,6 +78,13 @@ class ViewMatches:
                            self.pixels_b[keep], self.size)
 
 
+def sift_detector(features: int = SIFT_FEATURES):
+    """OpenCV's SIFT as the matches use it. It seeds OpenCV's random numbers too: MAGSAC samples at random, and the
+    same images should give the same matches every run."""
+    cv2.setRNGSeed(0)
+    return cv2.SIFT_create(nfeatures=features, contrastThreshold=SIFT_CONTRAST)
+
+
 def view_features(image: np.ndarray, mask: np.ndarray | None, sift) -> tuple[np.ndarray, np.ndarray | None]:
     """SIFT keypoints [K, 2] (pixel centres at +0.5) and descriptors [K, 128] of an [H, W, 3] image in [0, 1], inside
     its [H, W] mask eroded by `MASK_EROSION_PX` (None: everywhere)."""
@@ -119,8 +126,7 @@ def find_view_matches(images: torch.Tensor, masks: torch.Tensor | None, min_inli
         images: [C, H, W, 3] in [0, 1]. masks: [C, H, W] or None.
         min_inliers: a pair with fewer inliers is dropped whole (its matches are mostly chance).
     """
-    cv2.setRNGSeed(0)  # MAGSAC samples at random: the same matches every run
-    sift = cv2.SIFT_create(nfeatures=SIFT_FEATURES, contrastThreshold=SIFT_CONTRAST)
+    sift = sift_detector()
     features = [view_features(images[i].numpy(), None if masks is None else masks[i].numpy(), sift)
                 for i in range(len(images))]
     views_a, views_b, pixels_a, pixels_b = [], [], [], []
