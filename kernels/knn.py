@@ -40,7 +40,7 @@ def grid_cell(point: Any, grid: PointGrid3):
             clamped_cell(wp.float64(point[2]), grid.origin[2], grid.cell, grid.cells_z))
 
 
-@wp.kernel
+@wp.kernel(enable_backward=False)
 def count_cells_3d_kernel(points: wp.array(dtype=Any), grid: PointGrid3, point_cells: wp.array(dtype=wp.int32),
                           cell_counts: wp.array(dtype=wp.int32)):
     """Each point's cell (x-fastest index) and the number of points per cell."""

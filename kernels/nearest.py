@@ -55,7 +55,7 @@ def squared_distance(a: Any, b: Any):
     return dx * dx + dy * dy
 
 
-@wp.kernel
+@wp.kernel(enable_backward=False)
 def count_cells_kernel(points: wp.array(dtype=Any), grid: PointGrid, point_cells: wp.array(dtype=wp.int32),
                        cell_counts: wp.array(dtype=wp.int32)):
     """Each point's cell (row-major index; -1 for a point that is not finite, which no query finds), and the
@@ -70,7 +70,7 @@ def count_cells_kernel(points: wp.array(dtype=Any), grid: PointGrid, point_cells
     wp.atomic_add(cell_counts, cell, 1)
 
 
-@wp.kernel
+@wp.kernel(enable_backward=False)
 def fill_cells_kernel(point_cells: wp.array(dtype=wp.int32), cell_cursors: wp.array(dtype=wp.int32),
                       cell_points: wp.array(dtype=wp.int32)):
     """Every point's index into its cell's slots (`cell_cursors` starts at each cell's offset)."""
@@ -81,7 +81,7 @@ def fill_cells_kernel(point_cells: wp.array(dtype=wp.int32), cell_cursors: wp.ar
     cell_points[slot] = i
 
 
-@wp.kernel
+@wp.kernel(enable_backward=False)
 def nearest_in_grid_kernel(queries: wp.array(dtype=Any), points: wp.array(dtype=Any), grid: PointGrid,
                            cell_offsets: wp.array(dtype=wp.int32), cell_points: wp.array(dtype=wp.int32),
                            nearest: wp.array(dtype=wp.int32)):
