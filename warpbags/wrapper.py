@@ -5,7 +5,8 @@ Tape of its own (explicitly, never as the current Tape, so other threads' launch
 backward runs that Tape's backward, the adjoint kernel Warp generates. Nothing is recorded when torch records no
 gradients. The projection (kernels/project.py: Warp's adjoint took three times the forward), spherical harmonics
 (kernels/sh.py: Warp's adjoint 1.7 times the hand-written one) and the rasterizer (kernels/rasterize.py) have
-hand-written backward kernels. Binning is not differentiable.
+hand-written backward kernels, as has the photometric loss (kernels/loss.py: L1 and SSIM fused in row and column
+passes). Binning is not differentiable.
 
 Tensors stay where they are: CPU tensors run on Warp's "cpu" device, CUDA tensors on the matching CUDA device and
 the current torch stream, without host copies; every launch names its device and stream. Kernel arguments are
@@ -19,6 +20,7 @@ launch over disjoint tile ranges; a stage read apart from its launcher or its th
 from __future__ import annotations
 
 import contextlib
+import functools
 import math
 from typing import NamedTuple, Sequence
 
@@ -36,6 +38,14 @@ from warpbags.kernels.bin import (
 )
 from warpbags.kernels.coherence import least_outside_sample_kernel
 from warpbags.kernels.knn import PointGrid3, count_cells_3d_kernel, mean_knn_distance_kernel
+from warpbags.kernels.loss import (
+    RUN,
+    WINDOW_RADIUS,
+    photometric_grad_kernel,
+    ssim_column_pass_kernel,
+    ssim_grad_row_pass_kernel,
+    ssim_row_pass_kernel,
+)
 from warpbags.kernels.nearest import PointGrid, count_cells_kernel, fill_cells_kernel, nearest_in_grid_kernel
 from warpbags.kernels.pose import apply_object_deltas_kernel, apply_pose_deltas_kernel
 from warpbags.kernels.project import project_gaussians_backward_kernel, project_gaussians_kernel
@@ -167,9 +177,9 @@ _SH_COLORS = _stage(sh_to_colors_kernel, {"colors": "vec3"}, gaussian_inputs=("m
                     coeffs="vec3", viewmats="mat44", degree=None)
 
 
-def _output_tensor(kind: str, shape: tuple, scalar: torch.dtype, device: torch.device, fill=torch.zeros):
+def _output_tensor(kind: str, shape: tuple, scalar: torch.dtype, device: torch.device) -> torch.Tensor:
     dtype = scalar if kind in _KIND_SHAPES else getattr(torch, kind)
-    return fill((*shape, *_KIND_SHAPES.get(kind, ())), dtype=dtype, device=device)
+    return torch.zeros((*shape, *_KIND_SHAPES.get(kind, ())), dtype=dtype, device=device)
 
 
 def _warp_inputs(stage: _Stage, args: Sequence, scalar: torch.dtype, grads: Sequence | None = None) -> dict:
@@ -873,6 +883,93 @@ def least_outside_samples(rays: torch.Tensor, ray_views: torch.Tensor, origins: 
     else:
         _run_ranges(work, _first_alone_then_chunks(count, COHERENCE_RAYS_PER_RANGE), _default_cpu_threads())
     return least.long()
+
+
+@functools.lru_cache(maxsize=8)
+def _ssim_window_1d(device: str, dtype: torch.dtype, sigma: float = 1.5) -> torch.Tensor:
+    coords = torch.arange(2 * WINDOW_RADIUS + 1, dtype=torch.float64) - WINDOW_RADIUS
+    g = torch.exp(-(coords**2) / (2 * sigma**2))
+    return (g / g.sum()).to(device=device, dtype=dtype)
+
+
+def _row_passes(kernel, before: list, after: list, rows: int, runs: int, device: torch.device) -> None:
+    """Launch a pass of kernels/loss.py (arguments `before`, the launch's first row, `after`) over `rows` image rows
+    of `runs` runs each, split into row ranges across host threads on the CPU. The pass is complete when this
+    returns: the next one reads neighbouring rows."""
+    workers = 1 if device.type == "cuda" else min(_default_cpu_threads(), max(rows // 16, 1))
+    ranges = _first_alone_then_equal(rows, 2 * workers)
+    launcher = _launcher(device)  # every launch names its device and stream: no process-wide default
+
+    def work(_, first, stop):
+        wp.launch(kernel, dim=(runs, stop - first), inputs=[*before, first, *after],
+                  device=launcher.device, stream=launcher.stream)
+
+    _run_ranges(work, ranges, workers)
+
+
+def _runs(planes: torch.Tensor) -> wp.array:
+    """Warp view of contiguous [..., RUN] planes as an array of RUN-vectors."""
+    return _to_warp(planes.view(-1, RUN), f"vec{RUN}")
+
+
+class _FusedPhotometricLoss(torch.autograd.Function):
+    """(loss, L1, SSIM) of [B, H, W, 3] images against targets; only the loss is differentiable (in the images).
+    The passes and their planes (per channel, rows padded to runs of RUN pixels): kernels/loss.py."""
+
+    @staticmethod
+    def forward(ctx, images, targets, lambda_dssim):
+        batch, height, width, _ = images.shape
+        images, targets = images.detach().contiguous(), targets.to(images.dtype).contiguous()
+        rows, runs = batch * height, -(-width // RUN)
+        window = _to_warp(_ssim_window_1d(str(images.device), images.dtype), "scalar")
+        # x's and y's channel planes, each row with a zero run before and after it (the row blur's zero padding)
+        planes = images.new_zeros(6, rows, runs + 2, RUN)
+        planes.view(6, batch, height, -1)[:3, ..., RUN:RUN + width] = images.permute(3, 0, 1, 2)
+        planes.view(6, batch, height, -1)[3:, ..., RUN:RUN + width] = targets.permute(3, 0, 1, 2)
+        row_means = images.new_empty(15, rows, runs, RUN)
+        _row_passes(ssim_row_pass_kernel, [_runs(planes), window, rows, runs], [_runs(row_means)], rows, runs,
+                    images.device)
+        ssim_sums = images.new_empty(rows * runs)
+        l1_sums = torch.empty_like(ssim_sums)
+        partials = images.new_empty(9, rows, runs + 2, RUN)  # dS/dmu_x, dS/dE[x^2], dS/dE[xy] per channel
+        partials[:, :, [0, -1]] = 0  # the padding runs, for the backward's row blur
+        _row_passes(ssim_column_pass_kernel, [_runs(planes), window, width, height, rows, runs],
+                    [_runs(row_means), _to_warp(ssim_sums, "scalar"), _to_warp(l1_sums, "scalar"), _runs(partials)],
+                    rows, runs, images.device)
+        values = 3 * batch * height * width
+        l1, ssim_value = l1_sums.sum() / values, ssim_sums.sum() / values
+        loss = (1 - lambda_dssim) * l1 + lambda_dssim * (1 - ssim_value)
+        ctx.save_for_backward(planes, partials)
+        ctx.shape = images.shape
+        ctx.lambda_dssim = lambda_dssim
+        ctx.mark_non_differentiable(l1, ssim_value)
+        return loss, l1, ssim_value
+
+    @staticmethod
+    def backward(ctx, v_loss, _v_l1, _v_ssim):
+        planes, partials = ctx.saved_tensors
+        batch, height, width, _ = ctx.shape
+        rows, runs = batch * height, -(-width // RUN)
+        window = _to_warp(_ssim_window_1d(str(planes.device), planes.dtype), "scalar")
+        blurred = planes.new_empty(9, rows, runs, RUN)
+        _row_passes(ssim_grad_row_pass_kernel, [window, rows, runs], [_runs(partials), _runs(blurred)], rows, runs,
+                    planes.device)
+        v_planes = planes.new_empty(3, rows, runs, RUN)
+        scalar = _WP_SCALARS[planes.dtype]
+        values = 3 * batch * height * width
+        scales = [scalar(-ctx.lambda_dssim / values), scalar((1 - ctx.lambda_dssim) / values)]
+        _row_passes(photometric_grad_kernel, [_runs(planes), window, height, rows, runs],
+                    [_runs(blurred), *scales, _runs(v_planes)], rows, runs, planes.device)
+        v_images = v_planes.view(3, batch, height, runs * RUN)[..., :width].permute(1, 2, 3, 0)
+        return v_images * v_loss, None, None
+
+
+def fused_photometric_loss(images: torch.Tensor, targets: torch.Tensor, lambda_dssim: float
+                           ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """(loss, L1, SSIM) of [B, H, W, 3] `images` against `targets` (no gradient), loss = (1 - lambda_dssim) L1 +
+    lambda_dssim (1 - SSIM) with SSIM's 11 x 11 Gaussian window (sigma 1.5) zero-padded: the passes of
+    kernels/loss.py, split over host threads on the CPU. Only the loss is differentiable, in the images."""
+    return _FusedPhotometricLoss.apply(images, targets, lambda_dssim)
 
 
 def _default_cpu_threads() -> int:
