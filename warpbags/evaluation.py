@@ -97,7 +97,7 @@ def held_out_views(run: TrainingRun) -> Scene:
         if key not in info:
             raise WarpbagsError(f"{run.path / 'config.json'} has no {key!r}: written by an older warpbags")
     scene = load_scene(info["scene_root"], resolution=info["resolution"], name=info["scene"])
-    stored = SceneNormalization(tuple(info["normalization"]["center"]), info["normalization"]["scale"])
+    stored = SceneNormalization.from_dict(info["normalization"])
     if not np.allclose(scene.normalization.matrix(), stored.matrix(), atol=1e-5):
         raise WarpbagsError(f"{info['scene_root']} no longer matches the run's normalization: was the scene changed?")
     test = scene.splits.get("test")

@@ -105,9 +105,9 @@ def export_run(path: str | Path, out: str | Path | None = None, colmap: bool = T
     if out.exists() and not out.is_dir():
         raise WarpbagsError(f"{out} is a file, not a folder to export into")
     calibration = training_calibration(run) if colmap else None
-    normalization = SceneNormalization(tuple(run.info["normalization"]["center"]), run.info["normalization"]["scale"])
+    normalization = SceneNormalization.from_dict(run.info["normalization"])
     out.mkdir(parents=True, exist_ok=True)
-    gaussians = to_source_frame(run.params, normalization.center, normalization.scale)
+    gaussians = to_source_frame(run.params, normalization)
     write_ply(out / "gaussians.ply", gaussians)
     poses = normalization.invert_viewmats(run.poses_final.double()).numpy()
     with atomic_output(out / "poses_final.npy") as temporary:

@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from warpbags.data.scene import SceneNormalization
 from warpbags.errors import WarpbagsError
 from warpbags.files import atomic_output
 from warpbags.rendering import rasterization
@@ -165,13 +166,13 @@ def sh_degree_of(params: dict[str, torch.Tensor]) -> int:
     return int(round(count**0.5)) - 1
 
 
-def to_source_frame(params: dict[str, torch.Tensor], center, scale: float) -> dict[str, torch.Tensor]:
+def to_source_frame(params: dict[str, torch.Tensor], normalization: SceneNormalization) -> dict[str, torch.Tensor]:
     """Parameters moved from the normalized world (x' = scale (x - center)) back to the scene's source frame.
 
     Means are un-normalized and log-scales shifted by -log(scale); rotations, opacities and SH are unchanged (a
     uniform scale and a translation keep view directions).
     """
     out = dict(params)
-    out["means"] = params["means"] / scale + torch.as_tensor(center, dtype=params["means"].dtype)
-    out["scales"] = params["scales"] - math.log(scale)
+    out["means"] = normalization.invert_points(params["means"])
+    out["scales"] = params["scales"] - math.log(normalization.scale)
     return out

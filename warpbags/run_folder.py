@@ -65,10 +65,9 @@ class RunFolder:
             viewmats_true, viewmats_init, viewmats_start: [C,4,4] world-to-camera.
         """
         self.path.mkdir(parents=True, exist_ok=True)
-        normalization = scene.normalization
         info = {"config": config.to_dict(), "scene": scene.name, "image_names": scene.image_names,
                 "scene_root": str(Path(scene.root).resolve()), "resolution": scene.resolution,
-                "normalization": {"center": list(normalization.center), "scale": normalization.scale},
+                "normalization": scene.normalization.to_dict(),
                 "width": scene.width, "height": scene.height, "device": device}
         with atomic_output(self.path / "config.json") as temporary:
             temporary.write_text(json.dumps(info, indent=2))

@@ -51,6 +51,14 @@ class SceneNormalization:
     def identity() -> SceneNormalization:
         return SceneNormalization()
 
+    def to_dict(self) -> dict:
+        """As a run's config.json stores it (`from_dict` reads it back)."""
+        return {"center": list(self.center), "scale": self.scale}
+
+    @staticmethod
+    def from_dict(values: dict) -> SceneNormalization:
+        return SceneNormalization(tuple(float(v) for v in values["center"]), float(values["scale"]))
+
     def matrix(self) -> np.ndarray:
         """[4,4] float64 homogeneous source-to-normalized transform."""
         transform = np.eye(4)
