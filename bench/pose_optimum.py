@@ -80,7 +80,7 @@ def pose_only_optimum(trainer: Trainer, steps: int, lr: float, start_noise: tupl
         cameras.refine(lambda viewmats: model.loss(views, viewmats, settings)[0], steps)
     else:
         for _ in range(steps):
-            loss, _, _ = model.loss(views, cameras.apply(views), settings)
+            loss, _, _ = model.loss(views, cameras(views), settings)
             loss.backward()
             cameras.step(views)
             cameras.zero_grad()

@@ -658,7 +658,7 @@ def parse_settings(settings: list[str]) -> dict[str, Any]:
 
 
 def load_preset(name: str, **overrides: Any) -> TrainConfig:
-    """A preset by name with fields replaced (None values are ignored; the groups lr, densify and repair may be
+    """A preset by name with fields replaced (None values are ignored; the groups lr, camera, densify and repair may be
     given as partial dicts), type-checked and validated.
 
     Raises:

@@ -103,7 +103,7 @@ def test_unrendered_cameras_do_not_move(parameterization):
     cameras = _optimizer(CameraOptimizerSettings(parameterization=parameterization, lr=1e-2))
     for step in range(6):
         views = torch.tensor([step % 2])  # cameras 0 and 1 alternate; 2 and 3 are never rendered
-        cameras.apply(views)[:, :3, 3].sum().backward()
+        cameras(views)[:, :3, 3].sum().backward()
         cameras.step(views)
         cameras.zero_grad()
     params = cameras.params().detach()
@@ -116,7 +116,7 @@ def test_fixed_gauge_camera_keeps_its_pose_and_state_round_trips():
     settings = CameraOptimizerSettings(fix_first_camera=True, lr=1e-2)
     cameras = _optimizer(settings)
     for _ in range(3):
-        cameras.apply()[:, :3, 3].pow(2).sum().backward()
+        cameras()[:, :3, 3].pow(2).sum().backward()
         cameras.step()
         cameras.zero_grad()
     torch.testing.assert_close(cameras.viewmats()[0], cameras.viewmats_init[0], rtol=0, atol=0)
@@ -131,7 +131,7 @@ def test_fixed_gauge_camera_keeps_its_pose_and_state_round_trips():
     torch.testing.assert_close(restored.viewmats(), cameras.viewmats(), rtol=0, atol=0)
     # Adam's moments came along too: one more identical step lands both at the same parameters
     for optimizer in (cameras, restored):
-        optimizer.apply()[:, :3, 3].pow(2).sum().backward()
+        optimizer()[:, :3, 3].pow(2).sum().backward()
         optimizer.step()
         optimizer.zero_grad()
     torch.testing.assert_close(restored.params(), cameras.params(), rtol=0, atol=0)
@@ -160,7 +160,7 @@ def test_a_frozen_orbit_stays_put_and_its_release_does_not_jump():
     cameras = _optimizer(CameraOptimizerSettings(lr=1e-2))
     cameras.set_orbit_free(False)
     for _ in range(5):
-        cameras.apply()[:, :3, :].pow(2).sum().backward()  # a loss every parameter's gradient reaches
+        cameras()[:, :3, :].pow(2).sum().backward()  # a loss every parameter's gradient reaches
         cameras.step()
         cameras.zero_grad()
     params = cameras.params().detach()
@@ -172,7 +172,7 @@ def test_a_frozen_orbit_stays_put_and_its_release_does_not_jump():
     cameras.set_orbit_free(True)
     torch.testing.assert_close(cameras.viewmats(), before, rtol=0, atol=1e-6)  # the release rebased: no jump
     assert torch.all(cameras.rotations == 0) and not cameras.optimizer.state
-    cameras.apply()[:, :3, :].pow(2).sum().backward()
+    cameras()[:, :3, :].pow(2).sum().backward()
     cameras.step()
     assert cameras.params().detach()[:, :2].abs().max() > 1e-4  # the orbit moves now
 
@@ -188,7 +188,7 @@ def test_orbit_freezing_needs_the_object_parameterization():
 def test_a_turn_about_the_object_keeps_its_centre_and_turns_by_the_angle(parameterization):
     cameras = _optimizer(CameraOptimizerSettings(parameterization=parameterization, precondition=False, lr=1e-2),
                          dtype=F64)
-    cameras.apply()[:, :3, 3].sum().backward()  # corrections and Adam moments, which the turn folds in and clears
+    cameras()[:, :3, 3].sum().backward()  # corrections and Adam moments, which the turn folds in and clears
     cameras.step()
     before = cameras.viewmats()
     turns = hypothesis_turns("zx", (30.0, 15.0))

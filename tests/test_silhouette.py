@@ -235,7 +235,7 @@ class _MissedMask:
 def test_distance_term_turns_the_camera_towards_a_missed_mask(term):
     case = _MissedMask()
     assert case.overlap(case.cameras.viewmats()) < 1e-4
-    alphas = case.alphas(case.cameras.apply())
+    alphas = case.alphas(case.cameras())
     loss = mask_loss(alphas, case.masks) if term == "mask_bce" else case.targets.distance_loss(alphas, case.views)
     loss.backward()
     # First-order image motion of the blob under a small gradient-descent step of the real camera parameters.
@@ -257,7 +257,7 @@ def test_chamfer_term_brings_a_missed_mask_into_view():
     loss = lambda viewmats: case.targets.chamfer_loss(case.means, case.opacities, viewmats, case.Ks, case.views)  # noqa: E731
     start = loss(case.cameras.viewmats()).item()
     for _ in range(60):
-        value = loss(case.cameras.apply())
+        value = loss(case.cameras())
         case.cameras.zero_grad()
         value.backward()
         case.cameras.step()

@@ -19,7 +19,6 @@ from warpbags.data import SyntheticOptions, ensure_synthetic_scene, load_scene
 from warpbags.errors import WarpbagsError
 from warpbags import camera_setup, run_folder
 from warpbags.losses import depth_loss, ssim
-from warpbags.model import camera_viewmats
 from warpbags.pose_history import read_pose_history
 from warpbags.strategy import replace_rows
 from warpbags.schedule import Schedule
@@ -184,7 +183,7 @@ def test_the_chamfer_computed_beside_the_render_is_the_steps_own(scene_dir, tmp_
     model, views = trainer.model, torch.tensor([1])
     settings = trainer.schedule.at(trainer.config.pose_opt_start)
     assert settings.silhouette and settings.pose_active
-    viewmats = camera_viewmats(trainer.cameras, views, pose_grad=True)
+    viewmats = trainer.cameras(views)
     loss, terms, _ = model.loss(views, viewmats, settings)
     data = model.training_views
     inline = data.silhouettes.chamfer_loss(model.params["means"], torch.sigmoid(model.params["opacities"]), viewmats,
@@ -194,7 +193,7 @@ def test_the_chamfer_computed_beside_the_render_is_the_steps_own(scene_dir, tmp_
     with_chamfer = trainer.cameras.rotations.grad.clone()
     trainer.cameras.zero_grad()
     model.config = dataclasses.replace(model.config, lambda_chamfer=0.0)
-    model.loss(views, camera_viewmats(trainer.cameras, views, pose_grad=True), settings)[0].backward()
+    model.loss(views, trainer.cameras(views), settings)[0].backward()
     assert not torch.equal(trainer.cameras.rotations.grad, with_chamfer)
 
 
@@ -229,7 +228,7 @@ def test_no_pose_opt_keeps_poses_and_trains_one_round(scene_dir, tmp_path):
     trainer.train()
     assert torch.all(trainer.cameras.params() == 0)
     torch.testing.assert_close(trainer.current_viewmats(), trainer.viewmats_init, rtol=0, atol=0)
-    assert trainer.round_length == 12  # one round: no re-initialization throws the trained Gaussians away
+    assert trainer.schedule.round_length == 12  # one round: no re-initialization throws the trained Gaussians away
 
 
 @pytest.mark.parametrize("rounds", [1, 2])
@@ -600,7 +599,8 @@ def test_pyramid_levels_train_early_rounds_at_lower_resolution(scene_dir, tmp_pa
     sizes = []
     trainer.train(callback=lambda record: sizes.append(trainer.scene.width))
     assert sizes == [full // 2] * 4 + [full] * 2  # rounds 1-2 at the coarse level, the last at full resolution
-    assert trainer.render(torch.arange(2))[0].shape[1:3] == (full, full)
+    views = torch.arange(2)
+    assert trainer.model.render(views, trainer.cameras.viewmats()[views], 0)[0].shape[1:3] == (full, full)
     trainer.write_run_files()
     assert np.load(tmp_path / "intrinsics.npy")[0, 0, 2] == pytest.approx(trainer.full_scene.Ks[0, 0, 2].item())
 

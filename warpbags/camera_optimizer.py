@@ -2,8 +2,8 @@
 
 It holds the per-camera parameters, the gauge, the optional CamP preconditioner, the Adam optimizer with its two
 groups (rotation, translation) and its learning rate, and turns the parameters into corrected world-to-camera
-matrices with `apply(views)`. The trainer and evaluation's test-pose refinement go through it; export writes
-the poses it left.
+matrices: `cameras(views)` (`forward`; a `torch.nn.Module` keeps `apply` for its own meaning). The trainer and
+evaluation's test-pose refinement go through it; export writes the poses it left.
 
 Parameterizations (`kernels/pose.py` has the maths, one Warp kernel each):
     "camera"  se(3) twist [w, v] composed on the left of world-to-camera: a rotation about the camera centre (BARF).
@@ -31,9 +31,9 @@ from typing import Callable
 
 import torch
 
+from warpbags.cameras import project_points
 from warpbags.configs.train import CameraConfig
 from warpbags.errors import WarpbagsError
-from warpbags.cameras import project_points
 from warpbags.wrapper import apply_object_deltas, apply_pose_deltas
 
 PARAMETERIZATIONS = ("camera", "object")
@@ -170,7 +170,7 @@ class CameraOptimizer(torch.nn.Module):
         latent = torch.cat([self.rotations, self.translations], dim=1)
         return (self.preconditioner @ latent[..., None])[..., 0] * self.gauge * self.free_rows
 
-    def apply(self, views: torch.Tensor | None = None) -> torch.Tensor:
+    def forward(self, views: torch.Tensor | None = None) -> torch.Tensor:
         """[B, 4, 4] corrected world-to-camera matrices of cameras `views` ([B] long, default all); differentiable."""
         params = self.params()
         if views is None:
@@ -181,7 +181,12 @@ class CameraOptimizer(torch.nn.Module):
     def viewmats(self) -> torch.Tensor:
         """[C, 4, 4] the current estimate of every camera, without a graph."""
         with torch.no_grad():
-            return self.apply()
+            return self()
+
+    def poses(self, views: torch.Tensor, differentiable: bool) -> torch.Tensor:
+        """[B, 4, 4] the current poses of cameras `views` ([B] long), differentiable in the camera parameters only
+        when `differentiable` (a step whose poses hold still renders them without a graph)."""
+        return self(views) if differentiable else self.viewmats()[views]
 
     @property
     def orbit_free(self) -> bool:
@@ -202,7 +207,7 @@ class CameraOptimizer(torch.nn.Module):
     def rebase(self) -> None:
         """Fold the current corrections into the base poses; latents and Adam moments restart at zero."""
         with torch.no_grad():
-            self.viewmats_init.copy_(self.apply())
+            self.viewmats_init.copy_(self())
             self.rotations.zero_()
             self.translations.zero_()
         self.reset_moments()
@@ -272,7 +277,7 @@ class CameraOptimizer(torch.nn.Module):
 
         def closure() -> torch.Tensor:
             optimizer.zero_grad()
-            loss = loss_of(self.apply())
+            loss = loss_of(self())
             loss.backward()
             return loss
 
@@ -307,9 +312,3 @@ def hypothesis_turns(axes: str, angles_deg: tuple[float, ...]) -> list[tuple[str
                 rotation["xyz".index(axis)] = sign * math.radians(angle)
                 turns.append((f"{sign * angle:+g} deg about {axis}", rotation))
     return turns
-
-
-def exponential_lr(initial: float, final: float, fraction: float) -> float:
-    """Log-linear interpolation from `initial` (fraction 0) to `final` (fraction 1), clamped to [0, 1]."""
-    fraction = min(max(fraction, 0.0), 1.0)
-    return math.exp((1 - fraction) * math.log(initial) + fraction * math.log(final))

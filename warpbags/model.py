@@ -16,8 +16,8 @@ from dataclasses import dataclass
 
 import torch
 
-from warpbags.camera_optimizer import CameraOptimizer, exponential_lr
 from warpbags.blur import gaussian_blur
+from warpbags.camera_optimizer import CameraOptimizer
 from warpbags.cameras import camera_centers
 from warpbags.configs.train import TrainConfig
 from warpbags.correspondences import epipolar_loss
@@ -26,7 +26,7 @@ from warpbags.errors import WarpbagsError
 from warpbags.gaussians import render_gaussians
 from warpbags.init import hull_or_random_points, initial_gaussians
 from warpbags.losses import depth_loss, mask_loss, photometric_loss
-from warpbags.schedule import StepSettings
+from warpbags.schedule import StepSettings, exponential_lr
 from warpbags.silhouette import SilhouetteTargets
 from warpbags.strategy import DensifyStrategy
 from warpbags.threads import side_thread
@@ -53,12 +53,6 @@ def gaussian_optimizer(params: dict[str, torch.nn.Parameter], config: TrainConfi
     # foreach form, 3.1 fused; the per-tensor loop that torch picks on the CPU by default, 14.3). It rounds
     # differently from those two, which agree bit for bit.
     return torch.optim.Adam(groups, lr=0.0, eps=lr.adam_eps, fused=True)
-
-
-def camera_viewmats(cameras: CameraOptimizer, views: torch.Tensor, pose_grad: bool) -> torch.Tensor:
-    """[B,4,4] the current poses of training views `views` ([B] long), differentiable in the camera parameters only
-    with `pose_grad`."""
-    return cameras.apply(views) if pose_grad else cameras.viewmats()[views]
 
 
 @dataclass
@@ -240,11 +234,11 @@ class GaussianModel:
         """
         self.set_learning_rate(settings.gaussian_lr_fraction)
         views = self.sample_views()
-        loss, terms, meta = self.loss(views, camera_viewmats(cameras, views, settings.pose_active), settings)
+        loss, terms, meta = self.loss(views, cameras.poses(views, settings.pose_active), settings)
         matches = self.training_views.scene.matches
         if settings.pose_active and self.config.lambda_epipolar > 0 and matches is not None and len(matches):
             # the poses only: every camera's, though only the rendered ones take a step
-            epipolar = epipolar_loss(cameras.apply(), self.training_views.Ks, matches)
+            epipolar = epipolar_loss(cameras(), self.training_views.Ks, matches)
             loss = loss + self.config.lambda_epipolar * epipolar
             terms["epipolar"] = epipolar.item()
         self.optimize(loss, cameras, views if settings.pose_active else None, settings.pose_anchor,

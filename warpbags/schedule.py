@@ -12,8 +12,13 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-from warpbags.camera_optimizer import exponential_lr
 from warpbags.configs.train import TrainConfig
+
+
+def exponential_lr(initial: float, final: float, fraction: float) -> float:
+    """Log-linear interpolation from `initial` (fraction 0) to `final` (fraction 1), clamped to [0, 1]."""
+    fraction = min(max(fraction, 0.0), 1.0)
+    return math.exp((1 - fraction) * math.log(initial) + fraction * math.log(final))
 
 
 @dataclass(frozen=True)
@@ -131,9 +136,9 @@ class Schedule:
         config, round_iteration, in_repair = self.config, self.round_iteration(iteration), self.in_repair(iteration)
         # GaussianObject's repair keeps the final position lr; the poses keep their final lr. The pose lr decays
         # within each round's pose window (a warm restart per round: each round is a fresh coarse-to-fine fit).
-        # (over the round's own length: a shorter last round still ends at the final position lr)
-        round_length = self.round_end(iteration) - (iteration - round_iteration)
-        gaussian_fraction = 1.0 if in_repair else round_iteration / max(round_length - 1, 1)
+        # The position lr decays over the round's own length: a shorter last round still ends at its final value.
+        this_round_length = self.round_end(iteration) - (iteration - round_iteration)
+        gaussian_fraction = 1.0 if in_repair else round_iteration / max(this_round_length - 1, 1)
         pose_start, pose_end = self.pose_window(iteration)
         pose_fraction = 1.0 if in_repair else (iteration - pose_start) / max(pose_end - pose_start - 1, 1)
         # a linear ramp over the first `lr.pose_warmup` steps of the window (none in the repair stage)

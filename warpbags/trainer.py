@@ -36,10 +36,11 @@ from warpbags.camera_setup import coherent_start, given_viewmats, starting_poses
 from warpbags.configs.scenes import SCENES
 from warpbags.configs.train import TrainConfig
 from warpbags.correspondences import find_view_matches
+from warpbags.data import open_scene
 from warpbags.data.scene import Scene
 from warpbags.devices import torch_device
 from warpbags.errors import WarpbagsError
-from warpbags.model import Diverged, GaussianModel, TrainingViews, camera_viewmats, scene_extent
+from warpbags.model import Diverged, GaussianModel, TrainingViews, scene_extent
 from warpbags.repair import RepairStage, Repairer, repairer_factory
 from warpbags.repair.stage import pseudo_ratio
 from warpbags.run_folder import RunFolder
@@ -151,10 +152,6 @@ class Trainer:
         return self.model.training_views.Ks
 
     @property
-    def round_length(self) -> int:
-        return self.schedule.round_length
-
-    @property
     def in_repair(self) -> bool:
         """True in the repair stage: the coarse iterations are done and repair iterations follow."""
         return self.schedule.in_repair(self.iteration)
@@ -174,11 +171,6 @@ class Trainer:
         """The logged pose error's alignment: the configured one, pairwise where procrustes cannot fit (< 3 cameras;
         said once, when the trainer is made)."""
         return alignment_for(self.num_cameras, self.config.pose_alignment)
-
-    def render(self, views: torch.Tensor, pose_grad: bool = True, sh_degree: int | None = None):
-        """Render training views `views` ([B] long) at the current poses; returns (colors, alphas, meta)."""
-        return self.model.render(views, camera_viewmats(self.cameras, views, pose_grad),
-                                 self.schedule.sh_degree(self.iteration) if sh_degree is None else sh_degree)
 
     # ----------------------------------------------------------------------------------------------- step
     def train_step(self) -> dict:
@@ -226,7 +218,7 @@ class Trainer:
         loss, terms, views = torch.zeros((), device=self.device), {"pseudo_ratio": ratio}, None
         if ratio < 1:
             views = self.model.sample_views()
-            real, real_terms, _ = self.model.loss(views, camera_viewmats(self.cameras, views, settings.pose_active),
+            real, real_terms, _ = self.model.loss(views, self.cameras.poses(views, settings.pose_active),
                                                   settings)
             loss, terms = (1 - ratio) * real, {**terms, **real_terms}
         if ratio > 0:
@@ -335,7 +327,7 @@ class Trainer:
         it beats the unturned camera's by more than `camera.hypothesis_margin` (relative). The trainer is left at
         the kept trial's end. Returns its (log record, poses) per iteration, or None on Ctrl-C (the trainer is then
         back at the round's start)."""
-        settings = self.config.camera
+        camera_config = self.config.camera
         camera = self._worst_fit_view()
         round_start, round_end = self.iteration, self.schedule.round_end(self.iteration)
         round_index, length = self.schedule.round_index(round_start), round_end - round_start
@@ -349,7 +341,7 @@ class Trainer:
             self.cameras.load_state(copy.deepcopy(start_cameras))
             self.generator.set_state(start_generator)
 
-        turns = hypothesis_turns(settings.hypothesis_axes, settings.hypothesis_angles)
+        turns = hypothesis_turns(camera_config.hypothesis_axes, camera_config.hypothesis_angles)
         self.log(f"round {round_index}: camera {camera} fits worst; the round is trained unturned and with each of "
                  f"{len(turns)} turns of it about the object")
         unturned, best = None, None
@@ -370,7 +362,7 @@ class Trainer:
                 unturned = trial
             elif best is None or trial["score"] < best["score"]:
                 best = trial
-        kept = best if best["score"] < (1 - settings.hypothesis_margin) * unturned["score"] else unturned
+        kept = best if best["score"] < (1 - camera_config.hypothesis_margin) * unturned["score"] else unturned
         self.model, self.iteration = kept["model"], round_end
         self.cameras.load_state(kept["cameras"])
         self.generator.set_state(kept["generator"])
@@ -470,8 +462,6 @@ def training_scene(scene: Scene | str | Path, config: TrainConfig, data_root: st
         WarpbagsError: unknown scene, missing data, or fewer images than `config.views`.
     """
     if not isinstance(scene, Scene):
-        from warpbags.data import open_scene
-
         scene = open_scene(scene, root=data_root, resolution=config.resolution)
     views = scene.train_views(config.views)
     if log is not None and str(config.views) not in scene.splits:
