@@ -9,6 +9,8 @@ from __future__ import annotations
 
 import torch
 
+from warpbags.lie import rotation_between
+
 __all__ = ["camera_centers", "moved_keeping_target", "pixel_directions", "project_points", "viewmats_from_centers"]
 
 
@@ -89,12 +91,5 @@ def moved_keeping_target(viewmats: torch.Tensor, centers: torch.Tensor, target: 
     seen = rotations @ target + viewmats[..., :3, 3]
     moved = rotations @ (target - centers)[..., None]
     seen, moved = seen / seen.norm(dim=-1, keepdim=True), moved[..., 0] / moved[..., 0].norm(dim=-1, keepdim=True)
-    # Rodrigues' rotation taking `moved` onto `seen` (both unit, never opposite for a target in front).
-    axis = torch.linalg.cross(moved, seen)
-    cosine = (moved * seen).sum(-1)[..., None, None]
-    skew = torch.zeros(*axis.shape[:-1], 3, 3, dtype=axis.dtype, device=axis.device)
-    skew[..., 0, 1], skew[..., 0, 2], skew[..., 1, 2] = -axis[..., 2], axis[..., 1], -axis[..., 0]
-    skew = skew - skew.transpose(-1, -2)
-    eye = torch.eye(3, dtype=axis.dtype, device=axis.device)
-    turn = eye + skew + skew @ skew / (1 + cosine)
-    return viewmats_from_centers(turn @ rotations, centers)
+    # both unit, never opposite for a target in front
+    return viewmats_from_centers(rotation_between(moved, seen) @ rotations, centers)

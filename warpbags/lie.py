@@ -5,7 +5,8 @@ Conventions (binding; the renderer and `warpbags.camera_optimizer` use them):
 * A pose delta is an se(3) twist ordered ``[wx, wy, wz, vx, vy, vz]`` (axis-angle rotation first, then
   translation, as in BARF), composed on the LEFT of world-to-camera: ``viewmat' = se3_exp(delta) @ viewmat``,
   i.e. the correction is expressed in the camera frame. It is applied by one implementation, the Warp kernel
-  behind `warpbags.wrapper.apply_pose_deltas`; these torch maps serve pose noise, alignment and camera paths.
+  behind `warpbags.wrapper.apply_pose_deltas`; `se3_exp` here is the torch reference the tests hold it to, and
+  the SO(3) maps serve pose noise, alignment, the mask-centroid start and camera paths.
 * Everything is plain torch, batched over leading dimensions, works in float32 and float64 and on whatever
   device its inputs live on.
 """
@@ -16,7 +17,7 @@ import math
 
 import torch
 
-__all__ = ["rotation_error_deg", "se3_exp", "skew", "so3_exp", "so3_log"]
+__all__ = ["rotation_between", "rotation_error_deg", "se3_exp", "skew", "so3_exp", "so3_log"]
 
 # Below this squared angle (rad^2) the exp-map coefficients come from their Taylor series. The series below
 # (through theta^12) is exact to float64 rounding up to theta^2 = 0.25, and above it the closed forms lose at
@@ -171,6 +172,16 @@ def se3_exp(xi: torch.Tensor) -> torch.Tensor:
     bottom = torch.zeros(*xi.shape[:-1], 1, 4, dtype=xi.dtype, device=xi.device)
     bottom[..., 0, 3] = 1.0
     return torch.cat([top, bottom], dim=-2)
+
+
+def rotation_between(source: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    """[..., 3, 3] the smallest rotations taking unit vectors `source` [..., 3] onto `target` [..., 3] (never
+    opposite: the axis of a half turn is undefined)."""
+    axis = torch.linalg.cross(source, target)
+    sin_angle = axis.norm(dim=-1, keepdim=True)
+    cos_angle = (source * target).sum(-1, keepdim=True)
+    angle = torch.atan2(sin_angle, cos_angle)
+    return so3_exp(axis / sin_angle.clamp_min(1e-12) * angle)
 
 
 def rotation_error_deg(rotations_est: torch.Tensor, rotations_ref: torch.Tensor) -> torch.Tensor:

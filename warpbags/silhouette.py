@@ -25,7 +25,7 @@ import torch
 import torch.nn.functional as F
 
 from warpbags.cameras import camera_centers, pixel_directions, project_points
-from warpbags.lie import so3_exp
+from warpbags.lie import rotation_between
 from warpbags.wrapper import least_outside_samples, nearest_points
 
 EDGE_POINTS = 300  # mask edge pixels per view for the chamfer (NeRS's count)
@@ -47,7 +47,7 @@ def nearest_distances(queries: torch.Tensor, points: torch.Tensor) -> torch.Tens
 
 def mask_centroids(masks: torch.Tensor) -> torch.Tensor:
     """[C, 2] pixel coordinates (pixel centres at +0.5) of each [C, H, W] mask's centre of mass."""
-    cams, height, width = masks.shape
+    _, height, width = masks.shape
     ys = torch.arange(height, dtype=masks.dtype) + 0.5
     xs = torch.arange(width, dtype=masks.dtype) + 0.5
     mass = masks.sum(dim=(1, 2)).clamp_min(1e-12)
@@ -91,15 +91,6 @@ def rays_meeting_point(origins: torch.Tensor, directions: torch.Tensor, min_spre
     return torch.from_numpy(point).to(origins)
 
 
-def _rotation_between(source: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
-    """[C, 3, 3] the smallest rotations taking unit vectors source [C, 3] onto target [C, 3]."""
-    axis = torch.linalg.cross(source, target)
-    sin_angle = axis.norm(dim=-1, keepdim=True)
-    cos_angle = (source * target).sum(-1, keepdim=True)
-    angle = torch.atan2(sin_angle, cos_angle)
-    return so3_exp(axis / sin_angle.clamp_min(1e-12) * angle)
-
-
 def centroid_start(masks: torch.Tensor, viewmats: torch.Tensor, Ks: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """Turn every camera about its centre so that its mask-centroid ray passes through the object centre.
 
@@ -115,7 +106,7 @@ def centroid_start(masks: torch.Tensor, viewmats: torch.Tensor, Ks: torch.Tensor
     to_center = (viewmats[:, :3, :3] @ center + viewmats[:, :3, 3])
     to_center = to_center / to_center.norm(dim=-1, keepdim=True)
     turn = torch.eye(4, dtype=torch.float64).repeat(len(viewmats), 1, 1)
-    turn[:, :3, :3] = _rotation_between(to_center, ray_camera)
+    turn[:, :3, :3] = rotation_between(to_center, ray_camera)
     return turn @ viewmats, center
 
 
