@@ -55,6 +55,13 @@ class TrainingRun:
     poses_final: torch.Tensor
 
 
+def require_info(run: TrainingRun, *keys: str) -> None:
+    """Raise WarpbagsError naming the run's config.json if it lacks one of `keys` (a run of an older warpbags)."""
+    for key in keys:
+        if key not in run.info:
+            raise WarpbagsError(f"{run.path / 'config.json'} has no {key!r}: written by an older warpbags")
+
+
 def latest_run(root: str | Path = "runs") -> Path:
     """The most recently modified run folder under `root` that holds a config.json.
 
@@ -92,10 +99,8 @@ def held_out_views(run: TrainingRun) -> Scene:
     Raises:
         WarpbagsError: the scene folder is gone, has no test split, or no longer matches the run's frame.
     """
+    require_info(run, "scene_root", "resolution", "normalization")
     info, config = run.info, run.config
-    for key in ("scene_root", "resolution", "normalization"):
-        if key not in info:
-            raise WarpbagsError(f"{run.path / 'config.json'} has no {key!r}: written by an older warpbags")
     scene = load_scene(info["scene_root"], resolution=info["resolution"], name=info["scene"])
     stored = SceneNormalization.from_dict(info["normalization"])
     if not np.allclose(scene.normalization.matrix(), stored.matrix(), atol=1e-5):

@@ -22,10 +22,11 @@ from warpbags.data.colmap import write_model
 from warpbags.data.images import image_size, resolution_path
 from warpbags.data.layouts import read_layout_cameras, scaled_intrinsics
 from warpbags.errors import WarpbagsError
-from warpbags.evaluation import TrainingRun, load_run
+from warpbags.evaluation import TrainingRun, load_run, require_info
 from warpbags.files import atomic_output
 from warpbags.gaussians import render_gaussians, sh_degree_of, to_source_frame, write_ply
-from warpbags.init import SH_C0
+from warpbags.kernels.sh import SH_C0
+from warpbags.run_folder import RunFolder
 from warpbags.threads import torch_threads
 
 
@@ -55,9 +56,7 @@ def training_calibration(run: TrainingRun) -> Calibration:
     Raises:
         WarpbagsError: the scene folder is gone, or no longer holds one of the run's training views or its image.
     """
-    for key in ("scene_root", "image_names", "resolution"):
-        if key not in run.info:
-            raise WarpbagsError(f"{run.path / 'config.json'} has no {key!r}: written by an older warpbags")
+    require_info(run, "scene_root", "image_names", "resolution")
     root = Path(run.info["scene_root"])
     if not root.is_dir():
         raise WarpbagsError(f"the run's scene folder {root} is gone: the COLMAP model takes the cameras' calibration "
@@ -99,8 +98,7 @@ def export_run(path: str | Path, out: str | Path | None = None, colmap: bool = T
         The output folder, and with `colmap` the scene's image folder the model's image names are relative to.
     """
     run = load_run(path)
-    if "normalization" not in run.info:
-        raise WarpbagsError(f"{run.path / 'config.json'} has no normalization: written by an older warpbags")
+    require_info(run, "normalization")
     out = Path(out) if out is not None else run.path / "export"
     if out.exists() and not out.is_dir():
         raise WarpbagsError(f"{out} is a file, not a folder to export into")
@@ -134,9 +132,10 @@ def render_turntable(path: str | Path, frames: int = 36, video: bool = True) -> 
         raise WarpbagsError(f"--frames must be >= 1, got {frames}")
     run = load_run(path)
     width, height = run.info["width"], run.info["height"]
-    if not (run.path / "intrinsics.npy").is_file():
+    intrinsics = RunFolder(run.path).read_poses("intrinsics")
+    if intrinsics is None:
         raise WarpbagsError(f"{run.path / 'intrinsics.npy'} is missing: written by an older warpbags")
-    camera_0 = torch.from_numpy(np.load(run.path / "intrinsics.npy"))[0].float()
+    camera_0 = torch.from_numpy(intrinsics)[0].float()
     viewmats = turntable_viewmats(run.poses_final, frames).float()
     Ks = camera_0.expand(frames, 3, 3).contiguous()
     out = run.path / "turntable"

@@ -20,10 +20,8 @@ import numpy as np
 import torch
 
 from warpbags.cameras import project_points
+from warpbags.kernels.sh import SH_C0  # colour = SH_C0 * sh0 + 0.5
 from warpbags.wrapper import mean_neighbour_distances
-
-SH_C0 = 0.28209479177387814
-"""Degree-0 real spherical-harmonic constant: colour = SH_C0 * sh0 + 0.5."""
 
 
 def _project(points: torch.Tensor, viewmats: torch.Tensor, Ks: torch.Tensor, width: int, height: int):

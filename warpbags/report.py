@@ -6,13 +6,13 @@ module (the repair stage writes image grids), and matplotlib costs it ~40 MB of 
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import cv2
 import numpy as np
 
 from warpbags.files import atomic_output
+from warpbags.run_folder import RunFolder
 
 
 def _pyplot():
@@ -23,12 +23,6 @@ def _pyplot():
     import matplotlib.pyplot as plt
 
     return plt
-
-
-def read_log(run_dir: Path) -> list[dict]:
-    """The per-iteration records of a run's log.jsonl."""
-    path = Path(run_dir) / "log.jsonl"
-    return [json.loads(line) for line in path.read_text().splitlines() if line.strip()] if path.is_file() else []
 
 
 def plot_training_curves(records: list[dict], path: Path, alignment: str) -> None:
@@ -77,7 +71,7 @@ def write_run_report(run_dir: Path, result: dict, training_alignment: str) -> Pa
     """report.md: the metrics table, training curves (whose pose errors training logged after
     `training_alignment`), held-out comparisons and (if rendered) a turntable strip."""
     run_dir = Path(run_dir)
-    records = read_log(run_dir)
+    records = RunFolder(run_dir).read_log()
     lines = [f"# {result['scene']}: {result['views']} views", "", f"Run folder: `{run_dir}`", ""]
     lines += ["## Camera poses (training views)", "",
               "| alignment | stage | rotation mean (deg) | rotation median (deg) | centre floor (deg) | translation mean "
@@ -138,7 +132,7 @@ def plot_sweep(rows: list[dict], out_dir: Path) -> list[Path]:
     plt = _pyplot()
     figure, (loss_axis, pose_axis) = plt.subplots(1, 2, figsize=(11, 3.8))
     for row in rows:
-        records = read_log(out_dir / row["run"])
+        records = RunFolder(out_dir / row["run"]).read_log()
         if not records:
             continue
         iters = [r["iter"] for r in records]

@@ -132,6 +132,11 @@ class RunFolder:
 
             yield write
 
+    def read_log(self) -> list[dict]:
+        """The per-iteration records of log.jsonl ([] without one)."""
+        path = self.path / LOG_FILE
+        return [json.loads(line) for line in path.read_text().splitlines() if line.strip()] if path.is_file() else []
+
     def record_poses(self, iteration: int, viewmats: torch.Tensor) -> None:
         """Append [C,4,4] `viewmats` to the pose history when `iteration` is a multiple of RECORD_EVERY."""
         if iteration % RECORD_EVERY == 0:

@@ -181,7 +181,7 @@ def read_masks(root: Path, names: list[str], width: int, height: int, resolution
         return None
     masks = np.empty((len(names), height, width), dtype=np.float32)
     for index, name in enumerate(names):
-        path = _find_by_stem(folder, name, (".png", ".jpg", ".jpeg", ".JPG", ".PNG"))
+        path = _find_by_stem(folder, name, IMAGE_EXTENSIONS)
         if path is None:
             raise WarpbagsError(f"mask for image {name} is missing: expected {folder / Path(name).stem}.png or .jpg")
         mask = _read_mask(path, width)

@@ -12,11 +12,10 @@ import math
 from dataclasses import dataclass
 from pathlib import Path
 
-import cv2
 import numpy as np
 
 from warpbags.data.colmap import read_model
-from warpbags.data.images import IMAGE_EXTENSIONS, first_existing_image_dir, resolution_path
+from warpbags.data.images import IMAGE_EXTENSIONS, first_existing_image_dir, image_size
 from warpbags.errors import WarpbagsError
 
 # OpenGL (x right, y up, z back) camera axes to OpenCV (x right, y down, z forward): flip y and z.
@@ -151,10 +150,7 @@ def transforms_cameras(root: Path) -> LayoutCameras:
         camera_to_world = np.vstack([camera_to_world[:3], [0, 0, 0, 1]]) @ OPENGL_TO_OPENCV
         width, height = merged.get("w"), merged.get("h")
         if width is None or height is None:
-            probe = cv2.imread(str(resolution_path(root, image_path, 1)), cv2.IMREAD_UNCHANGED)
-            if probe is None:
-                raise WarpbagsError(f"image {image_path} (named in {path.name}) is missing or unreadable")
-            height, width = probe.shape[:2]
+            width, height = image_size(image_path)
         if "fl_x" in merged:
             fx = float(merged["fl_x"])
             fy = float(merged.get("fl_y", fx))

@@ -19,7 +19,6 @@ Files (under the run folder's repair/):
 
 from __future__ import annotations
 
-import json
 import math
 from pathlib import Path
 from typing import Callable
@@ -29,7 +28,7 @@ import torch
 from warpbags.camera_paths import interpolated_viewmats
 from warpbags.cameras import camera_centers
 from warpbags.configs.train import RepairConfig, TrainConfig
-from warpbags.files import atomic_output
+from warpbags.files import atomic_output, finite_json
 from warpbags.losses import load_lpips, repair_loss
 from warpbags.model import GaussianModel
 from warpbags.repair.network import Repairer, make_repairer
@@ -104,8 +103,8 @@ class RepairStage:
             with atomic_output(repairer_path) as temporary:
                 torch.save(self.repairer.state_dict(), temporary)
             with atomic_output(self.folder / "fit.json") as temporary:
-                temporary.write_text(json.dumps({"pairs": {kind: pairs.kinds.count(kind) for kind in set(pairs.kinds)},
-                                                 **stats}, indent=2))
+                temporary.write_text(finite_json({"pairs": {kind: pairs.kinds.count(kind) for kind in set(pairs.kinds)},
+                                                  **stats}, indent=2))
             self._save_pair_samples(pairs)
         self.lpips, unavailable = load_lpips() if self.config.weight_lpips > 0 else (None, None)
         if self.lpips is not None:
