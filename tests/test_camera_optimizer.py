@@ -112,6 +112,16 @@ def test_unrendered_cameras_do_not_move(parameterization):
     torch.testing.assert_close(cameras.viewmats()[2:], cameras.viewmats_init[2:], rtol=0, atol=1e-6)
 
 
+def test_the_camera_optimizer_is_an_ordinary_torch_module():
+    # Its poses come from forward; Module.apply(fn) keeps torch's meaning, so a parent module can initialize or
+    # move it like any other submodule.
+    cameras = _optimizer(CameraOptimizerSettings())
+    visited = []
+    assert cameras.apply(visited.append) is cameras and visited == [cameras]
+    torch.testing.assert_close(cameras(torch.tensor([2, 0])), cameras.viewmats()[[2, 0]], rtol=0, atol=0)
+    assert cameras.double().viewmats_init.dtype == torch.float64
+
+
 def test_fixed_gauge_camera_keeps_its_pose_and_state_round_trips():
     settings = CameraOptimizerSettings(fix_first_camera=True, lr=1e-2)
     cameras = _optimizer(settings)
