@@ -39,7 +39,8 @@ RANSAC_PX = 1.5
 @dataclass(frozen=True)
 class ViewMatches:
     """Matches between pairs of views: match m links pixel `pixels_a[m]` of view `views_a[m]` with `pixels_b[m]` of
-    view `views_b[m]` (views_a < views_b), in images of `size`.
+    view `views_b[m]`, in images of `size` (`find_view_matches` gives views_a < views_b; `subset` renumbers each view
+    and keeps which side it is on).
 
     Attributes:
         views_a, views_b: [M] long view indices. pixels_a, pixels_b: [M, 2] float64 pixel coordinates (x, y) with
