@@ -39,17 +39,18 @@ def evaluate(
              f"training cameras against the scene's own poses ({result['views']} views; no noise was injected, so "
              "the final rows are how far training moved them)")
     poses = Table(title=title, title_justify="left")
-    for column in ("alignment", "stage", "rot mean", "rot median", "centre floor", "trans mean", "% orbit"):
+    for column in ("alignment", "stage", "rot mean", "rot median", "centre floor", "trans mean", "% orbit", "px"):
         poses.add_column(column, no_wrap=column in ("alignment", "stage"))
     for name, entry in result["poses"].items():
         for stage in ("initial", "final"):
             e = entry[stage]
             poses.add_row(name, stage, f"{e['rotation_deg_mean']:.3f}", f"{e['rotation_deg_median']:.3f}",
                           _fmt(e.get("rotation_deg_centre_floor_mean"), 3), f"{e['translation_mean']:.4f}",
-                          f"{e['translation_percent_of_orbit']:.2f}")
+                          f"{e['translation_percent_of_orbit']:.2f}", _fmt(e.get("reprojection_px_mean"), 2))
     stdout.print(poses)
     stdout.print("rotations in degrees; centre floor: the rotation error that the camera centres alone force on "
-                 "cameras that look at the object")
+                 "cameras that look at the object; px: how far the pose error moves the object in each image (RMS "
+                 "pixels at the training resolution, mean over cameras)")
 
     images = Table(title=f"held-out views ({result['test_views']}, {alignment} alignment)", title_justify="left")
     for column in ("test poses", "PSNR", "SSIM", "FLIP", "LPIPS"):

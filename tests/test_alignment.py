@@ -6,9 +6,10 @@ import math
 
 import pytest
 import torch
-from random_poses import F64, generator, random_sim3, random_viewmats
+from random_poses import F64, generator, random_sim3, random_viewmats, unit_vectors
 
-from warpbags.alignment import Sim3, align_viewmats, alignment_for, centre_floor_errors, pose_errors, umeyama
+from warpbags.alignment import (Sim3, align_viewmats, alignment_for, centre_floor_errors, pose_errors,
+                                reprojection_errors, umeyama)
 from warpbags.cameras import camera_centers, moved_keeping_target
 from warpbags.data.noise import perturb_viewmats
 from warpbags.lie import so3_exp
@@ -231,6 +232,37 @@ def test_centre_floor_is_zero_for_orientation_noise_and_gauge_free_for_centre_no
     assert floor.mean() > 1.0
     torch.testing.assert_close(centre_floor_errors(align_viewmats(looking, random_sim3(gen, scale=0.6)), truth, origin),
                                floor, atol=1e-8, rtol=0)
+
+
+# ----------------------------------------------------------------------------------------------- reprojection
+
+
+def test_reprojection_errors_tell_a_turn_about_the_camera_from_one_about_the_object():
+    """A telephoto camera (focal 400 px) 4 units from an object of radius 0.5 at the origin: turned 0.5 deg about
+    its own centre the object moves by about focal * angle; turned as much about the object (along its orbit) only
+    by the object's parallax. A known similarity of the estimated world changes nothing once aligned."""
+    gen = generator(22)
+    truth = _look_at_origin(random_viewmats(5, gen))
+    Ks = torch.tensor([[400.0, 0.0, 64.0], [0.0, 400.0, 64.0], [0.0, 0.0, 1.0]], dtype=F64).expand(5, 3, 3)
+    points = 0.5 * unit_vectors(500, gen) * torch.rand(500, 1, generator=gen, dtype=F64)
+    identity = Sim3.identity(dtype=F64)
+    torch.testing.assert_close(reprojection_errors(truth, truth, Ks, points, identity), torch.zeros(5, dtype=F64))
+    angle = math.radians(0.5)
+    turn = torch.eye(4, dtype=F64).expand(5, 4, 4).clone()
+    turn[:, :3, :3] = so3_exp(torch.tensor([0.0, angle, 0.0], dtype=F64))
+    about_camera = turn @ truth
+    # about the object: x_camera' = R (x_camera - c) + c with c = (0, 0, 4), the object centre in the camera
+    to_object = torch.eye(4, dtype=F64).expand(5, 4, 4).clone()
+    to_object[:, 2, 3] = 4.0
+    from_object = torch.linalg.inv(to_object)
+    about_object = to_object @ turn @ from_object @ truth
+    pan = reprojection_errors(about_camera, truth, Ks, points, identity)
+    orbit = reprojection_errors(about_object, truth, Ks, points, identity)
+    torch.testing.assert_close(pan, torch.full((5,), 400.0 * math.tan(angle), dtype=F64), rtol=0.02, atol=0)
+    assert (orbit < 0.15 * pan).all() and (orbit > 0).all()
+    similarity = random_sim3(gen, scale=1.7)
+    moved = align_viewmats(about_object, similarity)  # the estimate in another world frame
+    torch.testing.assert_close(reprojection_errors(moved, truth, Ks, points, similarity.inverse()), orbit)
 
 
 def test_alignment_for_falls_back_to_pairwise_only_where_procrustes_cannot_fit():

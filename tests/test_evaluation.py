@@ -53,7 +53,14 @@ def test_eval_writes_metrics_and_pictures(finished_run):
         assert len(entry["rotation_deg_centre_floor"]) == 4
         assert entry["rotation_deg_centre_floor_mean"] == pytest.approx(np.mean(entry["rotation_deg_centre_floor"]))
         assert "rotation_deg_centre_floor" not in report["poses"]["pairwise"][stage]
-    assert "centre floor" in result.output
+    # how far the pose errors move the object, per camera, under every alignment; noisy poses move it by pixels
+    for name in ("procrustes", "pairwise"):
+        for stage in ("initial", "final"):
+            entry = report["poses"][name][stage]
+            assert len(entry["reprojection_px"]) == 4
+            assert entry["reprojection_px_mean"] == pytest.approx(np.mean(entry["reprojection_px"]))
+    assert report["poses"]["procrustes"]["initial"]["reprojection_px_mean"] > 0.5
+    assert "centre floor" in result.output and "px" in result.output
     assert report["pose_noise_injected"] is True and "training-camera pose error" in result.output
     for key in ("images", "images_after_test_pose_refinement"):
         mean = report[key]["mean"]
@@ -80,6 +87,7 @@ def test_pose_accuracy_is_zero_for_true_poses(finished_run):
     assert report["procrustes"]["final"]["rotation_deg_mean"] < 1e-4
     assert report["procrustes"]["final"]["translation_mean"] < 1e-5
     assert report["procrustes"]["final"]["rotation_deg_centre_floor_mean"] < 1e-4
+    assert report["procrustes"]["final"]["reprojection_px_mean"] < 1e-4
 
 
 def test_test_pose_refinement_brings_a_camera_four_degrees_off_back_exactly():

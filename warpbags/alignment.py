@@ -15,7 +15,8 @@ import torch
 from warpbags.cameras import camera_centers, moved_keeping_target, viewmats_from_centers
 from warpbags.lie import rotation_error_deg
 
-__all__ = ["Sim3", "align_viewmats", "alignment_for", "centre_floor_errors", "pose_errors", "umeyama"]
+__all__ = ["Sim3", "align_viewmats", "alignment_for", "centre_floor_errors", "pose_errors", "reprojection_errors",
+           "umeyama"]
 
 
 @dataclass(frozen=True)
@@ -272,3 +273,27 @@ def centre_floor_errors(viewmats_est: torch.Tensor, viewmats_ref: torch.Tensor, 
     aligned = align_viewmats(viewmats_est, pose_errors(viewmats_est, viewmats_ref)["sim3"])
     best = moved_keeping_target(viewmats_ref, camera_centers(aligned), target.to(viewmats_ref))
     return pose_errors(best, viewmats_ref)["rotation_errors_deg"]
+
+
+def reprojection_errors(viewmats_est: torch.Tensor, viewmats_ref: torch.Tensor, Ks: torch.Tensor, points: torch.Tensor,
+                        sim3: Sim3) -> torch.Tensor:
+    """[C] RMS distances (pixels) between where each estimated camera, aligned by `sim3`, and its reference camera
+    project `points` ([N, 3], reference frame): the image motion of the object that the pose error causes.
+
+    Degrees alone do not say it: a camera 0.5 deg off about its own centre moves a telephoto image by pixels, but 0.5
+    deg along the orbit about the object it looks at moves it by the object's parallax only. Points behind either
+    camera are left out; intrinsics [C, 3, 3] set the pixels' size.
+    """
+    aligned = align_viewmats(viewmats_est, sim3)
+
+    def project(viewmats: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        in_camera = points @ viewmats[:, :3, :3].transpose(-1, -2) + viewmats[:, None, :3, 3]  # [C, N, 3]
+        homogeneous = in_camera @ Ks.to(points).transpose(-1, -2)
+        return homogeneous[..., :2] / homogeneous[..., 2:].clamp_min(1e-12), in_camera[..., 2]
+
+    with torch.no_grad():
+        pixels_est, depth_est = project(aligned.to(points))
+        pixels_ref, depth_ref = project(viewmats_ref.to(points))
+        seen = ((depth_est > 0) & (depth_ref > 0)).to(points.dtype)
+        squared = ((pixels_est - pixels_ref) ** 2).sum(-1) * seen
+        return (squared.sum(-1) / seen.sum(-1).clamp_min(1)).sqrt()

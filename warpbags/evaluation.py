@@ -26,14 +26,14 @@ import numpy as np
 import torch
 from skimage.metrics import peak_signal_noise_ratio, structural_similarity
 
-from warpbags.alignment import align_viewmats, alignment_for, centre_floor_errors, pose_errors
+from warpbags.alignment import align_viewmats, alignment_for, centre_floor_errors, pose_errors, reprojection_errors
 from warpbags.camera_optimizer import CameraOptimizer, CameraOptimizerSettings
 from warpbags.configs.train import TrainConfig
 from warpbags.data import ORBIT_RADIUS, Scene, SceneNormalization, load_scene
 from warpbags.devices import torch_device
 from warpbags.errors import WarpbagsError
 from warpbags.files import atomic_output, finite_json
-from warpbags.gaussians import opacity_weighted_center, read_ply, render_gaussians, sh_degree_of
+from warpbags.gaussians import object_points, opacity_weighted_center, read_ply, render_gaussians, sh_degree_of
 from warpbags.losses import load_lpips, photometric_loss
 from warpbags.report import write_image_grid, write_run_report
 from warpbags.run_folder import RunFolder
@@ -112,12 +112,17 @@ def held_out_views(run: TrainingRun) -> Scene:
 
 
 def pose_accuracy(run: TrainingRun, log=print) -> dict:
-    """Initial and final pose errors of the training cameras under each alignment the cameras allow.
+    """Initial and final pose errors of the training cameras under each alignment the cameras allow: rotation,
+    centre distance, the pixels the object moves by in each image (`reprojection_errors`: the trained Gaussians'
+    opaque centres, at the training resolution; runs that saved their intrinsics) and, after Procrustes, the
+    rotation error the centres alone force.
 
     An alignment that cannot be fitted (procrustes with fewer than 3 or collinear camera centres, pairwise with
     one camera) is left out of the report, with a logged line saying why.
     """
     report = {}
+    intrinsics = RunFolder(run.path).read_poses("intrinsics")  # None in runs of an older warpbags
+    points = object_points(run.params).double()  # where the final poses put the object
     for alignment in ALIGNMENTS:
         poses_by_stage = {"initial": run.poses_init, "final": run.poses_final}
         try:
@@ -137,6 +142,11 @@ def pose_accuracy(run: TrainingRun, log=print) -> dict:
                 "translation_median": errors["translation_error_median"],
                 "translation_percent_of_orbit": 100 * errors["translation_error_mean"] / ORBIT_RADIUS,
             }
+            if intrinsics is not None:  # the object where the final poses and their alignment put it
+                pixels = reprojection_errors(poses_by_stage[stage], run.poses_true, torch.from_numpy(intrinsics),
+                                             errors_by_stage["final"]["sim3"].apply(points), errors["sim3"])
+                entry[stage]["reprojection_px"] = pixels.tolist()
+                entry[stage]["reprojection_px_mean"] = pixels.mean().item()
             if alignment == "procrustes":  # the normalized scene is centred on the object
                 floor = centre_floor_errors(poses_by_stage[stage], run.poses_true, torch.zeros(3, dtype=torch.float64))
                 entry[stage]["rotation_deg_centre_floor"] = floor.tolist()

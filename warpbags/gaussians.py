@@ -160,6 +160,15 @@ def opacity_weighted_center(params: dict[str, torch.Tensor]) -> torch.Tensor:
     return (params["means"] * weights).sum(0) / weights.sum().clamp_min(1e-12)
 
 
+def object_points(params: dict[str, torch.Tensor], count: int = 20_000) -> torch.Tensor:
+    """[N, 3] centres of the Gaussians at least half opaque (all of them where none is), every k-th of them so that
+    at most `count` remain: points on the object, for measures that project it."""
+    means = params["means"]
+    opaque = means[torch.sigmoid(params["opacities"]) > 0.5]
+    points = opaque if len(opaque) else means
+    return points[::max(1, -(-len(points) // count))]
+
+
 def sh_degree_of(params: dict[str, torch.Tensor]) -> int:
     """The highest SH degree the parameters hold."""
     count = 1 + (params["shN"].shape[1] if "shN" in params else 0)

@@ -75,17 +75,18 @@ def write_run_report(run_dir: Path, result: dict, training_alignment: str) -> Pa
     lines = [f"# {result['scene']}: {result['views']} views", "", f"Run folder: `{run_dir}`", ""]
     lines += ["## Camera poses (training views)", "",
               "| alignment | stage | rotation mean (deg) | rotation median (deg) | centre floor (deg) | translation mean "
-              "| % of orbit |",
-              "|---|---|---|---|---|---|---|"]
+              "| % of orbit | object motion (px) |",
+              "|---|---|---|---|---|---|---|---|"]
     for name, entry in result["poses"].items():
         for stage in ("initial", "final"):
             e = entry[stage]
-            floor = e.get("rotation_deg_centre_floor_mean")
+            floor, pixels = e.get("rotation_deg_centre_floor_mean"), e.get("reprojection_px_mean")
             lines.append(f"| {name} | {stage} | {e['rotation_deg_mean']:.3f} | {e['rotation_deg_median']:.3f} | "
                          f"{'n/a' if floor is None else f'{floor:.3f}'} | {e['translation_mean']:.4f} | "
-                         f"{e['translation_percent_of_orbit']:.2f} |")
+                         f"{e['translation_percent_of_orbit']:.2f} | {'n/a' if pixels is None else f'{pixels:.2f}'} |")
     lines += ["", "Centre floor: the rotation error that the camera centres alone force on cameras that look at the "
-              "object (Procrustes only)."]
+              "object (Procrustes only). Object motion: how far the pose error moves the object in each image (RMS "
+              "pixels at the training resolution over the trained Gaussians' opaque centres, mean over cameras)."]
     searches = [(r["iter"], r["view_hypotheses"]) for r in records if "view_hypotheses" in r]
     if searches:
         lines += ["", "## Turns of the worst-fit camera", "",
