@@ -17,6 +17,7 @@ from typer.testing import CliRunner
 from warpbags.cli.main import app
 from warpbags.data import SyntheticOptions, ensure_synthetic_scene
 from warpbags.data.colmap import read_model, write_model
+from warpbags.errors import WarpbagsError
 from warpbags.evaluation import FlipMetric, LpipsMetric, comparison_file_names, image_metrics, load_run, pose_accuracy
 from warpbags.gaussians import read_ply, write_ply
 from warpbags.losses import load_lpips
@@ -370,9 +371,16 @@ def test_eval_of_an_unfinished_run_names_the_missing_file(finished_run, tmp_path
 def _two_camera_copy(finished_run, folder):
     """The finished run with only its first two training cameras (too few for procrustes alignment)."""
     shutil.copytree(finished_run, folder)
-    for name in ("poses_true", "poses_init", "poses_final"):
+    for name in ("poses_true", "poses_init", "poses_start", "poses_final", "intrinsics"):
         np.save(folder / f"{name}.npy", np.load(finished_run / f"{name}.npy")[:2])
     return folder
+
+
+def test_pose_accuracy_names_intrinsics_that_do_not_match_the_poses(finished_run, tmp_path):
+    folder = _two_camera_copy(finished_run, tmp_path / "mismatch")
+    np.save(folder / "intrinsics.npy", np.load(finished_run / "intrinsics.npy"))  # four cameras' against two poses
+    with pytest.raises(WarpbagsError, match="intrinsics.npy holds 4 cameras"):
+        pose_accuracy(load_run(folder))
 
 
 def test_pose_accuracy_leaves_out_the_alignment_two_cameras_cannot_fit(finished_run, tmp_path):

@@ -122,6 +122,9 @@ def pose_accuracy(run: TrainingRun, log=print) -> dict:
     """
     report = {}
     intrinsics = RunFolder(run.path).read_poses("intrinsics")  # None in runs of an older warpbags
+    if intrinsics is not None and len(intrinsics) != len(run.poses_final):
+        raise WarpbagsError(f"{run.path / 'intrinsics.npy'} holds {len(intrinsics)} cameras, the run's poses "
+                            f"{len(run.poses_final)}")
     points = object_points(run.params).double()  # where the final poses put the object
     for alignment in ALIGNMENTS:
         poses_by_stage = {"initial": run.poses_init, "final": run.poses_final}
