@@ -12,7 +12,7 @@ from typing import Literal
 
 import torch
 
-from warpbags.cameras import camera_centers, moved_keeping_target, viewmats_from_centers
+from warpbags.cameras import camera_centers, moved_keeping_target, project_points, viewmats_from_centers
 from warpbags.lie import rotation_error_deg
 
 __all__ = ["Sim3", "align_viewmats", "alignment_for", "centre_floor_errors", "pose_errors", "reprojection_errors",
@@ -284,16 +284,10 @@ def reprojection_errors(viewmats_est: torch.Tensor, viewmats_ref: torch.Tensor, 
     deg along the orbit about the object it looks at moves it by the object's parallax only. Points behind either
     camera are left out; intrinsics [C, 3, 3] set the pixels' size.
     """
-    aligned = align_viewmats(viewmats_est, sim3)
-
-    def project(viewmats: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        in_camera = points @ viewmats[:, :3, :3].transpose(-1, -2) + viewmats[:, None, :3, 3]  # [C, N, 3]
-        homogeneous = in_camera @ Ks.to(points).transpose(-1, -2)
-        return homogeneous[..., :2] / homogeneous[..., 2:].clamp_min(1e-12), in_camera[..., 2]
-
     with torch.no_grad():
-        pixels_est, depth_est = project(aligned.to(points))
-        pixels_ref, depth_ref = project(viewmats_ref.to(points))
-        seen = ((depth_est > 0) & (depth_ref > 0)).to(points.dtype)
+        Ks = Ks.to(points)
+        pixels_est, depth_est = project_points(align_viewmats(viewmats_est, sim3).to(points), Ks, points)
+        pixels_ref, depth_ref = project_points(viewmats_ref.to(points), Ks, points)
+        seen = ((depth_est > 1e-6) & (depth_ref > 1e-6)).to(points.dtype)  # project_points' pixels are valid there
         squared = ((pixels_est - pixels_ref) ** 2).sum(-1) * seen
         return (squared.sum(-1) / seen.sum(-1).clamp_min(1)).sqrt()

@@ -135,6 +135,7 @@ def pose_accuracy(run: TrainingRun, log=print) -> dict:
             log(f"pose errors: {alignment} left out: {error}")
             continue
         entry = {}
+        object_reference = errors_by_stage["final"]["sim3"].apply(points)  # where the final alignment puts the object
         for stage, errors in errors_by_stage.items():
             entry[stage] = {
                 "rotation_deg": errors["rotation_errors_deg"].tolist(),
@@ -145,9 +146,9 @@ def pose_accuracy(run: TrainingRun, log=print) -> dict:
                 "translation_median": errors["translation_error_median"],
                 "translation_percent_of_orbit": 100 * errors["translation_error_mean"] / ORBIT_RADIUS,
             }
-            if intrinsics is not None:  # the object where the final poses and their alignment put it
+            if intrinsics is not None:
                 pixels = reprojection_errors(poses_by_stage[stage], run.poses_true, torch.from_numpy(intrinsics),
-                                             errors_by_stage["final"]["sim3"].apply(points), errors["sim3"])
+                                             object_reference, errors["sim3"])
                 entry[stage]["reprojection_px"] = pixels.tolist()
                 entry[stage]["reprojection_px_mean"] = pixels.mean().item()
             if alignment == "procrustes":  # the normalized scene is centred on the object
