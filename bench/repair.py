@@ -34,7 +34,8 @@ import torch
 from common import add_training_options, merge_settings, open_bench_scene, training_overrides
 from warpbags.alignment import align_viewmats, pose_errors
 from warpbags.configs.train import load_preset
-from warpbags.evaluation import evaluate_run, held_out_views, load_run
+from warpbags.evaluation import evaluate_run, held_out_views
+from warpbags.run_folder import load_run
 from warpbags.gaussians import render_gaussians, sh_degree_of
 from warpbags.trainer import Trainer, training_scene
 from warpbags.cli.common import clean_errors

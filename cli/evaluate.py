@@ -10,7 +10,8 @@ from rich.console import Console
 from rich.table import Table
 
 from warpbags.cli.common import clean_errors
-from warpbags.evaluation import evaluate_run, latest_run
+from warpbags.evaluation import evaluate_run
+from warpbags.run_folder import latest_run
 
 stdout = Console(highlight=False)
 

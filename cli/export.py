@@ -9,7 +9,7 @@ import typer
 from rich.console import Console
 
 from warpbags.cli.common import clean_errors
-from warpbags.evaluation import latest_run
+from warpbags.run_folder import latest_run
 from warpbags.export import export_run, render_turntable
 
 stdout = Console(highlight=False)

@@ -18,7 +18,8 @@ from warpbags.cli.main import app
 from warpbags.data import SyntheticOptions, ensure_synthetic_scene
 from warpbags.data.colmap import read_model, write_model
 from warpbags.errors import WarpbagsError
-from warpbags.evaluation import FlipMetric, LpipsMetric, comparison_file_names, image_metrics, load_run, pose_accuracy
+from warpbags.evaluation import FlipMetric, LpipsMetric, comparison_file_names, image_metrics, pose_accuracy
+from warpbags.run_folder import load_run
 from warpbags.gaussians import read_ply, write_ply
 from warpbags.losses import load_lpips
 

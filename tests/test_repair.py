@@ -13,7 +13,8 @@ from warpbags.cli.main import app
 from warpbags.configs.train import RepairConfig, load_preset
 from warpbags.data import SyntheticOptions, ensure_synthetic_scene, load_scene
 from warpbags.errors import WarpbagsError
-from warpbags.evaluation import evaluate_run, held_out_views, load_run
+from warpbags.evaluation import evaluate_run, held_out_views
+from warpbags.run_folder import load_run
 from warpbags.gaussians import render_gaussians, sh_degree_of
 from warpbags.blur import gaussian_blur
 from warpbags.repair import RepairPairs, UNetRepairer, make_repairer

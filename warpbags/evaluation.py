@@ -19,7 +19,6 @@ overfit with 4-9 cameras; both are reported and labelled.
 from __future__ import annotations
 
 import dataclasses
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -33,64 +32,13 @@ from warpbags.data import ORBIT_RADIUS, Scene, SceneNormalization, load_scene
 from warpbags.devices import torch_device
 from warpbags.errors import WarpbagsError
 from warpbags.files import atomic_output, finite_json
-from warpbags.gaussians import object_points, opacity_weighted_center, read_ply, render_gaussians, sh_degree_of
+from warpbags.gaussians import object_points, opacity_weighted_center, render_gaussians, sh_degree_of
 from warpbags.losses import load_lpips, photometric_loss
 from warpbags.report import write_image_grid, write_run_report
-from warpbags.run_folder import RunFolder
+from warpbags.run_folder import RunFolder, TrainingRun, load_run, require_info
 from warpbags.threads import torch_threads
 
 ALIGNMENTS = ("procrustes", "pairwise")
-
-
-@dataclass
-class TrainingRun:
-    """What a finished run folder holds (see `warpbags.run_folder` for the layout)."""
-
-    path: Path
-    info: dict
-    config: TrainConfig
-    params: dict[str, torch.Tensor]
-    poses_true: torch.Tensor
-    poses_init: torch.Tensor
-    poses_final: torch.Tensor
-
-
-def require_info(run: TrainingRun, *keys: str) -> None:
-    """Raise WarpbagsError naming the run's config.json if it lacks one of `keys` (a run of an older warpbags)."""
-    for key in keys:
-        if key not in run.info:
-            raise WarpbagsError(f"{run.path / 'config.json'} has no {key!r}: written by an older warpbags")
-
-
-def latest_run(root: str | Path = "runs") -> Path:
-    """The most recently modified run folder under `root` that holds a config.json.
-
-    Raises:
-        WarpbagsError: no run there.
-    """
-    runs = [p.parent for p in Path(root).glob("*/config.json")]
-    if not runs:
-        raise WarpbagsError(f"no training run under {Path(root).resolve()}; pass RUN_DIR or train first")
-    return max(runs, key=lambda p: (p / "config.json").stat().st_mtime)
-
-
-def load_run(path: str | Path) -> TrainingRun:
-    """Read a finished run folder.
-
-    Raises:
-        WarpbagsError: a missing or unreadable file, named.
-    """
-    path = Path(path)
-    if not (path / "config.json").is_file():
-        raise WarpbagsError(f"{path} is not a training run (no config.json)")
-    folder = RunFolder(path)
-    info = folder.read_info()
-    config = folder.saved_config(info)
-    for name in ("gaussians.ply", "poses_true.npy", "poses_init.npy", "poses_final.npy"):
-        if not (path / name).is_file():
-            raise WarpbagsError(f"{path / name} is missing: the run has not finished (continue it with --resume)")
-    poses = {name: torch.from_numpy(folder.read_poses(name)) for name in ("poses_true", "poses_init", "poses_final")}
-    return TrainingRun(path, info, config, read_ply(path / "gaussians.ply"), **poses)
 
 
 def held_out_views(run: TrainingRun) -> Scene:

@@ -22,7 +22,7 @@ from warpbags.data.colmap import write_model
 from warpbags.data.images import image_size, resolution_path
 from warpbags.data.layouts import read_layout_cameras, scaled_intrinsics
 from warpbags.errors import WarpbagsError
-from warpbags.evaluation import TrainingRun, load_run, require_info
+from warpbags.run_folder import TrainingRun, load_run, require_info
 from warpbags.files import atomic_output
 from warpbags.gaussians import render_gaussians, sh_degree_of, to_source_frame, write_ply
 from warpbags.kernels.sh import SH_C0

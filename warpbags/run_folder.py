@@ -1,4 +1,4 @@
-"""`RunFolder`: the files of a training run, and the one place that writes them (`warpbags.evaluation` reads them).
+"""`RunFolder`: the files of a training run, the one place that writes them; `load_run` reads a finished one.
 
 Layout:
     config.json        the resolved TrainConfig plus scene/view information
@@ -29,6 +29,7 @@ import json
 import pickle
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -38,7 +39,7 @@ from warpbags.configs.train import TrainConfig
 from warpbags.data.scene import Scene
 from warpbags.errors import WarpbagsError
 from warpbags.files import atomic_output
-from warpbags.gaussians import write_ply
+from warpbags.gaussians import read_ply, write_ply
 from warpbags.pose_history import HISTORY_FILE, RECORD_EVERY, record_poses
 
 CHECKPOINTS_KEPT = 3
@@ -198,3 +199,54 @@ class RunFolder:
             raise WarpbagsError(f"{path} was written by an older warpbags (no {', '.join(missing)}); it cannot be "
                                 "resumed, start a new run")
         return state
+
+
+@dataclass
+class TrainingRun:
+    """What a finished run folder holds (see `warpbags.run_folder` for the layout)."""
+
+    path: Path
+    info: dict
+    config: TrainConfig
+    params: dict[str, torch.Tensor]
+    poses_true: torch.Tensor
+    poses_init: torch.Tensor
+    poses_final: torch.Tensor
+
+
+def require_info(run: TrainingRun, *keys: str) -> None:
+    """Raise WarpbagsError naming the run's config.json if it lacks one of `keys` (a run of an older warpbags)."""
+    for key in keys:
+        if key not in run.info:
+            raise WarpbagsError(f"{run.path / 'config.json'} has no {key!r}: written by an older warpbags")
+
+
+def latest_run(root: str | Path = "runs") -> Path:
+    """The most recently modified run folder under `root` that holds a config.json.
+
+    Raises:
+        WarpbagsError: no run there.
+    """
+    runs = [p.parent for p in Path(root).glob("*/config.json")]
+    if not runs:
+        raise WarpbagsError(f"no training run under {Path(root).resolve()}; pass RUN_DIR or train first")
+    return max(runs, key=lambda p: (p / "config.json").stat().st_mtime)
+
+
+def load_run(path: str | Path) -> TrainingRun:
+    """Read a finished run folder.
+
+    Raises:
+        WarpbagsError: a missing or unreadable file, named.
+    """
+    path = Path(path)
+    if not (path / "config.json").is_file():
+        raise WarpbagsError(f"{path} is not a training run (no config.json)")
+    folder = RunFolder(path)
+    info = folder.read_info()
+    config = folder.saved_config(info)
+    for name in ("gaussians.ply", "poses_true.npy", "poses_init.npy", "poses_final.npy"):
+        if not (path / name).is_file():
+            raise WarpbagsError(f"{path / name} is missing: the run has not finished (continue it with --resume)")
+    poses = {name: torch.from_numpy(folder.read_poses(name)) for name in ("poses_true", "poses_init", "poses_final")}
+    return TrainingRun(path, info, config, read_ply(path / "gaussians.ply"), **poses)
