@@ -73,26 +73,6 @@ def merge_settings(base: dict, extra: dict) -> dict:
     return merged
 
 
-def parse_numbers(text: str, option: str, kind: Callable = float) -> list:
-    """The comma-separated numbers of option `option` (empty items skipped): `kind` (float or int) of each.
-
-    Raises:
-        WarpbagsError: an item that is not a `kind`, or no number at all.
-    """
-    numbers = []
-    for item in text.split(","):
-        if not item.strip():
-            continue
-        try:
-            numbers.append(kind(item))
-        except ValueError:
-            what = "an integer" if kind is int else "a number"
-            raise WarpbagsError(f"{option} {text!r}: {item.strip()!r} is not {what}") from None
-    if not numbers:
-        raise WarpbagsError(f"{option} {text!r}: expected comma-separated numbers, got none")
-    return numbers
-
-
 def add_training_options(parser: argparse.ArgumentParser, set_help: str, json_help: str | None = None) -> None:
     """Add `--preset`, `--set NAME=VALUE` (dest "settings", repeatable) and, with `json_help`, `--json PATH`."""
     parser.add_argument("--preset", default="quick", help="the TrainConfig preset (default: quick)")

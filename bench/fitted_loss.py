@@ -32,11 +32,11 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from common import (add_training_options, merge_settings, open_bench_scene, parse_numbers, training_overrides,
+from common import (add_training_options, merge_settings, open_bench_scene, training_overrides,
                     with_depth, write_json)
 from warpbags.alignment import pose_errors
 from warpbags.cameras import pixel_directions, project_points
-from warpbags.cli.common import clean_errors
+from warpbags.cli.common import clean_errors, parse_numbers
 from warpbags.configs.train import load_preset
 from warpbags.errors import WarpbagsError
 from warpbags.trainer import Trainer, training_scene

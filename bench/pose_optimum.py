@@ -33,14 +33,14 @@ import time
 import numpy as np
 import torch
 
-from common import add_training_options, merge_settings, open_bench_scene, parse_numbers, training_overrides, write_json
+from common import add_training_options, merge_settings, open_bench_scene, training_overrides, write_json
 from warpbags.alignment import centre_floor_errors, pose_errors
 from warpbags.configs.train import load_preset
 from warpbags.data import ORBIT_RADIUS
 from warpbags.data.noise import perturb_viewmats
 from warpbags.errors import WarpbagsError
 from warpbags.trainer import Trainer, training_scene
-from warpbags.cli.common import clean_errors
+from warpbags.cli.common import clean_errors, parse_numbers
 
 # The fields this benchmark sets itself (`run_settings`), and where each value comes from.
 FIXED = {"views": "from --views", "rot_noise_deg": "0: the fits start at the reference, see --start-noise",

@@ -47,14 +47,14 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from common import (add_training_options, merge_settings, open_bench_scene, parse_numbers, training_overrides,
+from common import (add_training_options, merge_settings, open_bench_scene, training_overrides,
                     with_depth, write_json)
 from warpbags.alignment import pose_errors
 from warpbags.configs.train import load_preset
 from warpbags.data import ORBIT_RADIUS
 from warpbags.evaluation import evaluate_run
 from warpbags.trainer import Trainer, training_scene
-from warpbags.cli.common import clean_errors
+from warpbags.cli.common import clean_errors, parse_numbers
 
 VARIANTS = {
     "bags": {},

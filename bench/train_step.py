@@ -428,7 +428,8 @@ def main() -> None:
         print(json.dumps(run_configuration(args.one[0], int(args.one[1]), args.points, args.steps, args.warmup,
                                            block, args.sh_degree)))
         return
-    from common import parse_numbers, write_json  # noqa: PLC0415 - not in the children: their peak RSS is measured
+    from common import write_json  # noqa: PLC0415 - not in the children: their peak RSS is measured
+    from warpbags.cli.common import parse_numbers  # noqa: PLC0415
     from warpbags.errors import WarpbagsError  # noqa: PLC0415
 
     inits = [init for init in args.inits.split(",") if init]

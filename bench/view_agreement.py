@@ -28,7 +28,7 @@ import time
 import numpy as np
 import torch
 
-from common import add_training_options, open_bench_scene, parse_numbers, training_overrides, with_depth, write_json
+from common import add_training_options, open_bench_scene, training_overrides, with_depth, write_json
 from warpbags.alignment import pose_errors
 from warpbags.configs.train import load_preset
 from warpbags.data import ORBIT_RADIUS
@@ -36,7 +36,7 @@ from warpbags.evaluation import refine_poses
 from warpbags.model import TrainingViews
 from warpbags.repair.pairs import LeaveOneOutFit
 from warpbags.trainer import training_scene
-from warpbags.cli.common import clean_errors
+from warpbags.cli.common import clean_errors, parse_numbers
 
 
 def register_left_out(views: TrainingViews, reference: torch.Tensor, left_out: int, config, fit_iters: int,

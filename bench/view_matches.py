@@ -29,8 +29,8 @@ from pathlib import Path
 
 import torch
 
-from common import open_bench_scene, parse_numbers, write_json
-from warpbags.cli.common import clean_errors
+from common import open_bench_scene, write_json
+from warpbags.cli.common import clean_errors, parse_numbers
 from warpbags.correspondences import (RANSAC_PX, RATIO, SIFT_FEATURES, fundamental_matrices, match_pair,
                                       sampson_distances, sift_detector, view_features)
 from warpbags.errors import WarpbagsError

@@ -1,4 +1,4 @@
-"""What every command module shares: bad input as one line on stderr and exit code 2."""
+"""What every command module shares: bad input as one line on stderr and exit code 2, lists of numbers read."""
 
 from __future__ import annotations
 
@@ -30,3 +30,23 @@ def clean_errors(command: Callable) -> Callable:
             sys.exit(130)
 
     return wrapper
+
+
+def parse_numbers(text: str, option: str, kind: Callable = float) -> list:
+    """The comma-separated numbers of option `option` (empty items skipped): `kind` (float or int) of each.
+
+    Raises:
+        WarpbagsError: an item that is not a `kind`, or no number at all.
+    """
+    numbers = []
+    for item in text.split(","):
+        if not item.strip():
+            continue
+        try:
+            numbers.append(kind(item))
+        except ValueError:
+            what = "an integer" if kind is int else "a number"
+            raise WarpbagsError(f"{option} {text!r}: {item.strip()!r} is not {what}") from None
+    if not numbers:
+        raise WarpbagsError(f"{option} {text!r}: expected comma-separated numbers, got none")
+    return numbers

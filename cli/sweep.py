@@ -10,21 +10,10 @@ from rich.console import Console
 from rich.markup import escape
 from rich.table import Table
 
-from warpbags.cli.common import clean_errors
-from warpbags.errors import WarpbagsError
+from warpbags.cli.common import clean_errors, parse_numbers
 from warpbags.sweep import RAY_INSTALL, SweepSpec, make_executor, run_sweep
 
 stdout = Console(highlight=False)
-
-
-def _numbers(text: str, kind=float) -> tuple:
-    try:
-        numbers = tuple(kind(item) for item in text.split(",") if item.strip())
-    except ValueError:
-        numbers = ()
-    if not numbers:
-        raise WarpbagsError(f"expected comma-separated numbers, got {text!r}")
-    return numbers
 
 
 def sweep(
@@ -59,7 +48,9 @@ def sweep(
     overrides = {"iters": iters, "repair": None if repair_iters is None else {"iters": repair_iters}}
     overrides = tuple((key, value) for key, value in overrides.items() if value is not None)
     spec = SweepSpec(scene=scene, out=out or Path("runs") / f"sweep-{Path(scene).name}",
-                     rot_noises=_numbers(rot_noises), views=_numbers(views, int), seeds=_numbers(seeds, int),
+                     rot_noises=tuple(parse_numbers(rot_noises, "--rot-noises")),
+                     views=tuple(parse_numbers(views, "--views", int)),
+                     seeds=tuple(parse_numbers(seeds, "--seeds", int)),
                      trans_noise=trans_noise, preset=preset, overrides=overrides, device=device)
     rows = run_sweep(spec, data_root=data_root, log=stdout.print, executor=sweep_executor)
     table = Table(title=f"sweep {scene}", title_justify="left")

@@ -1,4 +1,4 @@
-"""bench/common.py: the number lists, the settings merge, the `--set` checks and the JSON files the benchmarks
+"""bench/common.py: the settings merge, the `--set` checks and the JSON files the benchmarks
 share."""
 
 from __future__ import annotations
@@ -14,26 +14,7 @@ import pytest
 from warpbags.errors import WarpbagsError
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
-from common import add_training_options, merge_settings, parse_numbers, training_overrides, write_json  # noqa: E402
-
-
-def test_parse_numbers_reads_comma_separated_numbers_and_skips_empty_items():
-    assert parse_numbers("5,10,15", "--rot") == [5.0, 10.0, 15.0]
-    assert parse_numbers("0,1,", "--seeds", int) == [0, 1]
-    assert parse_numbers("2.5", "--rot") == [2.5]
-
-
-@pytest.mark.parametrize("text, kind, message", [
-    ("a", float, "--opt 'a': 'a' is not a number"),
-    ("1,x", int, "--opt '1,x': 'x' is not an integer"),
-    ("1.5", int, "--opt '1.5': '1.5' is not an integer"),
-    (",", int, "--opt ',': expected comma-separated numbers, got none"),
-    ("", float, "--opt '': expected comma-separated numbers, got none"),
-])
-def test_parse_numbers_names_the_option_and_the_bad_text(text, kind, message):
-    with pytest.raises(WarpbagsError) as error:
-        parse_numbers(text, "--opt", kind)
-    assert str(error.value) == message
+from common import add_training_options, merge_settings, training_overrides, write_json  # noqa: E402
 
 
 def test_merge_settings_merges_groups_field_by_field_and_leaves_its_inputs():

@@ -14,9 +14,11 @@ import typer.main
 from typer.testing import CliRunner
 
 from warpbags.cli import train as train_command
+from warpbags.cli.common import parse_numbers
 from warpbags.cli.main import COMMAND_GROUPS, app
 from warpbags.cli.train_options import TRAIN_OPTIONS, field_descriptions, field_type, field_value
 from warpbags.configs.train import PRESETS, TrainConfig, quick
+from warpbags.errors import WarpbagsError
 
 runner = CliRunner()
 # Options of `warpbags train` that are not TrainConfig fields.
@@ -159,3 +161,22 @@ def test_python_dash_m_runs_the_command_line():
     result = subprocess.run([sys.executable, "-m", "warpbags.cli.main", "--help"], capture_output=True, text=True,
                             timeout=300)
     assert result.returncode == 0 and "train" in result.stdout, result.stderr
+
+
+def test_parse_numbers_reads_comma_separated_numbers_and_skips_empty_items():
+    assert parse_numbers("5,10,15", "--rot") == [5.0, 10.0, 15.0]
+    assert parse_numbers("0,1,", "--seeds", int) == [0, 1]
+    assert parse_numbers("2.5", "--rot") == [2.5]
+
+
+@pytest.mark.parametrize("text, kind, message", [
+    ("a", float, "--opt 'a': 'a' is not a number"),
+    ("1,x", int, "--opt '1,x': 'x' is not an integer"),
+    ("1.5", int, "--opt '1.5': '1.5' is not an integer"),
+    (",", int, "--opt ',': expected comma-separated numbers, got none"),
+    ("", float, "--opt '': expected comma-separated numbers, got none"),
+])
+def test_parse_numbers_names_the_option_and_the_bad_text(text, kind, message):
+    with pytest.raises(WarpbagsError) as error:
+        parse_numbers(text, "--opt", kind)
+    assert str(error.value) == message

@@ -441,11 +441,11 @@ def test_report_has_the_metrics_and_pictures(finished_run):
 
 def test_sweep_bad_values_one_line(tmp_path):
     result = runner.invoke(app, ["sweep", str(tmp_path), "--rot-noises", "a,b"])
-    assert result.exit_code == 2 and "comma-separated numbers" in result.output
+    assert result.exit_code == 2 and "--rot-noises 'a,b': 'a' is not a number" in result.output
     result = runner.invoke(app, ["sweep", "maryrose", "--views", "1", "--out", str(tmp_path / "s")])
     assert result.exit_code == 2 and "--views must be >= 2" in result.output
     result = runner.invoke(app, ["sweep", "maryrose", "--views", ",", "--out", str(tmp_path / "s")])
-    assert result.exit_code == 2 and "expected comma-separated numbers, got ','" in result.output
+    assert result.exit_code == 2 and "--views ',': expected comma-separated numbers, got none" in result.output
 
 
 def test_a_sweep_with_two_views_reports_their_pairwise_errors(finished_run, tmp_path):
