@@ -32,6 +32,7 @@ from typing import Any
 import warp as wp
 
 WINDOW_RADIUS = 5  # the 11 x 11 window
+SSIM_SIGMA = 1.5  # its Gaussian's
 TAPS = 2 * WINDOW_RADIUS + 1  # a constant, so that Warp unrolls the loops over the taps
 RUN = 8  # pixels per thread, the vector width of every pass
 SSIM_C1 = 0.01**2

@@ -7,36 +7,31 @@ import functools
 import torch
 import torch.nn.functional as F
 
-from warpbags.wrapper import fused_photometric_loss
+from warpbags.kernels.loss import SSIM_C1, SSIM_C2
+from warpbags.wrapper import fused_photometric_loss, ssim_window
 
 
-@functools.lru_cache(maxsize=8)
-def _gaussian_window(size: int, sigma: float, device: str, dtype: torch.dtype) -> torch.Tensor:
-    coords = torch.arange(size, dtype=torch.float64) - (size - 1) / 2
-    g = torch.exp(-(coords**2) / (2 * sigma**2))
-    g = g / g.sum()
-    return (g[:, None] @ g[None, :]).to(device=device, dtype=dtype)
-
-
-def ssim(images: torch.Tensor, targets: torch.Tensor, window_size: int = 11, sigma: float = 1.5) -> torch.Tensor:
-    """Mean SSIM (Wang et al. 2004) with a Gaussian window, zero-padded as 3DGS's `ssim`; differentiable.
+def ssim(images: torch.Tensor, targets: torch.Tensor) -> torch.Tensor:
+    """Mean SSIM (Wang et al. 2004) with an 11 x 11 Gaussian window (sigma 1.5), zero-padded as 3DGS's `ssim`;
+    differentiable. The torch reference of the fused passes (`warpbags.wrapper.fused_photometric_loss`), with their
+    window and constants.
 
     Args:
         images, targets: [B, H, W, 3] in [0, 1].
-        window_size, sigma: the Gaussian window (11 x 11, sigma 1.5).
 
     Returns:
         [] mean SSIM over pixels, channels and batch.
     """
     x, y = images.permute(0, 3, 1, 2), targets.permute(0, 3, 1, 2)
     channels = x.shape[1]
-    window = _gaussian_window(window_size, sigma, str(x.device), x.dtype).expand(channels, 1, -1, -1)
-    blur = functools.partial(F.conv2d, weight=window, padding=window_size // 2, groups=channels)
+    taps = ssim_window(str(x.device), torch.float64)
+    window = (taps[:, None] @ taps[None, :]).to(x.dtype).expand(channels, 1, -1, -1)
+    blur = functools.partial(F.conv2d, weight=window, padding=taps.shape[0] // 2, groups=channels)
     mu_x, mu_y = blur(x), blur(y)
     sigma_x = blur(x * x) - mu_x**2
     sigma_y = blur(y * y) - mu_y**2
     sigma_xy = blur(x * y) - mu_x * mu_y
-    c1, c2 = 0.01**2, 0.03**2
+    c1, c2 = SSIM_C1, SSIM_C2
     ssim_map = ((2 * mu_x * mu_y + c1) * (2 * sigma_xy + c2)) / ((mu_x**2 + mu_y**2 + c1) * (sigma_x + sigma_y + c2))
     return ssim_map.mean()
 

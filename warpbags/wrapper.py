@@ -28,6 +28,7 @@ import torch
 import torch.nn.functional as F
 import warp as wp
 
+from warpbags.blur import gaussian_taps
 from warpbags.kernels.bin import (
     count_tiles_kernel,
     emit_intersections_kernel,
@@ -40,6 +41,7 @@ from warpbags.kernels.coherence import least_outside_sample_kernel
 from warpbags.kernels.knn import PointGrid3, count_cells_3d_kernel, mean_knn_distance_kernel
 from warpbags.kernels.loss import (
     RUN,
+    SSIM_SIGMA,
     WINDOW_RADIUS,
     photometric_grad_kernel,
     ssim_column_pass_kernel,
@@ -886,10 +888,9 @@ def least_outside_samples(rays: torch.Tensor, ray_views: torch.Tensor, origins: 
 
 
 @functools.lru_cache(maxsize=8)
-def _ssim_window_1d(device: str, dtype: torch.dtype, sigma: float = 1.5) -> torch.Tensor:
-    coords = torch.arange(2 * WINDOW_RADIUS + 1, dtype=torch.float64) - WINDOW_RADIUS
-    g = torch.exp(-(coords**2) / (2 * sigma**2))
-    return (g / g.sum()).to(device=device, dtype=dtype)
+def ssim_window(device: str, dtype: torch.dtype) -> torch.Tensor:
+    """SSIM's 1-D Gaussian window (11 taps, sigma 1.5), the one kernels/loss.py's row and column passes apply."""
+    return gaussian_taps(WINDOW_RADIUS, SSIM_SIGMA, dtype, device)
 
 
 def _row_passes(kernel, before: list, after: list, rows: int, runs: int, device: torch.device) -> None:
@@ -921,7 +922,7 @@ class _FusedPhotometricLoss(torch.autograd.Function):
         batch, height, width, _ = images.shape
         images, targets = images.detach().contiguous(), targets.to(images.dtype).contiguous()
         rows, runs = batch * height, -(-width // RUN)
-        window = _to_warp(_ssim_window_1d(str(images.device), images.dtype), "scalar")
+        window = _to_warp(ssim_window(str(images.device), images.dtype), "scalar")
         # x's and y's channel planes, each row with a zero run before and after it (the row blur's zero padding)
         planes = images.new_zeros(6, rows, runs + 2, RUN)
         planes.view(6, batch, height, -1)[:3, ..., RUN:RUN + width] = images.permute(3, 0, 1, 2)
@@ -950,7 +951,7 @@ class _FusedPhotometricLoss(torch.autograd.Function):
         planes, partials = ctx.saved_tensors
         batch, height, width, _ = ctx.shape
         rows, runs = batch * height, -(-width // RUN)
-        window = _to_warp(_ssim_window_1d(str(planes.device), planes.dtype), "scalar")
+        window = _to_warp(ssim_window(str(planes.device), planes.dtype), "scalar")
         blurred = planes.new_empty(9, rows, runs, RUN)
         _row_passes(ssim_grad_row_pass_kernel, [window, rows, runs], [_runs(partials), _runs(blurred)], rows, runs,
                     planes.device)
