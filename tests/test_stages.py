@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import pytest
 import torch
+import warp as wp
 from conftest import DEVICES, random_scene
 from reference import (
     ALPHA_THRESHOLD,
@@ -146,6 +147,17 @@ def _clamps_reached(scene):
     return reached
 
 
+def _launch_warp_adjoint(kernel, dim, arguments: dict, adjoints: dict) -> None:
+    """Launch the Warp-generated adjoint of `kernel` on the CPU: `arguments` by parameter name as for the forward
+    launch, `adjoints` (parameter name -> adjoint array; absent names get none) accumulating the inputs' gradients."""
+    import warpbags.wrapper as wrapper
+
+    values = wrapper._ordered_arguments(kernel, arguments)
+    names = wrapper._parameter_names(kernel)
+    wp.launch(wrapper._overload(kernel, values), dim=dim, inputs=values,
+              adj_inputs=[adjoints.get(name) for name in names], adjoint=True, device="cpu", record_tape=False)
+
+
 def _warp_adjoint_of_projection(inputs, width, height, cotangents):
     """The inputs' gradients by Warp's generated adjoint of the forward kernel (what the projection ran before its
     hand-written backward), one launch over every pair."""
@@ -161,7 +173,7 @@ def _warp_adjoint_of_projection(inputs, width, height, cotangents):
     # the adjoint of a store clears its output's adjoint: Warp gets copies of the cotangents
     adjoints = {name: arguments[name].grad for name in PROJECTION_INPUTS}
     adjoints.update((name, wrapper._to_warp(v.clone(), stage.outputs[name])) for name, v in cotangents.items())
-    wrapper._launcher(cpu).launch(stage.kernel, (cams, n), adjoints=adjoints, **arguments)
+    _launch_warp_adjoint(stage.kernel, (cams, n), arguments, adjoints)
     return grads
 
 
@@ -342,7 +354,7 @@ def _warp_adjoint_of_sh(inputs, degree, cotangent):
     # the adjoint of a store clears its output's adjoint: Warp gets a copy of the cotangent
     adjoints = {name: arguments[name].grad for name in SH_INPUTS}
     adjoints["colors"] = wrapper._to_warp(cotangent.clone(), "vec3")
-    wrapper._launcher(cpu).launch(stage.kernel, (cams, n), adjoints=adjoints, **arguments)
+    _launch_warp_adjoint(stage.kernel, (cams, n), arguments, adjoints)
     return grads
 
 

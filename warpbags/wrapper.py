@@ -99,23 +99,24 @@ class _Launcher(NamedTuple):
     device: object  # warp Device
     stream: object  # wp.Stream on CUDA, None on the CPU
 
-    def launch(self, kernel, dim, /, adjoints: dict | None = None, **arguments) -> None:
-        """Launch `kernel` with every argument given by its parameter name (a missing or unknown name raises).
+    def launch(self, kernel, dim, /, **arguments) -> None:
+        """Launch `kernel` with every argument given by its parameter name (a missing or unknown name raises)."""
+        values = _ordered_arguments(kernel, arguments)
+        wp.launch(_overload(kernel, values), dim=dim, inputs=values, device=self.device, stream=self.stream,
+                  record_tape=False)
 
-        With `adjoints` (parameter name -> adjoint array; absent names get none), launch the kernel's
-        Warp-generated adjoint instead, accumulating into the adjoint arrays of the inputs.
-        """
-        names = _parameter_names(kernel)
-        if arguments.keys() != set(names):
-            raise TypeError(f"kernel {kernel.key}: missing arguments {[n for n in names if n not in arguments]}, "
-                            f"unknown {[n for n in arguments if n not in names]}")
-        values = [arguments[name] for name in names]
-        kernel = _overload(kernel, values)
-        if adjoints is None:
-            wp.launch(kernel, dim=dim, inputs=values, device=self.device, stream=self.stream, record_tape=False)
-        else:
-            wp.launch(kernel, dim=dim, inputs=values, adj_inputs=[adjoints.get(name) for name in names],
-                      adjoint=True, device=self.device, stream=self.stream, record_tape=False)
+
+def _ordered_arguments(kernel, arguments: dict) -> list:
+    """`arguments` (parameter name -> value) in the order of `kernel`'s parameters.
+
+    Raises:
+        TypeError: a parameter without a value, or a value for no parameter.
+    """
+    names = _parameter_names(kernel)
+    if arguments.keys() != set(names):
+        raise TypeError(f"kernel {kernel.key}: missing arguments {[n for n in names if n not in arguments]}, "
+                        f"unknown {[n for n in arguments if n not in names]}")
+    return [arguments[name] for name in names]
 
 
 _OVERLOADS: dict[tuple, object] = {}
