@@ -12,8 +12,8 @@ import torch.nn.functional as F
 
 def gaussian_taps(radius: int, sigma: float, dtype: torch.dtype = torch.float64,
                   device: torch.device | str = "cpu") -> torch.Tensor:
-    """The 2 radius + 1 weights of a 1-D Gaussian of `sigma` taps centred on the middle one, summing to 1 (computed in
-    float64, returned as `dtype`)."""
+    """The 2 radius + 1 weights of a 1-D Gaussian centred on the middle tap, standard deviation `sigma` taps, summing
+    to 1 (computed in float64, returned as `dtype`)."""
     coords = torch.arange(-radius, radius + 1, dtype=torch.float64)
     weights = torch.exp(-(coords**2) / (2 * sigma**2))
     return (weights / weights.sum()).to(device=device, dtype=dtype)
