@@ -5,6 +5,7 @@
     python bench/train_step.py --opensplat PATH      # adds OpenSplat's CPU trainer on the same views and points
     python bench/train_step.py --inits random --views 1 --pixel-blocks 1x1,2x2   # rasterizer pixel blocks compared
     python bench/train_step.py --inits random --views 1 --points 100000 --sh-degree 2   # the paper preset's size
+    python bench/train_step.py --device cuda         # the same steps on a GPU
 
 The step is assembled here from pieces `warpbags.trainer.Trainer` uses, not run through `Trainer.train_step`
 (configured as the speed comparison with OpenSplat: SH degree 0 unless --sh-degree, no densification, the object on
@@ -26,7 +27,10 @@ serially in the calling thread; warpbags' rasterizer runs host threads over tile
 
 Printed per configuration: mean Gaussians per pixel in the tile lists the rasterizer walks, wall ms and CPU ms
 (all threads of the process) per phase (medians over the timed steps), the whole step (median of un-instrumented
-steps), Warp launches per step and the peak RSS. torch runs with 1 thread, as the trainer sets it. The default
+steps), Warp launches per step and the peak RSS. torch runs with 1 thread, as the trainer sets it. With
+`--device cuda` every phase boundary and backward stamp waits for the GPU first (so a phase's wall time is its
+kernels' time; its CPU time is then mostly waiting) and the peak of torch's CUDA memory is printed as well; the
+pixel blocks and OpenSplat's CPU trainer are CPU comparisons, not offered there. The default
 50 warm-up steps match the OpenSplat comparison (/work/shared/tools/opensplat, median after step 50): a random
 init's large, overlapping Gaussians shrink and fade over the first steps, so early steps cost more.
 """
@@ -34,6 +38,7 @@ init's large, overlapping Gaussians shrink and fade over the first steps, so ear
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import os
 import re
@@ -63,6 +68,14 @@ STAGES = {
 OPENSPLAT_BACKGROUND = (0.6130, 0.0101, 0.3984)  # OpenSplat's fixed training background (model.hpp)
 
 
+def _no_wait() -> None:
+    pass
+
+
+# What a clock reading waits for first: the GPU's queued work with --device cuda (`run_configuration` sets it).
+_wait_for_device = _no_wait
+
+
 class _Stamp(torch.autograd.Function):
     """Identity whose backward records (time, label): where the backward pass is at that moment."""
 
@@ -73,6 +86,7 @@ class _Stamp(torch.autograd.Function):
 
     @staticmethod
     def backward(ctx, grad):
+        _wait_for_device()
         ctx.events.append((time.perf_counter(), time.process_time(), ctx.label))
         return grad, None, None
 
@@ -87,6 +101,7 @@ class PhaseClock:
 
     @staticmethod
     def now() -> tuple[float, float]:
+        _wait_for_device()
         return time.perf_counter(), time.process_time()
 
     def add(self, name: str, start: tuple[float, float], end: tuple[float, float]) -> None:
@@ -165,8 +180,10 @@ def instrumented(clock: PhaseClock):
         wp.launch = launch
 
 
-def build_problem(init: str, points: int, seed: int = 0, sh_degree: int = 0) -> dict:
-    """The 4 training views of maryrose at full resolution, initial Gaussians and optimizers (as the trainer)."""
+def build_problem(init: str, points: int, seed: int = 0, sh_degree: int = 0,
+                  device: torch.device = torch.device("cpu")) -> dict:
+    """The 4 training views of maryrose at full resolution, initial Gaussians and optimizers (as the trainer), the
+    points drawn on the CPU (the same on every device) and everything the steps touch on `device`."""
     from warpbags.configs.train import DensifyConfig, load_preset
     from warpbags.init import hull_or_random_points, initial_gaussians
     from warpbags.model import gaussian_optimizer, scene_extent
@@ -182,23 +199,25 @@ def build_problem(init: str, points: int, seed: int = 0, sh_degree: int = 0) -> 
         resolution=config.hull_resolution, dilation_px=config.hull_dilation_px,
         missed_views=config.hull_missed_views, generator=generator,
     )
-    params = {name: torch.nn.Parameter(value) for name, value in initial_gaussians(xyz, colors, sh_degree).items()}
+    params = {name: torch.nn.Parameter(value.to(device))
+              for name, value in initial_gaussians(xyz, colors, sh_degree).items()}
     extent = scene_extent(scene.viewmats)
     optimizer = gaussian_optimizer(params, config, extent)
     lr = config.lr
     cams = scene.num_views
-    pose_rotations = torch.nn.Parameter(torch.zeros(cams, 3))
-    pose_translations = torch.nn.Parameter(torch.zeros(cams, 3))
+    pose_rotations = torch.nn.Parameter(torch.zeros(cams, 3, device=device))
+    pose_translations = torch.nn.Parameter(torch.zeros(cams, 3, device=device))
     pose_optimizer = torch.optim.Adam([{"params": [pose_rotations], "lr": lr.pose},
                                        {"params": [pose_translations], "lr": lr.pose * lr.pose_translation_scale}])
     # Statistics accumulate every step; no clone/split/prune ever runs (fixed Gaussian count, as OpenSplat's run).
     strategy = DensifyStrategy(DensifyConfig(start=10**9, stop=10**9 + 1, opacity_reset_every=0, floater_every=0),
                                extent)
-    masks = scene.masks
-    targets = scene.images * masks[..., None] + (1 - masks[..., None])  # the object on the white background
-    return dict(scene=scene, config=config, params=params, optimizer=optimizer, pose_rotations=pose_rotations,
+    masks = scene.masks.to(device)
+    targets = scene.images.to(device) * masks[..., None] + (1 - masks[..., None])  # the object on the white background
+    return dict(scene=scene, viewmats=scene.viewmats.to(device), Ks=scene.Ks.to(device), config=config,
+                params=params, optimizer=optimizer, pose_rotations=pose_rotations,
                 pose_translations=pose_translations, pose_optimizer=pose_optimizer, strategy=strategy,
-                targets=targets, masks=masks, backgrounds=torch.ones(cams, 3), init_note=note,
+                targets=targets, masks=masks, backgrounds=torch.ones(cams, 3, device=device), init_note=note,
                 points=xyz, point_colors=colors, generator=torch.Generator().manual_seed(seed))
 
 
@@ -214,7 +233,8 @@ def training_step(problem: dict, views_per_step: int, clock: PhaseClock | None =
     with clock.phase("other"):
         deltas = torch.cat([problem["pose_rotations"], problem["pose_translations"]], dim=1)[views]
     renders, alphas, meta = render_gaussians(
-        problem["params"], scene.viewmats[views], scene.Ks[views], scene.width, scene.height, sh_degree=config.sh_degree,
+        problem["params"], problem["viewmats"][views], problem["Ks"][views], scene.width, scene.height,
+        sh_degree=config.sh_degree,
         backgrounds=problem["backgrounds"][views], pose_deltas=deltas, render_mode="RGB",
     )
     meta["means2d"].retain_grad()
@@ -235,15 +255,21 @@ def training_step(problem: dict, views_per_step: int, clock: PhaseClock | None =
 
 
 def run_configuration(init: str, views_per_step: int, points: int, steps: int, warmup: int,
-                      pixel_block: tuple[int, int] | None = None, sh_degree: int = 0) -> dict:
+                      pixel_block: tuple[int, int] | None = None, sh_degree: int = 0, device: str = "cpu") -> dict:
     """Median ms per phase over `steps` instrumented steps, then the median of `steps` plain steps; `pixel_block`
     replaces the rasterizer's default CPU block (warpbags.wrapper.DEFAULT_PIXEL_BLOCK) for the whole run."""
+    global _wait_for_device
+    from warpbags.devices import torch_device
     from warpbags.wrapper import DEFAULT_PIXEL_BLOCK
 
-    torch.set_num_threads(1)  # as the trainer: Warp runs its own host threads
+    target = torch_device(device)
+    if target.type == "cuda":
+        _wait_for_device = functools.partial(torch.cuda.synchronize, target)
+    else:
+        torch.set_num_threads(1)  # as the trainer: Warp runs its own host threads
     if pixel_block is not None:
         DEFAULT_PIXEL_BLOCK["cpu"] = pixel_block
-    problem = build_problem(init, points, sh_degree=sh_degree)
+    problem = build_problem(init, points, sh_degree=sh_degree, device=target)
     for _ in range(warmup):
         training_step(problem, views_per_step)
     per_phase: dict[str, list[float]] = {name: [] for name in PHASES}
@@ -266,10 +292,11 @@ def run_configuration(init: str, views_per_step: int, points: int, steps: int, w
         visits.append(bins.isect_ids.numel() * bins.tile_size**2 / (meta["n_cameras"] * meta["width"] * meta["height"]))
     plain, plain_cpu = [], []
     for _ in range(steps):
-        start, start_cpu = time.perf_counter(), time.process_time()
+        start, start_cpu = PhaseClock.now()
         training_step(problem, views_per_step)
-        plain.append(1e3 * (time.perf_counter() - start))
-        plain_cpu.append(1e3 * (time.process_time() - start_cpu))
+        end, end_cpu = PhaseClock.now()
+        plain.append(1e3 * (end - start))
+        plain_cpu.append(1e3 * (end_cpu - start_cpu))
     scene = problem["scene"]
     return {
         "init": init, "views_per_step": views_per_step, "gaussians": len(problem["params"]["means"]),
@@ -280,7 +307,8 @@ def run_configuration(init: str, views_per_step: int, points: int, steps: int, w
         "step_ms": statistics.median(plain), "step_cpu_ms": statistics.median(plain_cpu), "step_ms_instrumented": statistics.median(
             [sum(values[i] for values in per_phase.values()) for i in range(steps)]),
         "launches": statistics.median(launch_counts), "visits_per_pixel": statistics.fmean(visits),
-        "peak_rss_mib": _high_water_kib(os.getpid()) / 1024,
+        "peak_rss_mib": _high_water_kib(os.getpid()) / 1024, "device": str(target),
+        "peak_cuda_mib": torch.cuda.max_memory_allocated(target) / 2**20 if target.type == "cuda" else None,
     }
 
 
@@ -386,6 +414,8 @@ def print_table(rows: list[dict], opensplat: dict | None) -> None:
     print(f"{'sum of phases':<{width}}" + "".join(f"{r['step_ms_instrumented']:8.1f} |{'':7}" for r in rows))
     print(f"{'step (plain)':<{width}}" + "".join(f"{r['step_ms']:8.1f} |{r['step_cpu_ms']:7.1f}" for r in rows))
     print(f"{'peak RSS MiB':<{width}}" + "".join(f"{r['peak_rss_mib']:17.0f}" for r in rows))
+    if rows[0]["peak_cuda_mib"] is not None:
+        print(f"{'peak CUDA MiB':<{width}}" + "".join(f"{r['peak_cuda_mib']:17.0f}" for r in rows))
     if len(blocks) > 1:  # the first block's step time over each other block's, same init and views
         first = {}
         for r, name in zip(rows, names):
@@ -417,6 +447,7 @@ def main() -> None:
     parser.add_argument("--warmup", type=int, default=50, help="untimed steps first (compilation, the early steps)")
     parser.add_argument("--opensplat", type=Path, help="an OpenSplat binary built with its CPU backend")
     parser.add_argument("--json", type=Path, help="also write the results here")
+    parser.add_argument("--device", default="cpu", help="cpu or cuda")
     parser.add_argument("--pixel-blocks", default=None,
                         help="comma-separated CPU pixel blocks to compare (e.g. 1x1,2x2; 1x1 is one pixel per "
                              "rasterizer thread, the layout before blocks); default: the rasterizer's default block")
@@ -426,12 +457,17 @@ def main() -> None:
     if args.one:
         block = tuple(int(v) for v in args.block.split("x")) if args.block else None
         print(json.dumps(run_configuration(args.one[0], int(args.one[1]), args.points, args.steps, args.warmup,
-                                           block, args.sh_degree)))
+                                           block, args.sh_degree, args.device)))
         return
     from common import write_json  # noqa: PLC0415 - not in the children: their peak RSS is measured
     from warpbags.cli.common import parse_numbers  # noqa: PLC0415
+    from warpbags.devices import torch_device  # noqa: PLC0415
     from warpbags.errors import WarpbagsError  # noqa: PLC0415
 
+    device = torch_device(args.device)
+    if device.type == "cuda" and (args.pixel_blocks or args.opensplat):
+        raise WarpbagsError("--pixel-blocks and --opensplat compare CPU rasterizers and trainers: "
+                            "not with --device cuda")
     inits = [init for init in args.inits.split(",") if init]
     if not inits or any(init not in ("random", "hull") for init in inits):
         raise WarpbagsError(f"--inits {args.inits!r}: expected comma-separated random, hull")
@@ -449,13 +485,15 @@ def main() -> None:
             for block in blocks:
                 rows.append(_child(["--one", init, str(views), "--points", str(args.points), "--steps", str(args.steps),
                                     "--warmup", str(args.warmup), "--sh-degree", str(args.sh_degree),
+                                    "--device", args.device,
                                     *(["--block", block] if block else [])]))
     opensplat = None
     if args.opensplat is not None:
         opensplat = run_opensplat(args.opensplat, args.points, args.steps, args.warmup)
     first = rows[0]
-    print(f"maryrose {first['width']}x{first['height']}, 4 training views, torch {torch.__version__} (1 thread), "
-          f"{len(os.sched_getaffinity(0))} cores; init: "
+    where = (f"{torch.cuda.get_device_name(device)}" if device.type == "cuda"
+             else f"torch {torch.__version__} (1 thread), {len(os.sched_getaffinity(0))} cores")
+    print(f"maryrose {first['width']}x{first['height']}, 4 training views, {where}; init: "
           + "; ".join(f"{r['init']}: {r['init_note']}" for r in rows[::len(views_per_step) * len(blocks)]))
     print_table(rows, opensplat)
     if args.json is not None:

@@ -48,6 +48,8 @@ def test_an_unknown_scene_is_one_error_line(script, tmp_path):
     ("view_matches.py", ["--min-inliers", "7"], "--min-inliers must be at least 8, got 7"),
     ("train_step.py", ["--views", ","], "--views ','"),
     ("train_step.py", ["--inits", "sphere"], "--inits 'sphere'"),
+    ("train_step.py", ["--device", "cuda", "--pixel-blocks", "1x1"],
+     "not with --device cuda" if torch.cuda.is_available() else "--device cuda: no CUDA device is available"),
 ])
 def test_bad_input_is_one_error_line_before_any_work(script, arguments, message, tmp_path, monkeypatch, capsys):
     """Checked before the scene is loaded (its name here is unknown too) and before any line of a table. Run in
@@ -70,12 +72,13 @@ def test_bad_input_is_one_error_line_before_any_work(script, arguments, message,
     assert output.out == ""
 
 
+@pytest.mark.parametrize("script, arguments", [("rasterize.py", ["--quick"]), ("train_step.py", [])])
 @pytest.mark.parametrize("device, message", [("tpu", "--device must be cpu or cuda"),
                                              ("cuda", "--device cuda: no CUDA device is available")])
-def test_rasterize_bench_bad_device_is_one_error_line(device, message, tmp_path):
+def test_speed_bench_bad_device_is_one_error_line(script, arguments, device, message, tmp_path):
     if device == "cuda" and torch.cuda.is_available():
         pytest.skip("this machine has a CUDA device: the benchmark would run")
-    result = subprocess.run([sys.executable, str(BENCH / "rasterize.py"), "--quick", "--device", device],
+    result = subprocess.run([sys.executable, str(BENCH / script), *arguments, "--device", device],
                             capture_output=True, text=True, timeout=300, cwd=tmp_path)
     assert result.returncode == 2, result.stderr
     errors = [line for line in result.stderr.splitlines() if line.startswith("error:")]
