@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import json
+import os
+import re
 import shutil
 import sys
 import types
@@ -444,6 +446,9 @@ def test_sweep_bad_values_one_line(tmp_path):
     assert result.exit_code == 2 and "--rot-noises 'a,b': 'a' is not a number" in result.output
     result = runner.invoke(app, ["sweep", "maryrose", "--views", "1", "--out", str(tmp_path / "s")])
     assert result.exit_code == 2 and "--views must be >= 2" in result.output
+    (tmp_path / "a-file").write_text("")
+    result = runner.invoke(app, ["sweep", "maryrose", "--out", str(tmp_path / "a-file")])
+    assert result.exit_code == 2 and "a-file is a file, not a folder to hold the sweep" in " ".join(result.output.split())
     result = runner.invoke(app, ["sweep", "maryrose", "--views", ",", "--out", str(tmp_path / "s")])
     assert result.exit_code == 2 and "--views ',': expected comma-separated numbers, got none" in result.output
 
@@ -483,6 +488,25 @@ def test_atomic_output_replaces_only_on_success(tmp_path):
         assert temporary.suffix == ".json"
         temporary.write_text("new")
     assert target.read_text() == "new" and sorted(p.name for p in tmp_path.iterdir()) == ["table.json"]
+
+
+def test_writable_folder_names_the_file_or_the_folder_that_cannot_be_written(tmp_path):
+    from warpbags.files import writable_folder
+
+    (tmp_path / "a-file").write_text("")
+    expected = f"{tmp_path / 'a-file'} is a file, not a folder to train into"
+    for path in (tmp_path / "a-file", tmp_path / "a-file" / "run" / "deeper"):
+        with pytest.raises(WarpbagsError, match="^" + re.escape(expected) + "$"):
+            writable_folder(path, "to train into")
+    fresh = tmp_path / "new" / "run"
+    assert writable_folder(fresh, "to train into") == fresh and not fresh.parent.exists()  # checked, not made
+    if os.geteuid() == 0:
+        return  # root writes anywhere: a folder without write permission cannot be tested
+    locked = tmp_path / "locked"
+    locked.mkdir(mode=0o555)
+    expected = f"{locked} is not writable, so {locked / 'run'} cannot be made"
+    with pytest.raises(WarpbagsError, match="^" + re.escape(expected)):
+        writable_folder(locked / "run", "to train into")
 
 
 def test_comparison_file_names_never_collide():

@@ -562,6 +562,22 @@ def test_cli_bad_values_one_line(scene_dir, tmp_path, arguments, message):
     assert len(lines) == 1 and message in lines[0], result.output
 
 
+@pytest.mark.parametrize("below", ["", "run"])
+def test_cli_out_that_is_a_file_is_one_line_before_training(scene_dir, tmp_path, below, monkeypatch):
+    """`--out` naming a file, or a folder inside one, is refused before the Trainer is built (its start procedures
+    take a minute on a real capture), not by a traceback when the run's first file is written."""
+    (tmp_path / "a-file").write_text("")
+
+    def no_trainer(*args, **kwargs):
+        raise AssertionError("the Trainer was built")
+
+    monkeypatch.setattr("warpbags.trainer.Trainer", no_trainer)
+    result = runner.invoke(app, ["train", str(scene_dir), "--out", str(tmp_path / "a-file" / below)])
+    lines = [line for line in result.output.splitlines() if line.strip()]
+    assert result.exit_code == 2 and len(lines) == 1, result.output
+    assert "a-file is a file, not a folder to train into" in " ".join(result.output.split())
+
+
 def test_cli_unknown_scene_one_line(tmp_path):
     result = runner.invoke(app, ["train", str(tmp_path / "nope")])
     assert result.exit_code == 2 and len(result.output.strip().splitlines()) == 1

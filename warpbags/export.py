@@ -23,7 +23,7 @@ from warpbags.data.images import image_size, resolution_path
 from warpbags.data.layouts import read_layout_cameras, scaled_intrinsics
 from warpbags.errors import WarpbagsError
 from warpbags.run_folder import TrainingRun, load_run, require_info
-from warpbags.files import atomic_output
+from warpbags.files import atomic_output, writable_folder
 from warpbags.gaussians import render_gaussians, sh_degree_of, to_source_frame, write_ply
 from warpbags.kernels.sh import SH_C0
 from warpbags.run_folder import RunFolder
@@ -100,8 +100,7 @@ def export_run(path: str | Path, out: str | Path | None = None, colmap: bool = T
     run = load_run(path)
     require_info(run, "normalization")
     out = Path(out) if out is not None else run.path / "export"
-    if out.exists() and not out.is_dir():
-        raise WarpbagsError(f"{out} is a file, not a folder to export into")
+    writable_folder(out, "to export into")
     calibration = training_calibration(run) if colmap else None
     normalization = SceneNormalization.from_dict(run.info["normalization"])
     out.mkdir(parents=True, exist_ok=True)

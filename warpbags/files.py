@@ -1,4 +1,5 @@
-"""Output files: atomic (a reader never sees a half-written checkpoint, PLY, table or report) and strict JSON."""
+"""Output files: atomic (a reader never sees a half-written checkpoint, PLY, table or report), strict JSON, and
+output folders checked before any work."""
 
 from __future__ import annotations
 
@@ -8,6 +9,8 @@ import os
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
+
+from warpbags.errors import WarpbagsError
 
 
 @contextmanager
@@ -22,6 +25,26 @@ def atomic_output(path: str | Path) -> Iterator[Path]:
         os.replace(temporary, path)
     finally:
         temporary.unlink(missing_ok=True)
+
+
+def writable_folder(path: str | Path, purpose: str) -> Path:
+    """`path` as a folder that can be written (it exists as a folder, or can be made): checked before a command does
+    any work, so a bad --out is one line, not a traceback after minutes of training.
+
+    Raises:
+        WarpbagsError: `path` or its nearest existing parent is a file, or that folder cannot be written;
+            `purpose` says what the folder was for ("to train into").
+    """
+    path = Path(path)
+    for existing in (path, *path.parents):
+        if existing.exists():
+            if not existing.is_dir():
+                raise WarpbagsError(f"{existing} is a file, not a folder {purpose}")
+            if not os.access(existing, os.W_OK | os.X_OK):
+                target = "" if existing == path else f", so {path} cannot be made"
+                raise WarpbagsError(f"{existing} is not writable{target}: no folder {purpose}")
+            break
+    return path
 
 
 def finite_json(value, indent: int | None = 2) -> str:

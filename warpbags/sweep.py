@@ -25,7 +25,7 @@ from warpbags.data import Scene, open_scene
 from warpbags.devices import checked_device_name
 from warpbags.errors import WarpbagsError
 from warpbags.evaluation import evaluate_run
-from warpbags.files import atomic_output, finite_json
+from warpbags.files import atomic_output, finite_json, writable_folder
 from warpbags.report import plot_sweep
 from warpbags.run_folder import RunFolder
 from warpbags.threads import usable_cores
@@ -82,6 +82,7 @@ def run_sweep(spec: SweepSpec, data_root: Path | None = None, log: Log = print,
     if any(views < 2 for views in spec.views):
         raise WarpbagsError(f"--views must be >= 2, got {list(spec.views)}")
     checked_device_name(spec.device)  # whether CUDA is there is each run's machine's business
+    writable_folder(spec.out, "to hold the sweep")
     scene = open_scene(spec.scene, root=data_root)
     spec.out.mkdir(parents=True, exist_ok=True)
     rows = (executor or LocalExecutor()).map(spec, sweep_runs(spec), scene, log)

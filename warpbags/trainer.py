@@ -40,6 +40,7 @@ from warpbags.data import open_scene
 from warpbags.data.scene import Scene
 from warpbags.devices import torch_device
 from warpbags.errors import WarpbagsError
+from warpbags.files import writable_folder
 from warpbags.model import Diverged, GaussianModel, TrainingViews, scene_extent
 from warpbags.repair import RepairStage, Repairer, repairer_factory
 from warpbags.repair.stage import pseudo_ratio
@@ -514,9 +515,9 @@ def start_or_resume(scene: Scene, config: TrainConfig, out_dir: str | Path, devi
 
     Raises:
         WarpbagsError: `resume` without a checkpoint in `out_dir` or with another scene folder than the run's, or a
-            fresh run into a folder that has one.
+            fresh run into a folder that has one, or an `out_dir` that is a file or cannot be written.
     """
-    run_folder = RunFolder(out_dir)
+    run_folder = RunFolder(writable_folder(out_dir, "to train into"))
     if resume:
         config = saved_run_config(out_dir)
         run_root, scene_root = run_folder.read_info().get("scene_root"), str(Path(scene.root).resolve())

@@ -35,6 +35,7 @@ from warpbags.cameras import camera_centers
 from warpbags.data.colmap import write_model
 from warpbags.data.scene import DEFAULT_SPLIT_SIZES, farthest_views
 from warpbags.errors import WarpbagsError
+from warpbags.files import writable_folder
 from warpbags.lie import so3_exp
 
 GENERATOR_VERSION = 3  # bump whenever the geometry or rendering changes: cache folders are keyed on it
@@ -433,8 +434,7 @@ def generate_synthetic_scene(out_dir: str | Path, options: SyntheticOptions = Sy
     if options.light_jitter_deg < 0 or options.gain_jitter < 0:
         raise WarpbagsError(f"light jitter and gain jitter must be >= 0, got {options.light_jitter_deg} and "
                             f"{options.gain_jitter}")
-    if out_dir.exists() and not out_dir.is_dir():
-        raise WarpbagsError(f"{out_dir} is a file, not a folder to write the scene into")
+    writable_folder(out_dir, "to write the scene into")
     if out_dir.exists() and any(out_dir.iterdir()):
         raise WarpbagsError(f"{out_dir} exists and is not empty")
     staging = out_dir.with_name(f".{out_dir.name}.partial-{os.getpid()}")
