@@ -163,6 +163,18 @@ def test_viewer_without_history_or_scene(run_dir, tmp_path):
         viewer.stop()
 
 
+@pytest.mark.parametrize("arguments, message", [
+    (["--port", "70000"], "--port must be 0-65535, got 70000"),
+    (["--host", "no-such-host.invalid"], "--host 'no-such-host.invalid': unknown"),
+    (["--host", "192.0.2.1"], "--host '192.0.2.1': cannot listen there"),  # TEST-NET-1: never this machine's
+])
+def test_view_address_it_cannot_listen_on_is_one_line_not_a_hang(run_dir, arguments, message):
+    """Viser waits forever for a server thread that cannot bind; the viewer checks the address first."""
+    result = runner.invoke(app, ["view", str(run_dir), *arguments])
+    lines = [line for line in result.output.splitlines() if line.strip()]
+    assert result.exit_code == 2 and len(lines) == 1 and message in lines[0], result.output
+
+
 @pytest.mark.parametrize("case", ["missing", "no_ply", "not_ply"])
 def test_view_bad_input_is_one_line(run_dir, tmp_path, case):
     path = {"missing": tmp_path / "nowhere", "no_ply": tmp_path, "not_ply": run_dir / "config.json"}[case]

@@ -10,18 +10,40 @@ from __future__ import annotations
 
 import contextlib
 import io
+import socket
 import threading
 from typing import Callable
 
 import numpy as np
 import viser
 
+from warpbags.errors import WarpbagsError
 from warpbags.viewer.content import TrainingCameras, ViewerContent
 from warpbags.viewer.render import ClientRenderer, DeviceGaussians, FrameStats, camera_to_world
 
 FRUSTUM_COLORS = {"start": (225, 50, 60), "optimized": (30, 110, 230), "reference": (30, 160, 80)}
 FRUSTUM_LABELS = {"start": "start (noisy), red", "optimized": "optimized, blue", "reference": "reference, green"}
 FRUSTUM_SIZE = 0.08  # of the cameras' median distance to the object
+
+
+def check_listen_address(host: str, port: int) -> None:
+    """Raise WarpbagsError unless a server can listen on `host` from `port` on. Viser, given a port out of range or
+    an address it cannot bind, fails or retries in its server thread while its constructor waits for it forever.
+
+    Raises:
+        WarpbagsError: the port is not 0-65535, or the host is unknown or not an address of this machine.
+    """
+    if not 0 <= port <= 65535:
+        raise WarpbagsError(f"--port must be 0-65535, got {port}")
+    try:
+        family, kind, protocol, _, address = socket.getaddrinfo(host, 0, type=socket.SOCK_STREAM)[0]
+    except socket.gaierror as error:
+        raise WarpbagsError(f"--host {host!r}: unknown ({error.strerror})") from None
+    with socket.socket(family, kind, protocol) as probe:
+        try:
+            probe.bind(address)  # port 0: any free one; only the address is in question
+        except OSError as error:
+            raise WarpbagsError(f"--host {host!r}: cannot listen there ({error.strerror})") from None
 
 
 class Viewer:
@@ -35,6 +57,7 @@ class Viewer:
     """
 
     def __init__(self, content: ViewerContent, host: str = "127.0.0.1", port: int = 8080, device: str | None = None):
+        check_listen_address(host, port)
         self.content = content
         self.gaussians = DeviceGaussians(content, device)
         with contextlib.redirect_stdout(io.StringIO()):  # viser's own URL panel; `warpbags view` prints one line
