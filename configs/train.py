@@ -18,6 +18,8 @@ from typing import Any, Literal
 
 from warpbags.errors import WarpbagsError
 
+BACKGROUNDS = {"white": (1.0, 1.0, 1.0), "black": (0.0, 0.0, 0.0)}  # `TrainConfig.background`'s colours
+
 
 @dataclass(frozen=True)
 class LearningRates:
@@ -385,6 +387,11 @@ class TrainConfig:
     repair: RepairConfig = field(default_factory=RepairConfig)
 
     @property
+    def background_rgb(self) -> tuple[float, float, float]:
+        """The background colour Gaussians are trained, and shown, on."""
+        return BACKGROUNDS[self.background]
+
+    @property
     def total_iters(self) -> int:
         """Coarse plus repair iterations."""
         return self.iters + self.repair.iters
@@ -447,7 +454,7 @@ class TrainConfig:
             (self.max_image_size >= 0, f"--max-image-size must be >= 0, got {self.max_image_size}"),
             (self.pyramid_levels >= 1, f"pyramid_levels must be >= 1, got {self.pyramid_levels}"),
             (self.views_per_step >= 0, f"views_per_step must be >= 0, got {self.views_per_step}"),
-            (self.background in ("white", "black"), f"background must be white or black, got {self.background!r}"),
+            (self.background in BACKGROUNDS, f"background must be white or black, got {self.background!r}"),
             (0 <= self.sh_degree <= 3, f"sh_degree must be 0-3, got {self.sh_degree}"),
             (self.init in ("hull", "sfm", "random"), f"--init must be hull, sfm or random, got {self.init!r}"),
             (self.init_points >= 1, f"init_points must be >= 1, got {self.init_points}"),

@@ -324,6 +324,44 @@ def test_turntable_frames_and_video(finished_run):
     assert len(list((finished_run / "turntable").glob("frame_*.png"))) == 3
 
 
+def test_turntable_is_rendered_on_the_runs_background_and_names_what_it_lacks(finished_run, tmp_path):
+    import cv2
+
+    black = tmp_path / "black"
+    shutil.copytree(finished_run, black, ignore=shutil.ignore_patterns("turntable*", "checkpoints"))
+    info = json.loads((black / "config.json").read_text())
+    info["config"]["background"] = "black"
+    (black / "config.json").write_text(json.dumps(info))
+    result = runner.invoke(app, ["render", str(black), "--frames", "2", "--no-video"])
+    assert result.exit_code == 0, result.output
+    frame = cv2.imread(str(black / "turntable" / "frame_000.png"))
+    assert frame[0, 0].max() == 0 and frame.max() > 50  # black around the object, as in training and the viewer
+    del info["width"]
+    (black / "config.json").write_text(json.dumps(info))
+    result = runner.invoke(app, ["render", str(black), "--frames", "2", "--no-video"])
+    lines = [line for line in result.output.splitlines() if line.strip()]
+    assert result.exit_code == 2 and len(lines) == 1 and "config.json has no 'width'" in lines[0], result.output
+
+
+def test_turntable_video_that_opencv_cannot_open_is_one_line_and_no_file(finished_run, tmp_path, monkeypatch):
+    import cv2
+
+    class Unopened:
+        def __init__(self, *args):
+            pass
+
+        def isOpened(self):  # noqa: N802 - OpenCV's name
+            return False
+
+    run = tmp_path / "run"
+    shutil.copytree(finished_run, run, ignore=shutil.ignore_patterns("turntable*", "checkpoints"))
+    monkeypatch.setattr(cv2, "VideoWriter", Unopened)
+    result = runner.invoke(app, ["render", str(run), "--frames", "2"])
+    lines = [line for line in result.output.splitlines() if line.strip()]
+    assert result.exit_code == 2 and len(lines) == 1 and "pass --no-video" in lines[0], result.output
+    assert not list(run.glob("turntable*.mp4"))
+
+
 def test_turntable_orbits_about_the_up_axis():
     from warpbags.camera_paths import turntable_viewmats
     from warpbags.cameras import camera_centers
@@ -379,11 +417,12 @@ def _two_camera_copy(finished_run, folder):
     return folder
 
 
-def test_pose_accuracy_names_intrinsics_that_do_not_match_the_poses(finished_run, tmp_path):
+def test_load_run_names_intrinsics_that_do_not_match_the_poses(finished_run, tmp_path):
     folder = _two_camera_copy(finished_run, tmp_path / "mismatch")
+    assert len(load_run(folder).intrinsics) == 2
     np.save(folder / "intrinsics.npy", np.load(finished_run / "intrinsics.npy"))  # four cameras' against two poses
-    with pytest.raises(WarpbagsError, match="intrinsics.npy holds 4 cameras"):
-        pose_accuracy(load_run(folder))
+    with pytest.raises(WarpbagsError, match="intrinsics.npy holds 4 cameras, the run's poses 2"):
+        load_run(folder)
 
 
 def test_pose_accuracy_leaves_out_the_alignment_two_cameras_cannot_fit(finished_run, tmp_path):

@@ -35,7 +35,7 @@ from warpbags.files import atomic_output, finite_json
 from warpbags.gaussians import object_points, opacity_weighted_center, render_gaussians, sh_degree_of
 from warpbags.losses import load_lpips, photometric_loss
 from warpbags.report import write_image_grid, write_run_report
-from warpbags.run_folder import RunFolder, TrainingRun, load_run, require_info
+from warpbags.run_folder import TrainingRun, load_run, require_info
 from warpbags.threads import torch_threads
 
 ALIGNMENTS = ("procrustes", "pairwise")
@@ -69,10 +69,6 @@ def pose_accuracy(run: TrainingRun, log=print) -> dict:
     one camera) is left out of the report, with a logged line saying why.
     """
     report = {}
-    intrinsics = RunFolder(run.path).read_poses("intrinsics")  # None in runs of an older warpbags
-    if intrinsics is not None and len(intrinsics) != len(run.poses_final):
-        raise WarpbagsError(f"{run.path / 'intrinsics.npy'} holds {len(intrinsics)} cameras, the run's poses "
-                            f"{len(run.poses_final)}")
     points = object_points(run.params).double()  # where the final poses put the object
     for alignment in ALIGNMENTS:
         poses_by_stage = {"initial": run.poses_init, "final": run.poses_final}
@@ -94,8 +90,8 @@ def pose_accuracy(run: TrainingRun, log=print) -> dict:
                 "translation_median": errors["translation_error_median"],
                 "translation_percent_of_orbit": 100 * errors["translation_error_mean"] / ORBIT_RADIUS,
             }
-            if intrinsics is not None:
-                pixels = reprojection_errors(poses_by_stage[stage], run.poses_true, torch.from_numpy(intrinsics),
+            if run.intrinsics is not None:
+                pixels = reprojection_errors(poses_by_stage[stage], run.poses_true, run.intrinsics,
                                              object_reference, errors["sim3"])
                 entry[stage]["reprojection_px"] = pixels.tolist()
                 entry[stage]["reprojection_px_mean"] = pixels.mean().item()

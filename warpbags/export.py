@@ -22,11 +22,10 @@ from warpbags.data.colmap import write_model
 from warpbags.data.images import image_size, resolution_path
 from warpbags.data.layouts import read_layout_cameras, scaled_intrinsics
 from warpbags.errors import WarpbagsError
-from warpbags.run_folder import TrainingRun, load_run, require_info
 from warpbags.files import atomic_output, writable_folder
 from warpbags.gaussians import render_gaussians, sh_degree_of, to_source_frame, write_ply
 from warpbags.kernels.sh import SH_C0
-from warpbags.run_folder import RunFolder
+from warpbags.run_folder import TrainingRun, load_run, require_info
 from warpbags.threads import torch_threads
 
 
@@ -130,11 +129,11 @@ def render_turntable(path: str | Path, frames: int = 36, video: bool = True) -> 
     if frames < 1:
         raise WarpbagsError(f"--frames must be >= 1, got {frames}")
     run = load_run(path)
+    require_info(run, "width", "height")
     width, height = run.info["width"], run.info["height"]
-    intrinsics = RunFolder(run.path).read_poses("intrinsics")
-    if intrinsics is None:
+    if run.intrinsics is None:
         raise WarpbagsError(f"{run.path / 'intrinsics.npy'} is missing: written by an older warpbags")
-    camera_0 = torch.from_numpy(intrinsics)[0].float()
+    camera_0 = run.intrinsics[0].float()
     viewmats = turntable_viewmats(run.poses_final, frames).float()
     Ks = camera_0.expand(frames, 3, 3).contiguous()
     out = run.path / "turntable"
@@ -143,7 +142,7 @@ def render_turntable(path: str | Path, frames: int = 36, video: bool = True) -> 
         stale.unlink()
     with torch.no_grad():
         images, _, _ = render_gaussians(run.params, viewmats, Ks, width, height, sh_degree=sh_degree_of(run.params),
-                                        backgrounds=torch.ones(frames, 3))
+                                        backgrounds=torch.tensor(run.config.background_rgb).expand(frames, 3))
     pixels = (images.clamp(0, 1).numpy() * 255 + 0.5).astype(np.uint8)
     for index, image in enumerate(pixels):
         frame = out / f"frame_{index:03d}.png"
@@ -152,6 +151,9 @@ def render_turntable(path: str | Path, frames: int = 36, video: bool = True) -> 
     if video:
         with atomic_output(run.path / "turntable.mp4") as temporary:
             writer = cv2.VideoWriter(str(temporary), cv2.VideoWriter_fourcc(*"mp4v"), 12, (width, height))
+            if not writer.isOpened():
+                raise WarpbagsError(f"OpenCV cannot write an mp4v video to {temporary}: pass --no-video for the "
+                                    "frames alone")
             for image in pixels:
                 writer.write(cv2.cvtColor(image, cv2.COLOR_RGB2BGR))
             writer.release()

@@ -11,6 +11,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from warpbags.errors import WarpbagsError
 from warpbags.files import atomic_output
 from warpbags.run_folder import RunFolder
 
@@ -64,7 +65,7 @@ def write_image_grid(path: Path, rows: list[list]) -> None:
     pixels = (np.clip(grid, 0, 1) * 255 + 0.5).astype(np.uint8)
     with atomic_output(path) as temporary:
         if not cv2.imwrite(str(temporary), cv2.cvtColor(pixels, cv2.COLOR_RGB2BGR)):
-            raise OSError(f"could not write {path}")
+            raise WarpbagsError(f"could not write {path}")
 
 
 def write_run_report(run_dir: Path, result: dict, training_alignment: str) -> Path:

@@ -101,7 +101,7 @@ class RunFolder:
         except (KeyError, TypeError) as error:
             raise WarpbagsError(f"{self.path / 'config.json'}: unreadable ({error})") from None
 
-    def read_poses(self, name: str) -> np.ndarray | None:
+    def read_array(self, name: str) -> np.ndarray | None:
         """`name`.npy ([C,4,4] poses, or [C,3,3] intrinsics) as float64, None when the run has none.
 
         Raises:
@@ -212,6 +212,7 @@ class TrainingRun:
     poses_true: torch.Tensor
     poses_init: torch.Tensor
     poses_final: torch.Tensor
+    intrinsics: torch.Tensor | None  # [C,3,3] at the training resolution; None in runs of an older warpbags
 
 
 def require_info(run: TrainingRun, *keys: str) -> None:
@@ -248,5 +249,10 @@ def load_run(path: str | Path) -> TrainingRun:
     for name in ("gaussians.ply", "poses_true.npy", "poses_init.npy", "poses_final.npy"):
         if not (path / name).is_file():
             raise WarpbagsError(f"{path / name} is missing: the run has not finished (continue it with --resume)")
-    poses = {name: torch.from_numpy(folder.read_poses(name)) for name in ("poses_true", "poses_init", "poses_final")}
-    return TrainingRun(path, info, config, read_ply(path / "gaussians.ply"), **poses)
+    poses = {name: torch.from_numpy(folder.read_array(name)) for name in ("poses_true", "poses_init", "poses_final")}
+    intrinsics = folder.read_array("intrinsics")
+    if intrinsics is not None and len(intrinsics) != len(poses["poses_final"]):
+        raise WarpbagsError(f"{path / 'intrinsics.npy'} holds {len(intrinsics)} cameras, the run's poses "
+                            f"{len(poses['poses_final'])}")
+    return TrainingRun(path, info, config, read_ply(path / "gaussians.ply"), **poses,
+                       intrinsics=None if intrinsics is None else torch.from_numpy(intrinsics))

@@ -17,13 +17,13 @@ import torch
 
 from warpbags.alignment import align_viewmats, alignment_for, pose_errors
 from warpbags.camera_paths import mean_up_axis
+from warpbags.configs.train import BACKGROUNDS
 from warpbags.errors import WarpbagsError
 from warpbags.gaussians import opacity_weighted_center, read_ply, sh_degree_of
 from warpbags.pose_history import read_pose_history
 from warpbags.run_folder import RunFolder
 
 THUMBNAIL_SIDE = 160  # px: the longer side of the pictures shown on the frustums (they travel to every browser)
-BACKGROUNDS = {"white": (1.0, 1.0, 1.0), "black": (0.0, 0.0, 0.0)}
 
 
 @dataclass
@@ -117,11 +117,11 @@ def _read_run_info(path: Path) -> dict | None:
 def _training_cameras(path: Path, info: dict, log: Callable[[str], None]) -> TrainingCameras | None:
     """The run's cameras, or None (logged) when it lacks the files to draw them."""
     folder = RunFolder(path)
-    Ks, final = folder.read_poses("intrinsics"), folder.read_poses("poses_final")
+    Ks, final = folder.read_array("intrinsics"), folder.read_array("poses_final")
     if Ks is None or final is None or "width" not in info:
         log(f"{path}: no intrinsics.npy, poses_final.npy or image size: showing the Gaussians without cameras")
         return None
-    start = folder.read_poses("poses_start")
+    start = folder.read_array("poses_start")
     iterations, frames = _pose_frames(path, info, start, final)
     return TrainingCameras(Ks, info["width"], info["height"], start, _aligned_reference(path, final, log),
                            iterations, frames, _thumbnails(info, log))
@@ -143,7 +143,7 @@ def _pose_frames(path: Path, info: dict, start: np.ndarray | None, final: np.nda
 
 def _aligned_reference(path: Path, final: np.ndarray, log: Callable[[str], None]) -> np.ndarray | None:
     """poses_true.npy mapped into the model's frame, as `warpbags eval` maps the test cameras; None without it."""
-    true = RunFolder(path).read_poses("poses_true")
+    true = RunFolder(path).read_array("poses_true")
     if true is None:
         return None
     final_t, true_t = torch.from_numpy(final), torch.from_numpy(true)
