@@ -490,6 +490,12 @@ def test_sweep_bad_values_one_line(tmp_path):
     assert result.exit_code == 2 and "a-file is a file, not a folder to hold the sweep" in " ".join(result.output.split())
     result = runner.invoke(app, ["sweep", "maryrose", "--views", ",", "--out", str(tmp_path / "s")])
     assert result.exit_code == 2 and "--views ',': expected comma-separated numbers, got none" in result.output
+    # a combination that cannot run is named before the first one trains (maryrose has 69 images)
+    result = runner.invoke(app, ["sweep", "maryrose", "--views", "4,80", "--rot-noises", "5",
+                                 "--out", str(tmp_path / "s")])
+    lines = [line for line in result.output.splitlines() if line.strip()]
+    assert result.exit_code == 2 and len(lines) == 1, result.output
+    assert "sweep run " in lines[0] and "fewer than --views 80" in lines[0] and not (tmp_path / "s").exists()
 
 
 def test_a_sweep_with_two_views_reports_their_pairwise_errors(finished_run, tmp_path):

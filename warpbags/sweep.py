@@ -20,7 +20,7 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Callable, Protocol
 
-from warpbags.configs.train import load_preset
+from warpbags.configs.train import TrainConfig, load_preset
 from warpbags.data import Scene, open_scene
 from warpbags.devices import checked_device_name
 from warpbags.errors import WarpbagsError
@@ -77,13 +77,14 @@ def run_sweep(spec: SweepSpec, data_root: Path | None = None, log: Log = print,
               executor: Executor | None = None) -> list[dict]:
     """Train and evaluate every combination not done yet (with `executor`, default `LocalExecutor`); write
     sweep.json, sweep.csv and the plots; returns one row per run."""
-    if any(noise < 0 for noise in spec.rot_noises):
-        raise WarpbagsError(f"--rot-noises must be >= 0, got {list(spec.rot_noises)}")
-    if any(views < 2 for views in spec.views):
-        raise WarpbagsError(f"--views must be >= 2, got {list(spec.views)}")
     checked_device_name(spec.device)  # whether CUDA is there is each run's machine's business
     writable_folder(spec.out, "to hold the sweep")
     scene = open_scene(spec.scene, root=data_root)
+    for run in sweep_runs(spec):  # every run's settings checked before the first one trains
+        try:
+            scene.train_views(combination_config(spec, run).views)
+        except WarpbagsError as error:
+            raise WarpbagsError(f"sweep run {run.name}: {error}") from None
     spec.out.mkdir(parents=True, exist_ok=True)
     rows = (executor or LocalExecutor()).map(spec, sweep_runs(spec), scene, log)
     _write_tables(rows, spec.out)
@@ -97,6 +98,18 @@ def sweep_runs(spec: SweepSpec) -> list[SweepRun]:
             for seed in spec.seeds for method in METHODS]
 
 
+def combination_config(spec: SweepSpec, run: SweepRun, render_threads: int | None = None) -> TrainConfig:
+    """The training config of one combination: the spec's preset and overrides, the run's views, noise, seed and
+    method.
+
+    Raises:
+        WarpbagsError: a setting the preset does not allow (`TrainConfig.validate`).
+    """
+    return load_preset(spec.preset, views=run.views, rot_noise_deg=float(run.rot_noise_deg),
+                       trans_noise=spec.trans_noise, pose_opt=METHODS[run.method], seed=run.seed,
+                       noise_seed=run.seed, **{"render_threads": render_threads, **dict(spec.overrides)})
+
+
 def run_combination(spec: SweepSpec, run: SweepRun, scene: Scene, render_threads: int | None = None) -> dict:
     """Train and evaluate one combination into its folder, unless it holds eval.json already; a folder with
     checkpoints is resumed. Returns the run's row of sweep.json.
@@ -108,10 +121,7 @@ def run_combination(spec: SweepSpec, run: SweepRun, scene: Scene, render_threads
     """
     run_dir = spec.out / run.name
     if not _is_done(run_dir):
-        settings = {"render_threads": render_threads, **dict(spec.overrides)}
-        config = load_preset(spec.preset, views=run.views, rot_noise_deg=float(run.rot_noise_deg),
-                             trans_noise=spec.trans_noise, pose_opt=METHODS[run.method], seed=run.seed,
-                             noise_seed=run.seed, **settings)
+        config = combination_config(spec, run, render_threads)
         trainer = start_or_resume(training_scene(scene, config), config, run_dir, device=spec.device,
                                   resume=RunFolder(run_dir).has_checkpoint(), log=_quiet)
         trainer.train()
