@@ -174,8 +174,8 @@ def test_launch_arguments_are_checked_by_name():
 
 
 # The pose transform has one implementation on the render path (the Warp kernel behind apply_pose_deltas, series
-# below theta^2 = 0.04); warpbags.lie.se3_exp is torch's (series below theta^2 = 0.25) for noise, alignment and
-# camera paths. They must agree at and near zero, where every camera starts, and across both cut-offs.
+# below theta^2 = 0.04); warpbags.lie.se3_exp is its closed-form torch counterpart (series below theta^2 = 0.25),
+# public for library users. They must agree at and near zero, where every camera starts, and across both cut-offs.
 ANGLES = [0.0, 1e-12, 1e-8, 1e-6, 1e-4, 1e-2, 0.1, 0.2 - 1e-7, 0.2, 0.2 + 1e-7, 0.3, 0.5 - 1e-7, 0.5 + 1e-7, 1.0]
 
 

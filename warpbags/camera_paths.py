@@ -1,7 +1,8 @@
 """Camera paths around an object: the cameras' mean up axis, turntables, azimuth order, in-between cameras.
 
 Used for rendered videos (turntable) and the repair stage's pseudo views (cameras between neighbouring training
-cameras). Poses follow `warpbags.cameras`' conventions.
+cameras). Every path turns about the world origin, the object centre of a normalized scene. Poses follow
+`warpbags.cameras`' conventions.
 """
 
 from __future__ import annotations
@@ -22,34 +23,30 @@ def mean_up_axis(viewmats: torch.Tensor) -> torch.Tensor:
     return up / up.norm().clamp_min(1e-12)
 
 
-def turntable_viewmats(viewmats: torch.Tensor, frames: int, center: torch.Tensor | None = None) -> torch.Tensor:
+def turntable_viewmats(viewmats: torch.Tensor, frames: int) -> torch.Tensor:
     """A turntable of `frames` cameras: camera 0 of `viewmats` orbited about the cameras' mean up axis.
 
     The up axis is the mean of the cameras' "up" directions (-y of OpenCV axes, in world coordinates); the
-    rotation is about the line through `center` (default: the origin, the object centre of a normalized scene).
+    rotation is about the line through the origin.
 
     Args:
         viewmats: [C, 4, 4] world-to-camera matrices (e.g. the training cameras).
         frames: number of views, evenly spaced over 360 degrees.
-        center: [3] point the orbit turns about.
 
     Returns:
         [frames, 4, 4] world-to-camera matrices; frame 0 is camera 0.
     """
     up = mean_up_axis(viewmats)
-    center = torch.zeros(3, dtype=viewmats.dtype, device=viewmats.device) if center is None else center
     angles = torch.arange(frames, dtype=viewmats.dtype, device=viewmats.device) * (2 * math.pi / frames)
     world_turn = so3_exp(angles[:, None] * up)  # [F, 3, 3] turns the world; the camera orbits the other way
-    to_center = torch.eye(4, dtype=viewmats.dtype, device=viewmats.device).repeat(frames, 1, 1)
-    to_center[:, :3, :3] = world_turn
-    to_center[:, :3, 3] = center - world_turn @ center
-    return viewmats[0] @ to_center
+    turn = torch.eye(4, dtype=viewmats.dtype, device=viewmats.device).repeat(frames, 1, 1)
+    turn[:, :3, :3] = world_turn
+    return viewmats[0] @ turn
 
 
-def azimuth_order(viewmats: torch.Tensor, center: torch.Tensor | None = None) -> torch.Tensor:
-    """[C] camera indices sorted by azimuth about the cameras' mean up axis through `center` (default: origin)."""
-    center = torch.zeros(3, dtype=viewmats.dtype, device=viewmats.device) if center is None else center
-    offsets = camera_centers(viewmats) - center
+def azimuth_order(viewmats: torch.Tensor) -> torch.Tensor:
+    """[C] camera indices sorted by azimuth about the cameras' mean up axis through the origin."""
+    offsets = camera_centers(viewmats)
     up = mean_up_axis(viewmats)
     flat = offsets - (offsets @ up)[:, None] * up
     east = flat[0] / flat[0].norm().clamp_min(1e-12)
@@ -57,32 +54,29 @@ def azimuth_order(viewmats: torch.Tensor, center: torch.Tensor | None = None) ->
     return torch.argsort(torch.atan2(flat @ north, flat @ east))
 
 
-def interpolated_viewmats(viewmats: torch.Tensor, gaps: torch.Tensor, fractions: torch.Tensor,
-                          center: torch.Tensor | None = None) -> torch.Tensor:
-    """Cameras part of the way between neighbouring cameras of an orbit around `center` (default: the origin).
+def interpolated_viewmats(viewmats: torch.Tensor, gaps: torch.Tensor, fractions: torch.Tensor) -> torch.Tensor:
+    """Cameras part of the way between neighbouring cameras of an orbit around the origin.
 
     Gap g runs from the g-th to the (g+1)-th camera in `azimuth_order` (the last gap closes the loop). A camera at
     fraction s of a gap has its orientation slerped, ``R_a exp(s log(R_a^T R_b))`` in camera-to-world form, and
-    its centre slerped in direction about `center` with the distance interpolated linearly, so it stays on the
+    its centre slerped in direction about the origin with the distance interpolated linearly, so it stays on the
     orbit.
 
     Args:
         viewmats: [C, 4, 4] world-to-camera matrices, C >= 2.
         gaps: [K] long gap indices in [0, C).
         fractions: [K] positions along each gap, 0 = its first camera, 1 = its second.
-        center: [3] the point the cameras orbit.
 
     Returns:
         [K, 4, 4] world-to-camera matrices.
     """
-    center = torch.zeros(3, dtype=viewmats.dtype, device=viewmats.device) if center is None else center
-    order = azimuth_order(viewmats, center)
+    order = azimuth_order(viewmats)
     gaps = gaps.to(viewmats.device)
     first, second = order[gaps], order[(gaps + 1) % len(order)]
     to_world_a, to_world_b = viewmats[first, :3, :3].transpose(1, 2), viewmats[second, :3, :3].transpose(1, 2)
     fractions = fractions.to(viewmats)[:, None]
     rotations = to_world_a @ so3_exp(fractions * so3_log(to_world_a.transpose(1, 2) @ to_world_b))
-    offset_a, offset_b = camera_centers(viewmats[first]) - center, camera_centers(viewmats[second]) - center
+    offset_a, offset_b = camera_centers(viewmats[first]), camera_centers(viewmats[second])
     distance_a, distance_b = offset_a.norm(dim=-1, keepdim=True), offset_b.norm(dim=-1, keepdim=True)
     direction_a, direction_b = offset_a / distance_a, offset_b / distance_b
     angle = torch.arccos((direction_a * direction_b).sum(-1, keepdim=True).clamp(-1.0, 1.0))
@@ -92,5 +86,5 @@ def interpolated_viewmats(viewmats: torch.Tensor, gaps: torch.Tensor, fractions:
     weight_b = torch.where(safe, torch.sin(fractions * angle) / sin_angle.clamp_min(1e-6), fractions)
     directions = weight_a * direction_a + weight_b * direction_b
     directions = directions / directions.norm(dim=-1, keepdim=True)
-    centers = center + directions * ((1 - fractions) * distance_a + fractions * distance_b)
+    centers = directions * ((1 - fractions) * distance_a + fractions * distance_b)
     return viewmats_from_centers(rotations.transpose(1, 2), centers)
