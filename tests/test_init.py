@@ -7,7 +7,8 @@ import torch
 from conftest import look_at
 
 from warpbags.cameras import project_points
-from warpbags.init import hull_or_random_points, mean_neighbour_distance
+from warpbags.init import hull_or_random_points
+from warpbags.wrapper import mean_neighbour_distances
 
 WIDTH = HEIGHT = 32
 KS = torch.tensor([[40.0, 0.0, 16.0], [0.0, 40.0, 16.0], [0.0, 0.0, 1.0]]).expand(2, 3, 3)
@@ -40,11 +41,11 @@ def test_random_points_say_so_when_no_region_is_seen_by_every_camera():
                     "the whole cube")
 
 
-def test_mean_neighbour_distance_is_the_brute_force_mean():
+def test_mean_neighbour_distances_is_the_brute_force_mean():
     points = torch.rand(300, 3, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
     for k in (1, 17):
         brute = torch.cdist(points, points).sort(dim=1).values[:, 1:k + 1].mean(1)
-        found = mean_neighbour_distance(points, k)
+        found = mean_neighbour_distances(points, k)
         assert found.dtype == torch.float64
         torch.testing.assert_close(found, brute, rtol=0, atol=1e-12)
 
@@ -53,7 +54,7 @@ def _brute_mean_distances(points: torch.Tensor, k: int) -> torch.Tensor:
     return torch.cdist(points.double(), points.double()).sort(dim=1).values[:, 1:k + 1].mean(1)
 
 
-def test_mean_neighbour_distance_is_exact_on_a_surface_with_far_floaters_and_duplicates():
+def test_mean_neighbour_distances_is_exact_on_a_surface_with_far_floaters_and_duplicates():
     """The floater removal's case: points on a sphere's surface (most grid cells empty), a few floaters hundreds of
     radii away (clamped into the grid's border cells), and duplicated points (distance 0); k = sqrt(P) as the
     removal takes it, 1, and every other point. float32 points are measured in float64 as well."""
@@ -63,17 +64,17 @@ def test_mean_neighbour_distance_is_exact_on_a_surface_with_far_floaters_and_dup
     floaters = torch.tensor([[300.0, 0.0, 0.0], [-250.0, 80.0, 5.0], [0.5, 0.5, 400.0]])
     points = torch.cat([surface, floaters, surface[:20]]).float()
     for k in (1, int(len(points) ** 0.5), len(points) - 1):
-        found = mean_neighbour_distance(points, k)
+        found = mean_neighbour_distances(points, k)
         assert found.dtype == torch.float32
         torch.testing.assert_close(found.double(), _brute_mean_distances(points, k), rtol=1e-6, atol=0)
-    assert (mean_neighbour_distance(points, 1)[-20:] == 0).all()  # each duplicate's nearest is its twin
+    assert (mean_neighbour_distances(points, 1)[-20:] == 0).all()  # each duplicate's nearest is its twin
 
 
-def test_mean_neighbour_distance_rejects_what_it_cannot_measure():
+def test_mean_neighbour_distances_rejects_what_it_cannot_measure():
     points = torch.rand(10, 3)
     for k in (0, 10):
         with pytest.raises(ValueError, match=f"k must be in \\[1, 9\\] for 10 points, got {k}"):
-            mean_neighbour_distance(points, k)
+            mean_neighbour_distances(points, k)
     points[4, 1] = float("nan")
     with pytest.raises(ValueError, match="every point must be finite"):
-        mean_neighbour_distance(points, 3)
+        mean_neighbour_distances(points, 3)

@@ -123,21 +123,12 @@ def random_points(count: int, viewmats: torch.Tensor, Ks: torch.Tensor, width: i
     return (seen if len(seen) >= count else points)[:count], len(seen)
 
 
-def mean_neighbour_distance(points: torch.Tensor, k: int) -> torch.Tensor:
-    """[P] mean distance of each point to its k nearest other points (k < P), in the points' dtype.
-
-    A grid search in Warp (`warpbags.wrapper.mean_neighbour_distances`), on the points' device: the floater
-    removal's k = sqrt(P) at 100k Gaussians of a paper-preset run took 1.4-1.5 s on 2 cores, against 3.0-3.4 s for
-    scipy's k-d tree on both.
-    """
-    return mean_neighbour_distances(points, k).to(points.dtype)
-
-
-def nearest_neighbour_distance(points: torch.Tensor, k: int = 3) -> torch.Tensor:
-    """[P] mean distance of each point to its k nearest other points, at least 1e-7 (3DGS's initial scale)."""
+def _initial_scales(points: torch.Tensor, k: int = 3) -> torch.Tensor:
+    """[P] 3DGS's initial scale of a Gaussian at each point: the mean distance to its k nearest other points, at
+    least 1e-7 (a grid search in Warp, `warpbags.wrapper.mean_neighbour_distances`)."""
     if len(points) <= 1:
         return torch.full((len(points),), 0.01)
-    return mean_neighbour_distance(points, min(k, len(points) - 1)).clamp_min(1e-7)
+    return mean_neighbour_distances(points, min(k, len(points) - 1)).clamp_min(1e-7)
 
 
 def initial_gaussians(
@@ -154,7 +145,7 @@ def initial_gaussians(
         "sh0" [N,1,3], and "shN" [N,K-1,3] zeros when sh_degree > 0.
     """
     count = len(points)
-    scales = torch.log(nearest_neighbour_distance(points))[:, None].repeat(1, 3)
+    scales = torch.log(_initial_scales(points))[:, None].repeat(1, 3)
     quats = torch.zeros(count, 4)
     quats[:, 0] = 1.0
     params = {

@@ -13,7 +13,7 @@ import torch
 
 from warpbags.configs.train import DensifyConfig
 from warpbags.errors import WarpbagsError
-from warpbags.init import mean_neighbour_distance
+from warpbags.wrapper import mean_neighbour_distances
 
 
 def replace_rows(
@@ -177,7 +177,7 @@ class DensifyStrategy:
         k = int(math.isqrt(count))
         if k < 2:
             return 0
-        mean_distance = mean_neighbour_distance(means, k)
+        mean_distance = mean_neighbour_distances(means, k)
         floaters = mean_distance > mean_distance.mean() + self.config.floater_std_ratio * mean_distance.std()
         if floaters.any():
             replace_rows(params, optimizer, ~floaters)
