@@ -29,14 +29,14 @@ import tempfile
 import time
 from pathlib import Path
 
+import numpy as np
 import torch
 
 from common import add_training_options, merge_settings, open_bench_scene, training_overrides
-from warpbags.alignment import align_viewmats, pose_errors
 from warpbags.configs.train import load_preset
-from warpbags.evaluation import evaluate_run, held_out_views
-from warpbags.run_folder import load_run
+from warpbags.evaluation import evaluate_run, held_out_views, psnr, test_cameras_in_model_frame
 from warpbags.gaussians import render_gaussians, sh_degree_of
+from warpbags.run_folder import load_run
 from warpbags.trainer import Trainer, training_scene
 from warpbags.cli.common import clean_errors
 
@@ -81,16 +81,17 @@ def _repairer_on_held_out(coarse_dir: Path, repairer) -> tuple[float, float]:
     repairer: does the repairer move novel views of this scene towards the truth?"""
     run = load_run(coarse_dir)
     test = held_out_views(run)
-    sim3 = pose_errors(run.poses_final, run.poses_true, alignment="procrustes")["sim3"]
-    viewmats = align_viewmats(test.viewmats.double(), sim3.inverse()).float()
-    masks = test.masks[..., None]
-    targets = test.images * masks + (1 - masks)
+    viewmats = test_cameras_in_model_frame(run, test, "procrustes")
+    targets = test.on_background(1.0).double().numpy()
     with torch.no_grad():
         renders, _, _ = render_gaussians(run.params, viewmats, test.Ks, test.width, test.height,
                                          sh_degree=sh_degree_of(run.params), backgrounds=torch.ones(len(viewmats), 3))
     renders = renders.clamp(0, 1)
-    psnr = lambda images: float((-10 * torch.log10(((images - targets) ** 2).mean(dim=(1, 2, 3)))).mean())  # noqa: E731
-    return psnr(renders), psnr(repairer.repair(renders))
+
+    def mean_psnr(images: torch.Tensor) -> float:
+        return float(np.mean([psnr(image, target) for image, target in zip(images.double().numpy(), targets)]))
+
+    return mean_psnr(renders), mean_psnr(repairer.repair(renders))
 
 
 def _fmt(value, digits: int) -> str:

@@ -213,7 +213,7 @@ def build_problem(init: str, points: int, seed: int = 0, sh_degree: int = 0,
     strategy = DensifyStrategy(DensifyConfig(start=10**9, stop=10**9 + 1, opacity_reset_every=0, floater_every=0),
                                extent)
     masks = scene.masks.to(device)
-    targets = scene.images.to(device) * masks[..., None] + (1 - masks[..., None])  # the object on the white background
+    targets = scene.on_background(1.0).to(device)  # the object on the white background
     return dict(scene=scene, viewmats=scene.viewmats.to(device), Ks=scene.Ks.to(device), config=config,
                 params=params, optimizer=optimizer, pose_rotations=pose_rotations,
                 pose_translations=pose_translations, pose_optimizer=pose_optimizer, strategy=strategy,
@@ -327,11 +327,9 @@ def write_opensplat_project(folder: Path, points: int) -> dict:
     (folder / "images").mkdir(parents=True, exist_ok=True)
     frames = []
     opengl_axes = np.diag([1.0, -1.0, -1.0, 1.0])
-    background = torch.tensor(OPENSPLAT_BACKGROUND)
+    composites = scene.on_background(OPENSPLAT_BACKGROUND)
     for index in range(scene.num_views):
-        mask = scene.masks[index][..., None]
-        composite = scene.images[index] * mask + background * (1 - mask)
-        rgb = (composite.clamp(0, 1) * 255).round().to(torch.uint8).numpy()
+        rgb = (composites[index].clamp(0, 1) * 255).round().to(torch.uint8).numpy()
         name = f"images/view_{index}.png"
         cv2.imwrite(str(folder / name), rgb[..., ::-1])
         K = scene.Ks[index].double()

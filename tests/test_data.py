@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import json
 import math
@@ -727,3 +728,20 @@ def test_turntable_light_stands_still_in_every_camera():
     assert np.degrees(np.arccos(np.clip(lights[0] @ lights[2], -1, 1))) > 45  # opposite sides, other lights
     plain = SyntheticOptions(views=4, width=24, height=24)
     assert all(np.array_equal(light, LIGHT_DIRECTION) for light, _ in view_lighting(plain, viewmats))
+
+
+def test_on_background_puts_the_masked_object_on_a_grey_level_or_colour():
+    from warpbags.data.scene import Scene
+
+    images = torch.rand(2, 3, 4, 3, generator=torch.Generator().manual_seed(0))
+    masks = torch.zeros(2, 3, 4)
+    masks[:, 1:, 2:] = 1
+    scene = Scene("s", Path("."), "colmap", ["a.png", "b.png"], images, masks, None, None,
+                  torch.eye(4).repeat(2, 1, 1), torch.eye(3).repeat(2, 1, 1), 4, 3)
+    white, coloured = scene.on_background(1.0), scene.on_background((0.25, 0.5, 0.75))
+    inside = masks.bool()
+    assert torch.equal(white[inside], images[inside]) and torch.equal(coloured[inside], images[inside])
+    assert (white[~inside] == 1).all()
+    assert torch.equal(coloured[~inside], torch.tensor([0.25, 0.5, 0.75]).expand(int((~inside).sum()), 3))
+    unmasked = dataclasses.replace(scene, masks=None)
+    assert unmasked.on_background(1.0) is images  # without masks there is no background to replace

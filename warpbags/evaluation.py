@@ -59,6 +59,20 @@ def held_out_views(run: TrainingRun) -> Scene:
     return scene.subset(test).downscaled(config.max_image_size)
 
 
+def test_cameras_in_model_frame(run: TrainingRun, test: Scene, alignment: str) -> torch.Tensor:
+    """[T,4,4] the held-out cameras of `test` mapped into the model's frame, through the sim(3) (`alignment`) that
+    maps the run's final training cameras onto their true poses (BARF's protocol).
+
+    Raises:
+        WarpbagsError: the alignment cannot be fitted to the run's cameras.
+    """
+    try:
+        sim3 = pose_errors(run.poses_final, run.poses_true, alignment=alignment)["sim3"]
+    except ValueError as error:
+        raise WarpbagsError(f"{run.path}: cannot map the test cameras into the model's frame: {error}") from None
+    return align_viewmats(test.viewmats.double(), sim3.inverse()).float()
+
+
 def pose_accuracy(run: TrainingRun, log=print) -> dict:
     """Initial and final pose errors of the training cameras under each alignment the cameras allow: rotation,
     centre distance, the pixels the object moves by in each image (`reprojection_errors`: the trained Gaussians'
@@ -168,6 +182,11 @@ class FlipMetric:
 METRICS = ("psnr", "ssim", "flip", "lpips")
 
 
+def psnr(image: np.ndarray, target: np.ndarray) -> float:
+    """PSNR (dB) of an [H,W,3] image in [0, 1] against its target (scikit-image's, data range 1)."""
+    return float(peak_signal_noise_ratio(target, image, data_range=1.0))
+
+
 def image_metrics(images: torch.Tensor, targets: torch.Tensor, lpips_metric: LpipsMetric,
                   flip_metric: FlipMetric | None = None) -> dict:
     """Per-view and mean PSNR, SSIM, FLIP, LPIPS of [C,H,W,3] renders against targets (both on the same
@@ -176,7 +195,7 @@ def image_metrics(images: torch.Tensor, targets: torch.Tensor, lpips_metric: Lpi
     per_view = []
     for image, target in zip(images.clamp(0, 1).double().numpy(), targets.double().numpy()):
         per_view.append({
-            "psnr": float(peak_signal_noise_ratio(target, image, data_range=1.0)),
+            "psnr": psnr(image, target),
             "ssim": float(structural_similarity(target, image, channel_axis=-1, data_range=1.0)),
             "flip": flip_metric(image, target),
             "lpips": lpips_metric(image, target),
@@ -225,15 +244,9 @@ def evaluate_run(path: str | Path, *, alignment: str = "procrustes", refine_iter
     if alignment_for(len(run.poses_final), alignment) != alignment:  # as the trainer's pose errors do
         log(f"{len(run.poses_final)} training cameras: pairwise alignment (Procrustes needs at least 3)")
         alignment = "pairwise"
-    try:
-        sim3 = pose_errors(run.poses_final, run.poses_true, alignment=alignment)["sim3"]
-    except ValueError as error:
-        raise WarpbagsError(f"{run.path}: cannot map the test cameras into the model's frame: {error}") from None
+    test_viewmats = test_cameras_in_model_frame(run, test, alignment)
     poses = pose_accuracy(run, log)
-    test_viewmats = align_viewmats(test.viewmats.double(), sim3.inverse()).float()
-
-    masks = test.masks[..., None] if test.masks is not None else torch.ones_like(test.images[..., :1])
-    targets = test.images * masks + (1 - masks)  # object on white, as GaussianObject evaluates
+    targets = test.on_background(1.0)  # the object on white, as GaussianObject evaluates
     sh_degree = sh_degree_of(run.params)
     lpips_metric = LpipsMetric()
     if lpips_metric.unavailable:

@@ -81,13 +81,13 @@ class TrainingViews:
         to = dict(device=device)
         images = scene.images.to(**to)
         masks = None if scene.masks is None else scene.masks.to(**to)
-        background = torch.tensor(config.background_rgb, **to)
-        targets = images if masks is None else images * masks[..., None] + background * (1 - masks[..., None])
+        targets = scene.on_background(config.background_rgb).to(**to)
         silhouettes = None
         if masks is not None and (config.lambda_mask_distance > 0 or config.lambda_chamfer > 0):
             silhouettes = SilhouetteTargets(masks).to(device)
         return cls(scene, images, masks, None if scene.depths is None else scene.depths.to(**to), scene.Ks.to(**to),
-                   background.expand(scene.num_views, 3).contiguous(), targets, silhouettes)
+                   torch.tensor(config.background_rgb, **to).expand(scene.num_views, 3).contiguous(), targets,
+                   silhouettes)
 
     @property
     def num_views(self) -> int:

@@ -147,6 +147,14 @@ class Scene:
         """[C,3] camera centres in normalized world."""
         return camera_centers(self.viewmats)
 
+    def on_background(self, background: float | tuple[float, float, float]) -> torch.Tensor:
+        """[C,H,W,3] the images with everything outside their masks replaced by `background` (a grey level or RGB):
+        the object as training and evaluation compare it. Without masks, the images as they are."""
+        if self.masks is None:
+            return self.images
+        masks = self.masks[..., None]
+        return self.images * masks + torch.as_tensor(background, dtype=self.images.dtype) * (1 - masks)
+
     def orbit_radius(self) -> float:
         """Mean distance of the camera centres from the world origin (the object centre)."""
         return float(self.camera_centers().norm(dim=-1).mean())
