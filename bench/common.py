@@ -17,6 +17,7 @@ from warpbags.devices import init_warp_quietly
 
 init_warp_quietly()  # the tables, not Warp's banner and module loads, as the CLI
 
+from warpbags.configs.scenes import TELEPHOTO_OPTICS  # noqa: E402
 from warpbags.configs.train import load_preset, parse_settings  # noqa: E402
 from warpbags.data import SyntheticOptions, ensure_synthetic_scene, load_scene, open_scene  # noqa: E402
 from warpbags.data.noise import monocular_like_depths  # noqa: E402
@@ -27,20 +28,20 @@ SMALL_SCENES = {
     # the synthetic scene, small enough for many runs
     "synthetic-small": SyntheticOptions(views=16, width=96, height=96),
     # the same object with maryrose's optics and framing (configs/scenes.py: synthetic-tele)
-    "synthetic-tele-small": SyntheticOptions(views=16, width=128, height=128, fov_deg=18.6, radius=5.6),
+    "synthetic-tele-small": SyntheticOptions(views=16, width=128, height=128, **TELEPHOTO_OPTICS),
     # the same cameras at 256 px, for schedules whose last rounds train above the quick preset's 128 px
-    "synthetic-tele-256": SyntheticOptions(views=16, width=256, height=256, fov_deg=18.6, radius=5.6),
+    "synthetic-tele-256": SyntheticOptions(views=16, width=256, height=256, **TELEPHOTO_OPTICS),
     # synthetic-tele-small with the light turned by up to 30 deg and the colour channels scaled by ~10% per view,
     # as on a capture whose object was moved between sequences (maryrose): the images disagree beyond the poses
-    "synthetic-tele-lit": SyntheticOptions(views=16, width=128, height=128, fov_deg=18.6, radius=5.6,
+    "synthetic-tele-lit": SyntheticOptions(views=16, width=128, height=128, **TELEPHOTO_OPTICS,
                                            light_jitter_deg=30.0, gain_jitter=0.1),
     # synthetic-tele-small lit as on a turntable (maryrose): the light turns with the camera, so each part of the
     # object is shaded differently from each side it is seen from
-    "synthetic-tele-turntable": SyntheticOptions(views=16, width=128, height=128, fov_deg=18.6, radius=5.6,
+    "synthetic-tele-turntable": SyntheticOptions(views=16, width=128, height=128, **TELEPHOTO_OPTICS,
                                                  turntable_light=True),
     # maryrose's optics and framing with a tankard like hers lying on its side instead of the excavator: a nearly
     # symmetric silhouette and a low-contrast, repetitive grain
-    "synthetic-tele-tankard": SyntheticOptions(views=16, width=128, height=128, fov_deg=18.6, radius=5.6,
+    "synthetic-tele-tankard": SyntheticOptions(views=16, width=128, height=128, **TELEPHOTO_OPTICS,
                                                object="tankard"),
 }
 

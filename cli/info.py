@@ -61,9 +61,9 @@ def info(
 
 def synth(
     out_dir: Path = typer.Argument(..., help="Folder to write the synthetic scene to (must not exist or be empty)."),
-    views: int = typer.Option(48, help="Number of cameras on the dome."),
-    size: int = typer.Option(256, help="Image width and height in pixels."),
-    seed: int = typer.Option(0, help="Seed for textures and sampled points."),
+    views: int = typer.Option(SyntheticOptions.views, help="Number of cameras on the dome."),
+    size: int = typer.Option(SyntheticOptions.width, help="Image width and height in pixels."),
+    seed: int = typer.Option(SyntheticOptions.seed, help="Seed for textures and sampled points."),
     light_jitter_deg: float = typer.Option(0.0, help="Turn each view's light by up to this angle (lighting that "
                                                      "changes between shots)."),
     gain_jitter: float = typer.Option(0.0, help="Scale each view's colour channels by exp(N(0, this^2)) (exposure "

@@ -6,9 +6,12 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Literal
+from typing import Any, Literal
 
 MIPNERF360_URL = "http://storage.googleapis.com/gresearch/refraw360/360_v2.zip"
+# maryrose's optics and framing for the synthetic object: an 18.6 deg field of view from 5.6 units, so the object
+# fills 80-100% of the frame as in the real capture (`SyntheticOptions` fields).
+TELEPHOTO_OPTICS: dict[str, float] = {"fov_deg": 18.6, "radius": 5.6}
 
 
 @dataclass(frozen=True)
@@ -23,8 +26,8 @@ class ScenePreset:
         resolution: image downsampling factor to load (images_{resolution}); None = the largest available.
         default_splits: splits used when the scene's own `sparse_{key}.txt` file is missing.
         how_to_get: one sentence telling a user how to obtain the data.
-        synthetic_views, synthetic_size, synthetic_fov_deg, synthetic_radius: generator settings for source
-            "synthetic" (`warpbags.data.synthetic.SyntheticOptions`).
+        synthetic: for source "synthetic", the generator's settings that differ from its defaults
+            (`warpbags.data.synthetic.SyntheticOptions` fields).
     """
 
     name: str
@@ -33,10 +36,7 @@ class ScenePreset:
     resolution: int | None = None
     default_splits: dict[str, tuple[int, ...]] = field(default_factory=dict)
     how_to_get: str = ""
-    synthetic_views: int = 48
-    synthetic_size: int = 256
-    synthetic_fov_deg: float = 45.0
-    synthetic_radius: float = 3.6
+    synthetic: dict[str, Any] = field(default_factory=dict)
 
 
 def _nerd_capture(repository: str) -> ScenePreset:
@@ -82,15 +82,13 @@ SCENES: dict[str, ScenePreset] = {
             source="synthetic",
             how_to_get="it is generated on first use; set WARPBAGS_CACHE to a writable folder",
         ),
-        # The synthetic object seen with maryrose's optics: an 18.6 deg field of view from 5.6 units, so the object
-        # fills 80-100% of the frame as in the real capture. Far from the object a camera's turn and a sideways
-        # shift move the image almost alike, the hard case for pose recovery; exact ground truth still.
+        # The synthetic object seen with maryrose's optics. Far from the object a camera's turn and a sideways shift
+        # move the image almost alike, the hard case for pose recovery; exact ground truth still.
         ScenePreset(
             name="synthetic-tele",
             source="synthetic",
             how_to_get="it is generated on first use; set WARPBAGS_CACHE to a writable folder",
-            synthetic_fov_deg=18.6,
-            synthetic_radius=5.6,
+            synthetic=TELEPHOTO_OPTICS,
         ),
     )
 }

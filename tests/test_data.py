@@ -639,7 +639,7 @@ def test_synthetic_preset_generated_once_into_cache(tmp_path, monkeypatch):
 
     from warpbags.data import catalog
 
-    preset = dataclasses.replace(catalog.SCENES["synthetic"], synthetic_views=5, synthetic_size=20)
+    preset = dataclasses.replace(catalog.SCENES["synthetic"], synthetic={"views": 5, "width": 20, "height": 20})
     monkeypatch.setitem(catalog.SCENES, "synthetic", preset)
     monkeypatch.setenv("WARPBAGS_CACHE", str(tmp_path / "cache"))
     scene = open_scene("synthetic")

@@ -45,10 +45,7 @@ def resolve_scene(
             )
         return folder, None
     if preset.source == "synthetic":
-        size = preset.synthetic_size
-        options = SyntheticOptions(views=preset.synthetic_views, width=size, height=size,
-                                   fov_deg=preset.synthetic_fov_deg, radius=preset.synthetic_radius)
-        return ensure_synthetic_scene(options, cache_dir or default_cache_dir()), preset
+        return ensure_synthetic_scene(SyntheticOptions(**preset.synthetic), cache_dir or default_cache_dir()), preset
     base = data_root(root) if preset.source == "data_root" else packaged_scene_dir("")
     candidates = [base / folder for folder in preset.folders]
     for candidate in candidates:
