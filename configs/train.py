@@ -19,6 +19,7 @@ from typing import Any, Literal
 from warpbags.errors import WarpbagsError
 
 BACKGROUNDS = {"white": (1.0, 1.0, 1.0), "black": (0.0, 0.0, 0.0)}  # `TrainConfig.background`'s colours
+ALIGNMENTS = ("procrustes", "pairwise")  # how estimated cameras are mapped onto reference ones (warpbags.alignment)
 
 
 @dataclass(frozen=True)
@@ -463,7 +464,7 @@ class TrainConfig:
             (self.blur_until >= 0, f"--blur-until must be >= 0, got {self.blur_until}"),
             (0 <= self.lambda_depth < 1, f"lambda_depth must be in [0, 1), got {self.lambda_depth}"),
             (self.depth_loss in ("mad", "pearson"), f"--depth-loss must be mad or pearson, got {self.depth_loss!r}"),
-            (self.pose_alignment in ("procrustes", "pairwise"), f"pose_alignment: {self.pose_alignment!r}"),
+            (self.pose_alignment in ALIGNMENTS, f"pose_alignment: {self.pose_alignment!r}"),
             (self.camera.parameterization in ("object", "camera"),
              f"camera.parameterization must be object or camera, got {self.camera.parameterization!r}"),
             (self.camera.precondition_reg > 0, f"camera.precondition_reg must be > 0, got {self.camera.precondition_reg}"),

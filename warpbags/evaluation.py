@@ -27,18 +27,16 @@ from skimage.metrics import peak_signal_noise_ratio, structural_similarity
 
 from warpbags.alignment import align_viewmats, alignment_for, centre_floor_errors, pose_errors, reprojection_errors
 from warpbags.camera_optimizer import CameraOptimizer, CameraOptimizerSettings
-from warpbags.configs.train import TrainConfig
+from warpbags.configs.train import ALIGNMENTS
 from warpbags.data import ORBIT_RADIUS, Scene, SceneNormalization, load_scene
 from warpbags.devices import torch_device
-from warpbags.errors import WarpbagsError
+from warpbags.errors import WarpbagsError, one_line
 from warpbags.files import atomic_output, finite_json
 from warpbags.gaussians import object_points, opacity_weighted_center, render_gaussians, sh_degree_of
 from warpbags.losses import load_lpips, photometric_loss
 from warpbags.report import write_image_grid, write_run_report
 from warpbags.run_folder import TrainingRun, load_run, require_info
 from warpbags.threads import torch_threads
-
-ALIGNMENTS = ("procrustes", "pairwise")
 
 
 def held_out_views(run: TrainingRun) -> Scene:
@@ -167,7 +165,7 @@ class FlipMetric:
             import flip_evaluator  # noqa: PLC0415 - imported here so a broken install is one reason, not a crash
         except ImportError as error:
             self.flip = None
-            self.unavailable = f"{type(error).__name__}: {str(error).splitlines()[0] if str(error) else ''}"[:200]
+            self.unavailable = one_line(error)
         else:
             self.flip, self.unavailable = flip_evaluator, None
 

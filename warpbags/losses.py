@@ -7,6 +7,7 @@ import functools
 import torch
 import torch.nn.functional as F
 
+from warpbags.errors import one_line
 from warpbags.kernels.loss import SSIM_C1, SSIM_C2
 from warpbags.wrapper import fused_photometric_loss, ssim_window
 
@@ -112,7 +113,7 @@ def load_lpips() -> tuple[torch.nn.Module | None, str | None]:
 
         network = lpips.LPIPS(net="vgg", verbose=False)
     except (ImportError, OSError) as error:
-        return None, f"{type(error).__name__}: {str(error).splitlines()[0] if str(error) else ''}"[:200]
+        return None, one_line(error)
     for parameter in network.parameters():
         parameter.requires_grad_(False)
     return network, None

@@ -37,7 +37,7 @@ import torch
 
 from warpbags.configs.train import TrainConfig
 from warpbags.data.scene import Scene
-from warpbags.errors import WarpbagsError
+from warpbags.errors import WarpbagsError, one_line
 from warpbags.files import atomic_output
 from warpbags.gaussians import read_ply, write_ply
 from warpbags.pose_history import HISTORY_FILE, RECORD_EVERY, record_poses
@@ -192,8 +192,7 @@ class RunFolder:
         try:
             state = torch.load(path, map_location=device, weights_only=False)
         except (OSError, RuntimeError, EOFError, ValueError, pickle.UnpicklingError) as error:
-            reason = (str(error).splitlines() or [""])[0]
-            raise WarpbagsError(f"{path}: unreadable checkpoint ({type(error).__name__}: {reason})") from None
+            raise WarpbagsError(f"{path}: unreadable checkpoint ({one_line(error, limit=1000)})") from None
         missing = [key for key in CHECKPOINT_KEYS if not isinstance(state, dict) or key not in state]
         if missing:
             raise WarpbagsError(f"{path} was written by an older warpbags (no {', '.join(missing)}); it cannot be "
