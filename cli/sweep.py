@@ -11,6 +11,7 @@ from rich.markup import escape
 from rich.table import Table
 
 from warpbags.cli.common import clean_errors, parse_numbers
+from warpbags.configs.train import DEFAULT_PRESET
 from warpbags.sweep import RAY_INSTALL, SweepSpec, make_executor, run_sweep
 
 stdout = Console(highlight=False)
@@ -22,7 +23,7 @@ def sweep(
     views: str = typer.Option("4,6,9", "--views", help="View counts."),
     seeds: str = typer.Option("0", "--seeds", help="Seeds (noise and initialization)."),
     trans_noise: float = typer.Option(0.0, "--trans-noise", help="Camera-centre noise std for every run."),
-    preset: str = typer.Option("quick", "--preset", help="Training preset for every run."),
+    preset: str = typer.Option(DEFAULT_PRESET, "--preset", help="Training preset for every run."),
     iters: Optional[int] = typer.Option(None, "--iters", help="Coarse iterations per run (default: the preset's)."),
     repair_iters: Optional[int] = typer.Option(None, "--repair-iters", help="Repair iterations per run (default: the preset's)."),
     out: Optional[Path] = typer.Option(None, "--out", help="Sweep folder (default runs/sweep-<scene>)."),

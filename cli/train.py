@@ -13,6 +13,7 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 from warpbags.cli.common import clean_errors
 from warpbags.cli.train_options import resumed_config, train_config, with_train_options
 from warpbags.configs.scenes import SCENES
+from warpbags.configs.train import DEFAULT_PRESET
 from warpbags.errors import WarpbagsError
 from warpbags.trainer import default_run_dir, saved_run_config, saved_run_scene, start_or_resume, training_scene
 
@@ -47,7 +48,7 @@ def train(
         raise WarpbagsError("give the scene to train: a preset name or a scene folder (`warpbags train --help`)")
     # A resumed run goes on with the config it was started with; options given again must agree with it.
     config = (resumed_config(saved_run_config(out), preset, config_options, settings or []) if resume else
-              train_config(preset or "quick", config_options, settings or []))
+              train_config(preset or DEFAULT_PRESET, config_options, settings or []))
     scene_data = training_scene(scene if scene is not None else saved_run_scene(out), config, data_root,
                                 log=stdout.print)
     views = config.views

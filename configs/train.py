@@ -584,6 +584,7 @@ def quick() -> TrainConfig:
 
 
 PRESETS = {"paper": paper, "quick": quick}
+DEFAULT_PRESET = "quick"  # what `warpbags train` and `warpbags sweep` train with unless --preset says otherwise
 
 
 def _is_window(value: Any) -> bool:

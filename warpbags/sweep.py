@@ -20,7 +20,7 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Callable, Protocol
 
-from warpbags.configs.train import TrainConfig, load_preset
+from warpbags.configs.train import DEFAULT_PRESET, TrainConfig, load_preset
 from warpbags.data import Scene, open_scene
 from warpbags.devices import checked_device_name
 from warpbags.errors import WarpbagsError
@@ -47,7 +47,7 @@ class SweepSpec:
     views: tuple[int, ...] = (4, 6, 9)
     seeds: tuple[int, ...] = (0,)
     trans_noise: float = 0.0
-    preset: str = "quick"
+    preset: str = DEFAULT_PRESET
     refine_iters: int = 50
     overrides: tuple[tuple[str, object], ...] = ()
     device: str = "cpu"
