@@ -487,7 +487,8 @@ def test_sweep_bad_values_one_line(tmp_path):
     assert result.exit_code == 2 and "--views must be >= 2" in result.output
     (tmp_path / "a-file").write_text("")
     result = runner.invoke(app, ["sweep", "maryrose", "--out", str(tmp_path / "a-file")])
-    assert result.exit_code == 2 and "a-file is a file, not a folder to hold the sweep" in " ".join(result.output.split())
+    message = " ".join(result.output.split())
+    assert result.exit_code == 2 and "a-file is a file, not a folder to hold the sweep" in message
     result = runner.invoke(app, ["sweep", "maryrose", "--views", ",", "--out", str(tmp_path / "s")])
     assert result.exit_code == 2 and "--views ',': expected comma-separated numbers, got none" in result.output
     # a combination that cannot run is named before the first one trains (maryrose has 69 images)

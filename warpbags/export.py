@@ -140,9 +140,10 @@ def render_turntable(path: str | Path, frames: int = 36, video: bool = True) -> 
     out.mkdir(exist_ok=True)
     for stale in out.glob("frame_*.png"):  # an earlier render of more frames must not leave its tail behind
         stale.unlink()
+    backgrounds = torch.tensor(run.config.background_rgb).expand(frames, 3).contiguous()  # as trained and viewed
     with torch.no_grad():
         images, _, _ = render_gaussians(run.params, viewmats, Ks, width, height, sh_degree=sh_degree_of(run.params),
-                                        backgrounds=torch.tensor(run.config.background_rgb).expand(frames, 3))
+                                        backgrounds=backgrounds)
     pixels = (images.clamp(0, 1).numpy() * 255 + 0.5).astype(np.uint8)
     for index, image in enumerate(pixels):
         frame = out / f"frame_{index:03d}.png"
