@@ -331,6 +331,26 @@ def test_nan_is_caught_and_last_checkpoint_kept(scene_dir, tmp_path):
     assert torch.load(good, weights_only=False)["iteration"] == 10
 
 
+def test_a_step_that_diverges_on_a_checkpoint_iteration_is_not_checkpointed(scene_dir, tmp_path):
+    """The finiteness check before a step cannot see what the step itself does: a step that leaves NaN on an
+    iteration that checkpoints is caught at the checkpoint, which is not written."""
+    trainer = make_trainer(scene_dir, tmp_path, iters=30, checkpoint_every=5)
+    trainer.train(stop_at=5)
+    step = trainer.model.optimizer.step
+
+    def diverging_step(*args, **kwargs):
+        result = step(*args, **kwargs)
+        if trainer.iteration == 9:  # the step that makes iteration 10, a checkpoint iteration
+            with torch.no_grad():
+                trainer.params["means"][0, 0] = float("nan")
+        return result
+
+    trainer.model.optimizer.step = diverging_step
+    with pytest.raises(WarpbagsError, match="diverged at iteration 10: parameter means .*checkpoint_000005"):
+        trainer.train()
+    assert trainer.latest_checkpoint().name == "checkpoint_000005.pt"
+
+
 def test_a_log_record_describes_the_step_it_logs(scene_dir, tmp_path):
     """Record "iter" n is the n-th step (index n - 1): its pose flag and SH degree are that step's schedule's."""
     trainer = make_trainer(scene_dir, tmp_path, iters=6, pose_opt_start=3, sh_degree=1, sh_degree_every=2)

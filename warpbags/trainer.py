@@ -263,6 +263,14 @@ class Trainer:
         return self.run_folder.latest_checkpoint()
 
     def save_checkpoint(self) -> Path:
+        """Checkpoint the current state (`RunFolder.save_checkpoint`).
+
+        Raises:
+            WarpbagsError: a parameter is not finite (the last step diverged): a checkpoint only ever holds a
+                state training can go on from, and the error names the last one that does.
+        """
+        with self._divergence_reported():
+            self.model.check_finite_parameters(self.cameras)
         return self.run_folder.save_checkpoint({
             "iteration": self.iteration, "config": self.config.to_dict(), **self.model.state_dict(),
             "cameras": self.cameras.state(), "generator": self.generator.get_state(),
