@@ -649,6 +649,13 @@ def test_the_position_lr_ends_every_round_at_its_final_value():
     assert fractions == [0.0, 0.5, 1.0, 0.0, 0.5, 1.0, 0.0, 0.5, 1.0, 0.0, 1.0]
 
 
+def test_a_shorter_last_round_has_its_pose_window_too():
+    """Windows are shares of each round's own length: 10 iterations in rounds of 4, 4 and 2 with poses in each
+    round's second half move them at 2-3, 6-7 and 9 (shares of the nominal 4 would leave the last round none)."""
+    schedule = Schedule(load_preset("quick", iters=10, rounds=3, pose_round_window=(0.5, 1.0)))
+    assert [i for i in range(10) if schedule.at(i).pose_active] == [2, 3, 6, 7, 9]
+
+
 def test_rounds_take_their_own_pose_windows():
     config = load_preset("quick", iters=40, rounds=4, pose_round_window=(0.0, 1.0),
                          pose_round_windows=[[0.25, 1.0], [0.25, 1], [0.5, 1]])

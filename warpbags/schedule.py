@@ -109,14 +109,16 @@ class Schedule:
 
     def pose_window(self, iteration: int) -> tuple[int, int]:
         """[start, end) iterations of the current round in which poses are updated (the round's entry of
-        `pose_round_windows`, else `pose_round_window`; no earlier than `pose_opt_start`)."""
+        `pose_round_windows`, else `pose_round_window`, as shares of the round's own length, so that a shorter last
+        round has its window too; no earlier than `pose_opt_start`)."""
         config = self.config
         round_start = iteration - self.round_iteration(iteration)
+        length = max(self.round_end(iteration) - round_start, 1)  # (the repair stage's is not used)
         windows = config.pose_round_windows
         window_start, window_end = (windows[min(self.round_index(iteration), len(windows) - 1)] if windows
                                     else config.pose_round_window)
-        start = max(round_start + math.ceil(window_start * self.round_length), config.pose_opt_start)
-        return start, min(round_start + math.ceil(window_end * self.round_length), config.iters)
+        start = max(round_start + math.ceil(window_start * length), config.pose_opt_start)
+        return start, min(round_start + math.ceil(window_end * length), config.iters)
 
     def pose_active(self, iteration: int) -> bool:
         """Poses are updated from `pose_opt_start` on, inside `pose_round_window` of every coarse round (and in the
