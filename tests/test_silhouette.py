@@ -170,6 +170,19 @@ def test_coherent_start_brings_noisy_cameras_in_before_any_gaussian_is_fitted(sc
     assert torch.equal(cameras.rotations, torch.zeros_like(cameras.rotations))  # solved into the starting poses
 
 
+def test_coherent_start_solves_from_the_corrected_poses_and_applies_the_corrections_once(scene):
+    """Cameras that already hold corrections: the solve starts from their corrected poses and its result replaces
+    them (without iterations, the corrected poses themselves), not those corrections composed onto it again."""
+    views, truth, Ks, targets, center, radius = _coherence_case(scene, count=6)
+    cameras = CameraOptimizer(truth.float(), CameraOptimizerSettings(precondition=False), center.float())
+    with torch.no_grad():
+        cameras.rotations[1] = torch.tensor([0.02, -0.01, 0.03])
+    corrected = cameras.viewmats().detach().clone()
+    coherent_start(cameras, targets, views.Ks, center.float(), iterations=0)
+    torch.testing.assert_close(cameras.viewmats().detach(), corrected, rtol=0, atol=1e-6)
+    assert torch.equal(cameras.rotations, torch.zeros_like(cameras.rotations))
+
+
 def test_coherent_start_of_a_capture_cut_by_the_frame_needs_the_masks_continued(scene):
     """Six views cropped so that the frame cuts the object: the solve that counts the frame as background moves the
     cameras until the object fits inside every frame, away from the truth; with the masks continued it brings them

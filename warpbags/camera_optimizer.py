@@ -207,7 +207,12 @@ class CameraOptimizer(torch.nn.Module):
     def rebase(self) -> None:
         """Fold the current corrections into the base poses; latents and Adam moments restart at zero."""
         with torch.no_grad():
-            self.viewmats_init.copy_(self())
+            self.reset_to(self())
+
+    def reset_to(self, viewmats: torch.Tensor) -> None:
+        """Make [C, 4, 4] `viewmats` the base poses, with no corrections: latents and Adam moments restart at zero."""
+        with torch.no_grad():
+            self.viewmats_init.copy_(viewmats.to(self.viewmats_init))
             self.rotations.zero_()
             self.translations.zero_()
         self.reset_moments()

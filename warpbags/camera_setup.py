@@ -98,6 +98,5 @@ def coherent_start(cameras: CameraOptimizer, targets: SilhouetteTargets, Ks: tor
     solved = solver.viewmats()
     with torch.no_grad():
         after = float(targets.coherence_loss(solved, Ks, center, radius))
-        cameras.viewmats_init.copy_(solved.to(cameras.viewmats_init))
-    cameras.rebase()
+    cameras.reset_to(solved)  # the solve started from the cameras' corrected poses: `solved` replaces all of them
     return before, after
