@@ -7,6 +7,7 @@ import json
 import math
 import shutil
 import signal
+import types
 
 import numpy as np
 import pytest
@@ -774,3 +775,19 @@ def test_the_round_anchor_leaves_the_first_round_free():
     assert all(Schedule(load_preset("quick")).at(i).pose_anchor == 0.0 for i in range(0, 600, 50))
     with pytest.raises(WarpbagsError, match="round_anchor must be >= 0"):
         load_preset("quick", camera={"round_anchor": -1.0})
+
+
+def test_continue_from_takes_the_other_models_extent_for_its_densification_too():
+    """The extent sets the position lr (the model's) and the densification thresholds (its strategy's): a model
+    that goes on from another takes both, or a leave-one-out fit would densify by its own scene's size."""
+    from warpbags.init import initial_gaussians
+    from warpbags.model import GaussianModel
+
+    def params():
+        points = torch.rand(20, 3, generator=torch.Generator().manual_seed(0))
+        return {name: torch.nn.Parameter(value) for name, value in initial_gaussians(points, points, 0).items()}
+
+    config, views = load_preset("quick"), types.SimpleNamespace(device=torch.device("cpu"))  # all it reads of them
+    model = GaussianModel(config, views, params(), 1.0, torch.Generator())
+    model.continue_from(GaussianModel(config, views, params(), 3.0, torch.Generator()))
+    assert model.scene_extent == model.strategy.scene_extent == 3.0

@@ -290,7 +290,7 @@ class GaussianModel:
     def continue_from(self, other: GaussianModel) -> None:
         """Take over `other`'s Gaussians, their optimizer and densification state and scene extent (the training
         views stay this model's): how a leave-one-out model goes on with its left-out view added back."""
-        self.scene_extent = other.scene_extent
+        self.scene_extent = self.strategy.scene_extent = other.scene_extent  # the lr's and densification's
         self.load_state_dict(copy.deepcopy(other.state_dict()))
 
     def state_dict(self) -> dict:
