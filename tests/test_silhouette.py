@@ -343,3 +343,15 @@ def test_nearest_points_compare_in_the_wider_dtype():
     queries = torch.tensor([[1.0, 0.0]])  # float32
     points = torch.tensor([[1 + 2e-8, 0.0], [1 + 1e-8, 0.0]], dtype=torch.float64)
     assert nearest_points(queries, points).tolist() == [1]
+
+
+def test_distance_loss_of_masks_continued_beyond_the_frame_reads_the_frames_own_pixels():
+    """Continued masks hold a margin around the frame; the loss compares renders with the frame's part of it: for a
+    mask clear of the border the continued and the plain distance transforms agree there."""
+    masks = torch.zeros(2, 24, 32)
+    masks[:, 8:16, 10:20] = 1
+    alphas = torch.rand(2, 24, 32, generator=torch.Generator().manual_seed(0))
+    views = torch.tensor([0, 1])
+    plain = SilhouetteTargets(masks).distance_loss(alphas, views)
+    continued = SilhouetteTargets(masks, continued_beyond_frame=True).distance_loss(alphas, views)
+    assert plain > 0 and torch.allclose(continued, plain, rtol=1e-5, atol=0)

@@ -48,8 +48,8 @@ def nearest_distances(queries: torch.Tensor, points: torch.Tensor) -> torch.Tens
 def mask_centroids(masks: torch.Tensor) -> torch.Tensor:
     """[C, 2] pixel coordinates (pixel centres at +0.5) of each [C, H, W] mask's centre of mass."""
     _, height, width = masks.shape
-    ys = torch.arange(height, dtype=masks.dtype) + 0.5
-    xs = torch.arange(width, dtype=masks.dtype) + 0.5
+    ys = torch.arange(height, dtype=masks.dtype, device=masks.device) + 0.5
+    xs = torch.arange(width, dtype=masks.dtype, device=masks.device) + 0.5
     mass = masks.sum(dim=(1, 2)).clamp_min(1e-12)
     return torch.stack([(masks.sum(1) * xs).sum(-1) / mass, (masks.sum(2) * ys).sum(-1) / mass], dim=-1)
 
@@ -105,7 +105,7 @@ def centroid_start(masks: torch.Tensor, viewmats: torch.Tensor, Ks: torch.Tensor
     center = rays_meeting_point(camera_centers(viewmats), ray_world)
     to_center = (viewmats[:, :3, :3] @ center + viewmats[:, :3, 3])
     to_center = to_center / to_center.norm(dim=-1, keepdim=True)
-    turn = torch.eye(4, dtype=torch.float64).repeat(len(viewmats), 1, 1)
+    turn = torch.eye(4, dtype=torch.float64, device=viewmats.device).repeat(len(viewmats), 1, 1)
     turn[:, :3, :3] = rotation_between(to_center, ray_camera)
     return turn @ viewmats, center
 
@@ -157,7 +157,8 @@ class SilhouetteTargets:
         it must be paired with a term that wants the mask covered (the mask loss, the chamfer). Normalizing it by
         the rendered mass removes that, but made training diverge (synthetic, 15 deg: 0.9 -> 20 deg).
         """
-        return (alphas * self.outside_distance[views].to(alphas)).mean()
+        m = self.margin  # masks continued beyond the frame: the frame's own pixels are the renders'
+        return (alphas * self.outside_distance[views, m:m + self.height, m:m + self.width].to(alphas)).mean()
 
     def chamfer_loss(self, points: torch.Tensor, weights: torch.Tensor, viewmats: torch.Tensor, Ks: torch.Tensor,
                      views: torch.Tensor) -> torch.Tensor:
