@@ -309,13 +309,16 @@ def test_a_resumed_run_does_not_solve_its_starting_poses_again(scene_dir, tmp_pa
 def test_a_checkpoint_at_a_rounds_start_resumes_at_the_last_rounds_resolution(scene_dir, tmp_path):
     """With a pyramid over the rounds, the Gaussians saved at a round's start were trained at the round before's
     level: a resumed trainer holds them with those training views until the next step starts the round (which is
-    what the search over turns renders them with), as the uninterrupted trainer does."""
-    overrides = dict(iters=8, rounds=2, pyramid_levels=2, checkpoint_every=100)
+    what the search over turns renders them with), as the uninterrupted trainer does. Three rounds over three
+    levels: a new trainer starts at the first round's quarter resolution, the checkpoint at the third round's
+    start holds Gaussians of the second round's half resolution."""
+    overrides = dict(iters=9, rounds=3, pyramid_levels=3, checkpoint_every=100)
     interrupted = make_trainer(scene_dir, tmp_path, **overrides)
     interrupted.write_run_files()
-    interrupted.train(stop_at=4)
+    interrupted.train(stop_at=6)
     resumed = make_trainer(scene_dir, tmp_path, **overrides)
-    assert resumed.resume() and resumed.iteration == 4
+    assert resumed.model.training_views.targets.shape[2] == interrupted.full_scene.width // 4  # before resuming
+    assert resumed.resume() and resumed.iteration == 6
     width = interrupted.model.training_views.targets.shape[2]
     assert resumed.model.training_views.targets.shape[2] == width == interrupted.full_scene.width // 2
 
