@@ -72,7 +72,7 @@ class DensifyConfig:
         percent_dense: the clone/split size boundary, as a fraction of the scene extent.
         prune_opacity: Gaussians below this opacity are removed.
         prune_scale: Gaussians whose largest scale exceeds this fraction of the scene extent are removed.
-        opacity_reset_every: every this many iterations opacities are clamped to 0.01 (0 = never).
+        opacity_reset_every: every this many iterations before `stop` opacities are clamped to 0.01 (0 = never).
         max_gaussians: no cloning/splitting beyond this count (0 = unlimited).
         floater_every: every this many iterations, Gaussians far from their K = sqrt(N) nearest neighbours are
             removed (GaussianObject's floater removal; 0 = never).
@@ -133,7 +133,8 @@ class CameraConfig:
             Measured at 1 (15 deg / 0.3, 4 views, seeds 0-2): maryrose 10.64 -> 8.13 deg, the telephoto synthetic
             scene 0.79 -> 2.89 (its later rounds gain by the same kind of moves), so off by default.
         lbfgs_from_round: from this coarse round on (0-based), the poses no longer take an Adam step with every
-            Gaussian step: every `lbfgs_every` iterations of the pose window, all training cameras are solved by
+            Gaussian step: in the pose window, at every iteration i with i + 1 a multiple of `lbfgs_every` (counted
+            from the start of training, not of the window), all training cameras are solved by
             `lbfgs_iters` L-BFGS iterations of the training loss against the current Gaussians, held fixed during
             the solve (`CameraOptimizer.refine`). Adam steps about its learning rate whatever the gradient's size
             and so moves the cameras along the directions the images barely constrain (an orbit about the object
@@ -151,9 +152,10 @@ class CameraConfig:
             (the issue's "outlier views"). The mask-centroid start fixes pan and tilt, not roll, and without depth maps
             a camera left 15-20 deg off in roll stays there, which the loss tells (telephoto synthetic scene, seed 0:
             0.083 against 0.075-0.076 for the seeds that converge). Costs one round per turn.
-        hypothesis_axes, hypothesis_angles, hypothesis_margin: the axes of the camera's frame turned about ("z": roll
-            about the line of sight to the object centre; "x", "y": an orbit), the angles (degrees, each with both
-            signs), and the relative loss decrease a turn must bring to be kept.
+        hypothesis_axes, hypothesis_angles, hypothesis_margin: the axes of the camera's frame turned about, through
+            the object centre ("z": parallel to the optical axis, a roll when the object is in the middle of the
+            view; "x", "y": an orbit), the angles (degrees, each with both signs), and the relative loss decrease a
+            turn must bring to be kept.
     """
 
     parameterization: Literal["object", "camera"] = "object"

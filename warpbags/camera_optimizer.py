@@ -218,9 +218,10 @@ class CameraOptimizer(torch.nn.Module):
         self.reset_moments()
 
     def turn_about_object(self, camera: int, rotation: torch.Tensor) -> None:
-        """Turn camera `camera` about the object centre by [3] axis-angle `rotation` in its own frame (z: roll about
-        the line of sight to the object centre, x and y: an orbit), whatever the parameterization: the current
-        corrections are folded into the base poses first (`rebase`)."""
+        """Turn camera `camera` about the object centre by [3] axis-angle `rotation` in its own frame (z: about the
+        axis through the object centre parallel to the optical axis, a roll when the object is in the middle of the
+        view; x and y: an orbit), whatever the parameterization: the current corrections are folded into the base
+        poses first (`rebase`)."""
         self.rebase()
         with torch.no_grad():
             turn = torch.zeros(1, 6, dtype=self.viewmats_init.dtype, device=self.viewmats_init.device)

@@ -120,9 +120,9 @@ class Schedule:
         start = max(round_start + math.ceil(window_start * length), config.pose_opt_start)
         return start, min(round_start + math.ceil(window_end * length), config.iters)
 
-    def pose_active(self, iteration: int) -> bool:
-        """Poses are updated from `pose_opt_start` on, inside `pose_round_window` of every coarse round (and in the
-        repair stage)."""
+    def poses_move(self, iteration: int) -> bool:
+        """Poses are updated (by Adam steps or L-BFGS solves, `at`) from `pose_opt_start` on, inside each coarse
+        round's pose window (and in the repair stage)."""
         if not self.config.pose_opt or iteration < self.config.pose_opt_start:
             return False
         start, end = self.pose_window(iteration)
@@ -146,7 +146,7 @@ class Schedule:
         # a linear ramp over the first `lr.pose_warmup` steps of the window (none in the repair stage)
         warmup_steps = config.lr.pose_warmup
         warmup = 1.0 if in_repair or warmup_steps <= 0 else min(1.0, max(iteration - pose_start + 1, 1) / warmup_steps)
-        poses_move, solves = self.pose_active(iteration), self.solves_poses(iteration)
+        poses_move, solves = self.poses_move(iteration), self.solves_poses(iteration)
         return StepSettings(
             round_iteration=round_iteration,
             sh_degree=self.sh_degree(iteration), blur_sigma=self.blur_sigma(iteration),

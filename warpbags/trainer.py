@@ -255,7 +255,7 @@ class Trainer:
         schedule, iteration = self.schedule, self.iteration
         return {"iter": iteration, "stage": stage, "loss": loss.item(), **terms,
                 "num_gaussians": self.model.num_gaussians, "sh_degree": schedule.sh_degree(iteration - 1),
-                "pose_opt": schedule.pose_active(iteration - 1), **self.pose_error(),
+                "pose_opt": schedule.poses_move(iteration - 1), **self.pose_error(),
                 "seconds": time.perf_counter() - started}
 
     # ----------------------------------------------------------------------------------------------- files
