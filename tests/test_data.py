@@ -332,6 +332,24 @@ def test_frame_paths_outside_the_scene_folder_are_one_line(synthetic_dir, tmp_pa
     _expect_error(folder, r"transforms.json: frame file_path '/elsewhere/view_000.png' is outside the scene folder")
 
 
+def test_frames_in_a_linked_image_folder_and_by_absolute_paths_inside_the_scene_are_read(synthetic_dir, tmp_path):
+    """images/ a symbolic link to elsewhere (a DVC or git-annex cache): inside the scene folder as written; and a
+    frame named by its absolute path inside the folder. "../" out of the folder stays refused (above)."""
+    folder = _strip_to_images(synthetic_dir, tmp_path / "linked")
+    (folder / "images").rename(tmp_path / "cache")
+    (folder / "images").symlink_to(tmp_path / "cache", target_is_directory=True)
+    opengl = np.linalg.inv(dome_viewmats(SYNTHETIC)) @ np.diag([1.0, -1.0, -1.0, 1.0])
+    frames = [{"file_path": f"images/view_{i:03d}.png", "transform_matrix": opengl[i].tolist()} for i in range(12)]
+    frames[0]["file_path"] = str(folder / "images" / "view_000.png")
+    (folder / "transforms.json").write_text(json.dumps({"camera_angle_x": math.radians(SYNTHETIC.fov_deg),
+                                                        "frames": frames}))
+    scene = load_scene(folder, normalize=False)
+    assert scene.num_views == 12 and scene.image_names[0] == "images/view_000.png"
+    frames[0]["file_path"] = "images/../../cache/view_000.png"
+    (folder / "transforms.json").write_text(json.dumps({"camera_angle_x": 0.5, "frames": frames}))
+    _expect_error(folder, r"frame file_path 'images/../../cache/view_000.png' is outside the scene folder")
+
+
 def test_a_text_colmap_model_directly_in_sparse_is_read(scene_copy, synthetic):
     model = scene_copy / "sparse" / "0"
     write_model(scene_copy / "sparse", synthetic.image_names, synthetic.viewmats.double().numpy(),
@@ -398,19 +416,68 @@ def test_jpeg_photographs_and_masks_are_decoded_reduced(synthetic_dir, tmp_path)
     assert np.mean(read == expected) > 0.99
 
 
-def test_opencv_camera_is_undistorted_and_exotic_model_refused(scene_copy):
+def test_an_exif_orientation_is_ignored_at_every_reduction_as_colmap_does(synthetic_dir, tmp_path):
+    """A portrait phone photo stored landscape with EXIF orientation 6: its pixels (and a JPEG mask's) are read as
+    stored at full size and when libjpeg decodes it reduced, as COLMAP reads them for its poses."""
+    from PIL import Image
+
+    stored = np.kron(cv2.imread(str(synthetic_dir / "images" / "view_000.png")), np.ones((2, 4, 1), np.uint8))
+    exif = Image.Exif()
+    exif[0x0112] = 6  # rotate 90 deg clockwise to display
+    Image.fromarray(stored[..., ::-1]).save(tmp_path / "photo.jpg", quality=98, exif=exif)
+    assert read_image(tmp_path / "photo.jpg").shape == (128, 256, 3)
+    assert read_image(tmp_path / "photo.jpg", 2).shape == (64, 128, 3)
+    masks = tmp_path / "masks"
+    masks.mkdir()
+    mask = np.kron(cv2.imread(str(synthetic_dir / "masks" / "view_000.png"), cv2.IMREAD_GRAYSCALE),
+                   np.ones((2, 4), np.uint8))
+    Image.fromarray(mask).save(masks / "photo.jpg", quality=98, exif=exif)
+    for width, height, resolution in ((256, 128, 1), (128, 64, 2)):
+        assert read_masks(tmp_path, ["photo.jpg"], width, height, resolution).shape == (1, height, width)
+
+
+def test_masks_saved_as_0_and_1_are_read_and_an_empty_mask_is_named(scene_copy):
+    mask = cv2.imread(str(scene_copy / "masks" / "view_003.png"), cv2.IMREAD_GRAYSCALE)
+    expected = load_scene(scene_copy).masks[3]
+    cv2.imwrite(str(scene_copy / "masks" / "view_003.png"), (mask > 127).astype(np.uint8))  # 0 / 1
+    assert torch.equal(load_scene(scene_copy).masks[3], expected)
+    cv2.imwrite(str(scene_copy / "masks" / "view_003.png"), np.zeros_like(mask))
+    _expect_error(scene_copy, r"mask .*view_003.png holds no object pixel")
+
+
+def test_images_and_calibration_of_another_shape_are_named(scene_copy):
+    """A calibration of 64x64 for images cropped (or rotated) to another shape would scale fx and fy apart."""
+    for path in sorted((scene_copy / "images").glob("*.png")):
+        cv2.imwrite(str(path), cv2.imread(str(path))[:48])
+    _expect_error(scene_copy, r"image .*view_000.png is 64x48, its camera is calibrated at 64x64: another shape")
+
+
+def test_an_alpha_channel_in_some_images_only_is_named(scene_copy):
+    path = scene_copy / "images" / "view_004.png"
+    image = cv2.imread(str(path))
+    cv2.imwrite(str(path), np.concatenate([image, np.full_like(image[..., :1], 255)], axis=2))
+    _expect_error(scene_copy, r"image .*view_004.png has alpha channel, .*view_000.png has none")
+
+
+def test_a_mask_in_the_images_subfolder_wins_over_one_of_the_same_stem_at_the_top(scene_copy):
+    from warpbags.data.images import _find_by_stem
+
+    (scene_copy / "masks" / "cam1").mkdir()
+    (scene_copy / "masks" / "cam1" / "view_000.jpg").write_bytes(b"")
+    assert _find_by_stem(scene_copy / "masks", "cam1/view_000.png", (".png", ".jpg")) == (
+        scene_copy / "masks" / "cam1" / "view_000.jpg")
+    assert _find_by_stem(scene_copy / "masks", "cam0/view_000.png", (".png", ".jpg")) == (
+        scene_copy / "masks" / "view_000.png")
+
+
+def test_a_camera_model_it_cannot_undistort_is_refused(scene_copy):
+    """(The models it undistorts are measured against the pinhole views below.)"""
     model = pycolmap.Reconstruction()
     model.read(str(scene_copy / "sparse" / "0"))
     for camera in model.cameras.values():
         fx, fy, cx, cy = camera.params
-        camera.model = "OPENCV"
-        camera.params = [fx, fy, cx, cy, 0.05, -0.01, 0.0, 0.0]
-    model.write(str(scene_copy / "sparse" / "0"))
-    scene = load_scene(scene_copy)
-    assert scene.images.shape == (12, 64, 64, 3) and scene.Ks[0, 0, 1] == 0
-    for camera in model.cameras.values():
         camera.model = "FULL_OPENCV"
-        camera.params = list(camera.params) + [0.0] * 4
+        camera.params = [fx, fy, cx, cy, 0.05, -0.01, 0.0, 0.0] + [0.0] * 4
     model.write(str(scene_copy / "sparse" / "0"))
     with pytest.raises(WarpbagsError, match="FULL_OPENCV"):
         load_scene(scene_copy)
@@ -477,6 +544,17 @@ def test_missing_split_files_use_preset_then_farthest_point(scene_copy, caplog):
     train = set(scene.splits["4"]) | set(scene.splits["6"]) | set(scene.splits["9"])
     assert not train & set(scene.splits["test"])
     assert "farthest-point" in caplog.text
+
+
+def test_preset_splits_are_held_to_the_test_views_and_a_preset_test_split_is_held_out(scene_copy):
+    for path in scene_copy.glob("sparse_*.txt"):
+        path.unlink()
+    (scene_copy / "sparse_test.txt").write_text("1\n7\n")
+    _expect_error(scene_copy, r"split 4 of scene .* \(preset\) uses test views \[1\]",
+                  default_splits={"4": [1, 2, 3, 5]})
+    (scene_copy / "sparse_test.txt").unlink()
+    scene = load_scene(scene_copy, default_splits={"test": [0, 1, 2, 3, 4, 5]})
+    assert set(scene.splits["6"]) == set(range(6, 12))  # the farthest-point choice keeps the preset's test views out
 
 
 def test_object_centre_of_forward_facing_views_falls_back_with_a_warning(caplog):

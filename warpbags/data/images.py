@@ -22,10 +22,13 @@ FACTORS = (1, 2, 4, 8)
 # What a scene read at its default factor may hold as float32 images and masks. A folder of full-size photographs
 # (phone or DSLR) exceeds it: 119 images of 3648 x 3648 px take 25 GiB, so they are read at a reduced factor instead.
 IMAGE_MEMORY_BUDGET = 2 * 1024**3
+# Pixels are read as stored, an EXIF orientation ignored, as COLMAP reads them (its intrinsics and poses are of the
+# stored pixels); OpenCV applies the orientation for every flag but IMREAD_UNCHANGED unless told not to.
+_AS_STORED = cv2.IMREAD_IGNORE_ORIENTATION
 # OpenCV's flags that have libjpeg decode a JPEG at 1/2, 1/4 or 1/8 of its size: (colour, grayscale).
-JPEG_REDUCED_FLAGS = {2: (cv2.IMREAD_REDUCED_COLOR_2, cv2.IMREAD_REDUCED_GRAYSCALE_2),
-                      4: (cv2.IMREAD_REDUCED_COLOR_4, cv2.IMREAD_REDUCED_GRAYSCALE_4),
-                      8: (cv2.IMREAD_REDUCED_COLOR_8, cv2.IMREAD_REDUCED_GRAYSCALE_8)}
+JPEG_REDUCED_FLAGS = {2: (cv2.IMREAD_REDUCED_COLOR_2 | _AS_STORED, cv2.IMREAD_REDUCED_GRAYSCALE_2 | _AS_STORED),
+                      4: (cv2.IMREAD_REDUCED_COLOR_4 | _AS_STORED, cv2.IMREAD_REDUCED_GRAYSCALE_4 | _AS_STORED),
+                      8: (cv2.IMREAD_REDUCED_COLOR_8 | _AS_STORED, cv2.IMREAD_REDUCED_GRAYSCALE_8 | _AS_STORED)}
 
 
 def default_resolution(root: Path) -> int:
@@ -135,9 +138,13 @@ def read_images(
             raise WarpbagsError(
                 f"image {path} is {image.shape[1]}x{image.shape[0]}, the others are {width}x{height}"
             )
+        if (image.shape[2] == 4) != (alphas is not None):  # an alpha channel is a mask: all images or none
+            raise WarpbagsError(f"image {path} {'has' if image.shape[2] == 4 else 'has no'} alpha channel, "
+                                f"{files[0]} {'has none' if alphas is None else 'has one'}: give every image one or "
+                                "none (masks/ holds masks otherwise)")
         images[index] = image[:, :, :3]
         if alphas is not None:
-            alphas[index] = image[:, :, 3] if image.shape[2] == 4 else 1.0
+            alphas[index] = image[:, :, 3]
     return images, alphas, width, height
 
 
@@ -145,9 +152,8 @@ def _find_by_stem(folder: Path, name: str, extensions: tuple[str, ...]) -> Path 
     """`folder/<stem><ext>`, trying the name with its sub-folders, then the bare file name (transforms.json
     names such as images/frame_001.png look up masks/frame_001.png), then `<name><ext>` (frame_001.png.png)."""
     relative = Path(name)
-    stems = [relative.with_suffix(""), Path(relative.stem), relative]
-    for extension in extensions:
-        for stem in stems:
+    for stem in (relative.with_suffix(""), Path(relative.stem), relative):  # the most specific first
+        for extension in extensions:
             candidate = folder / f"{stem}{extension}"
             if candidate.is_file():
                 return candidate
@@ -170,12 +176,17 @@ def _resize_to(array: np.ndarray, width: int, height: int, path: Path, what: str
 def _read_mask(path: Path, width: int) -> np.ndarray | None:
     """A mask file as uint8 grayscale; a JPEG at 2, 4 or 8 times `width` is decoded at that reduction."""
     reduction = round(image_size(path)[0] / width) if path.suffix.lower() in JPEG_EXTENSIONS else 1
-    flag = JPEG_REDUCED_FLAGS[reduction][1] if _decoded_reduced(path, reduction) else cv2.IMREAD_GRAYSCALE
-    return cv2.imread(str(path), flag)
+    reduced = _decoded_reduced(path, reduction)
+    return cv2.imread(str(path), JPEG_REDUCED_FLAGS[reduction][1] if reduced else cv2.IMREAD_GRAYSCALE | _AS_STORED)
 
 
 def read_masks(root: Path, names: list[str], width: int, height: int, resolution: int) -> np.ndarray | None:
-    """[C,H,W] float32 0/1 masks from `masks_{resolution}/` or `masks/`, or None without a mask folder."""
+    """[C,H,W] float32 0/1 masks from `masks_{resolution}/` or `masks/`, or None without a mask folder. A mask file
+    holds 0 / 255 (or grey levels, thresholded at half) or, as some segmentation tools save them, 0 / 1.
+
+    Raises:
+        WarpbagsError: a mask missing, unreadable, of another size than its image, or without any object pixel.
+    """
     folder = root / f"masks_{resolution}" if (root / f"masks_{resolution}").is_dir() else root / "masks"
     if not folder.is_dir():
         return None
@@ -187,8 +198,11 @@ def read_masks(root: Path, names: list[str], width: int, height: int, resolution
         mask = _read_mask(path, width)
         if mask is None:
             raise WarpbagsError(f"mask {path} is unreadable")
-        mask = _resize_to(mask.astype(np.float32) / 255.0, width, height, path, "mask", nearest=False)
+        full_scale = 1.0 if mask.max() == 1 else 255.0  # 0 / 1 masks, else 8-bit levels
+        mask = _resize_to(mask.astype(np.float32) / full_scale, width, height, path, "mask", nearest=False)
         masks[index] = mask >= 0.5
+        if not masks[index].any():
+            raise WarpbagsError(f"mask {path} holds no object pixel (0 everywhere; 255 or 1 marks the object)")
     return masks
 
 

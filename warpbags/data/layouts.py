@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -183,8 +184,10 @@ def _frame_name(root: Path, frame: dict, source: Path) -> str:
     relative = Path(str(frame["file_path"]))
     if not relative.suffix:  # Blender writes "./train/r_0" for "./train/r_0.png"
         relative = relative.with_suffix(".png")
+    # Lexically (symbolic links inside the folder, such as a linked images/ or a DVC cache, are the user's)
+    lexical = lambda path: Path(os.path.normpath(path))  # noqa: E731
     try:
-        return (root / relative).resolve().relative_to(root.resolve()).as_posix()
+        return lexical(root.absolute() / relative).relative_to(lexical(root.absolute())).as_posix()
     except ValueError:  # an absolute path or one that climbs out of the scene folder
         raise WarpbagsError(f"{source}: frame file_path {frame['file_path']!r} is outside the scene folder {root}; "
                             "file paths are relative to it") from None

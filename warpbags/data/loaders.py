@@ -71,6 +71,12 @@ def load_scene(
         raise WarpbagsError(f"no images_{resolution}/ or images/ folder in {root} (resolution {resolution})")
     image_files = [resolution_path(root, path, resolution) for path in cameras.image_paths]
     images, alphas, width, height = read_images(image_files, cameras.image_paths, resolution)
+    ratios = np.array([width, height]) / cameras.calibration_sizes  # [C, 2]: the images' scale of each calibration
+    skewed = np.flatnonzero(np.abs(ratios[:, 0] - ratios[:, 1]) > 0.01 * ratios[:, 0])
+    if len(skewed):
+        calibrated = cameras.calibration_sizes[skewed[0]]
+        raise WarpbagsError(f"image {image_files[skewed[0]]} is {width}x{height}, its camera is calibrated at "
+                            f"{calibrated[0]:g}x{calibrated[1]:g}: another shape (rotated or cropped?)")
     Ks = scaled_intrinsics(cameras.Ks, cameras.calibration_sizes, np.array([width, height]))
 
     masks = read_masks(root, cameras.image_names, width, height, resolution)

@@ -44,12 +44,6 @@ def read_splits(
     if "test" not in splits and test_names:
         splits["test"] = [i for i, name in enumerate(scene.image_names) if name in test_names]
         sources["test"] = "transforms_test.json"
-    # training views are chosen among the views that are not held out for testing
-    test = set(splits.get("test", []))
-    for key, indices in splits.items():
-        if key != "test" and test & set(indices):
-            raise WarpbagsError(f"split {key} of scene {scene.name} ({sources[key]}) uses test views "
-                                f"{sorted(test & set(indices))}")
     for key, indices in (default_splits or {}).items():
         if key in splits:
             continue
@@ -60,6 +54,12 @@ def read_splits(
             )
         splits[key], sources[key] = list(indices), "preset"
         logger.warning("%s: sparse_%s.txt missing, using the published split %s", scene.name, key, indices)
+    # training views are chosen among the views that are not held out for testing, the files' and the presets' alike
+    test = set(splits.get("test", []))
+    for key, indices in splits.items():
+        if key != "test" and test & set(indices):
+            raise WarpbagsError(f"split {key} of scene {scene.name} ({sources[key]}) uses test views "
+                                f"{sorted(test & set(indices))}")
     centers = scene.camera_centers().double().numpy()
     for size in DEFAULT_SPLIT_SIZES:
         if str(size) in splits or size > scene.num_views - len(test):
