@@ -1,7 +1,8 @@
 """Images, masks and depth maps of a scene folder, read at one resolution, and their undistortion.
 
 `images`, `images_2|4|8` (a missing downsampled folder is made from `images` in memory), `masks/` (same stem, png
-or jpg, 255 = object), depth maps (`zoe_depth/*.png` 16-bit millimetres, or `depths/*.npy` in scene units).
+or jpg, 255 or 1 = object), depth maps (`zoe_depth/*.png` 16-bit millimetres, or `depths/*.npy` in scene units).
+Pixels are read as stored: an EXIF orientation is ignored, as COLMAP ignores it.
 """
 
 from __future__ import annotations
