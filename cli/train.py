@@ -15,6 +15,7 @@ from warpbags.cli.train_options import resumed_config, train_config, with_train_
 from warpbags.configs.scenes import SCENES
 from warpbags.configs.train import DEFAULT_PRESET
 from warpbags.errors import WarpbagsError
+from warpbags.files import writable_folder
 from warpbags.trainer import default_run_dir, saved_run_config, saved_run_scene, start_or_resume, training_scene
 
 stdout = Console(highlight=False)
@@ -46,6 +47,8 @@ def train(
         raise WarpbagsError("--resume needs --out (the run folder to continue)")
     if scene is None and not resume:
         raise WarpbagsError("give the scene to train: a preset name or a scene folder (`warpbags train --help`)")
+    if out is not None:  # before the scene is read (a minute for a folder of photographs)
+        writable_folder(out, "to train into")
     # A resumed run goes on with the config it was started with; options given again must agree with it.
     config = (resumed_config(saved_run_config(out), preset, config_options, settings or []) if resume else
               train_config(preset or DEFAULT_PRESET, config_options, settings or []))

@@ -551,8 +551,8 @@ def quick() -> TrainConfig:
       after the moments restart turned maryrose's cameras 4-8 deg about the object. Seeds 0-2: synthetic exact maps
       0.78 -> 0.62 deg, monocular-like 1.19 -> 1.11, none 5.37 -> 5.19; maryrose 10.65 -> 10.47 (each within the
       seeds' spread, none worse).
-    - at the start of round 2, the camera the first round's Gaussians fit worst is tried turned about its line of
-      sight to the object by +-15 and +-30 deg, each turn training round 2 from fresh Gaussians; the lowest loss is
+    - at the start of round 2, the camera the first round's Gaussians fit worst is tried turned about the object
+      centre, about its optical axis, by +-15 and +-30 deg, each turn training round 2 from fresh Gaussians; the lowest loss is
       kept if 5% below the unturned camera's (`camera.hypotheses_round`; 2.3x the training iterations). Seeds 0-2,
       where a camera was left 15-20 deg off in roll: synthetic without depth maps 5.19 -> 1.96 deg, under changing
       light 5.89 -> 4.14, at 30 deg / 0.3 with exact maps 4.39 -> 0.78; with exact or monocular-like maps at 15 deg

@@ -345,6 +345,9 @@ def test_frames_in_a_linked_image_folder_and_by_absolute_paths_inside_the_scene_
                                                         "frames": frames}))
     scene = load_scene(folder, normalize=False)
     assert scene.num_views == 12 and scene.image_names[0] == "images/view_000.png"
+    # the scene folder reached through a link, its frame named by the real path
+    (tmp_path / "link").symlink_to(folder, target_is_directory=True)
+    assert load_scene(tmp_path / "link", normalize=False).image_names[0] == "images/view_000.png"
     frames[0]["file_path"] = "images/../../cache/view_000.png"
     (folder / "transforms.json").write_text(json.dumps({"camera_angle_x": 0.5, "frames": frames}))
     _expect_error(folder, r"frame file_path 'images/../../cache/view_000.png' is outside the scene folder")
@@ -446,16 +449,25 @@ def test_masks_saved_as_0_and_1_are_read_and_an_empty_mask_is_named(scene_copy):
 
 
 def test_images_and_calibration_of_another_shape_are_named(scene_copy):
-    """A calibration of 64x64 for images cropped (or rotated) to another shape would scale fx and fy apart."""
-    for path in sorted((scene_copy / "images").glob("*.png")):
+    """A calibration of 64x64 for images cropped (or rotated) to another shape would scale fx and fy apart; a pixel
+    less, as the rounding of a reduced size leaves (400 x 300 at 1/8: 50 x 38), is not another shape."""
+    paths = sorted((scene_copy / "images").glob("*.png"))
+    for path in paths:
+        cv2.imwrite(str(path), cv2.imread(str(path))[:63])
+    for path in (scene_copy / "masks").glob("*.png"):
+        cv2.imwrite(str(path), cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)[:63])
+    assert load_scene(scene_copy).height == 63
+    for path in paths:
         cv2.imwrite(str(path), cv2.imread(str(path))[:48])
     _expect_error(scene_copy, r"image .*view_000.png is 64x48, its camera is calibrated at 64x64: another shape")
 
 
-def test_an_alpha_channel_in_some_images_only_is_named(scene_copy):
+def test_an_alpha_channel_in_some_images_only_is_named_where_alphas_are_the_masks(scene_copy):
     path = scene_copy / "images" / "view_004.png"
     image = cv2.imread(str(path))
     cv2.imwrite(str(path), np.concatenate([image, np.full_like(image[..., :1], 255)], axis=2))
+    assert load_scene(scene_copy).masks is not None  # masks/ holds the masks: the alpha channels are not read
+    shutil.rmtree(scene_copy / "masks")
     _expect_error(scene_copy, r"image .*view_004.png has alpha channel, .*view_000.png has none")
 
 

@@ -588,14 +588,14 @@ def test_cli_bad_values_one_line(scene_dir, tmp_path, arguments, message):
 
 @pytest.mark.parametrize("below", ["", "run"])
 def test_cli_out_that_is_a_file_is_one_line_before_training(scene_dir, tmp_path, below, monkeypatch):
-    """`--out` naming a file, or a folder inside one, is refused before the Trainer is built (its start procedures
-    take a minute on a real capture), not by a traceback when the run's first file is written."""
+    """`--out` naming a file, or a folder inside one, is refused before the scene is read (a minute for a folder of
+    photographs, then the start procedures), not by a traceback when the run's first file is written."""
     (tmp_path / "a-file").write_text("")
 
-    def no_trainer(*args, **kwargs):
-        raise AssertionError("the Trainer was built")
+    def not_reached(*args, **kwargs):
+        raise AssertionError("the scene was read")
 
-    monkeypatch.setattr("warpbags.trainer.Trainer", no_trainer)
+    monkeypatch.setattr("warpbags.cli.train.training_scene", not_reached)
     result = runner.invoke(app, ["train", str(scene_dir), "--out", str(tmp_path / "a-file" / below)])
     lines = [line for line in result.output.splitlines() if line.strip()]
     assert result.exit_code == 2 and len(lines) == 1, result.output

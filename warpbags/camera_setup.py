@@ -65,7 +65,7 @@ def coherent_start(cameras: CameraOptimizer, targets: SilhouetteTargets, Ks: tor
                    iterations: int, matches: ViewMatches | None = None, matches_weight: float = 0.0
                    ) -> tuple[float, float]:
     """Solve every camera of `cameras` for silhouette coherence with the others (`SilhouetteTargets.coherence_loss`)
-    by L-BFGS, and make that its starting pose (`CameraOptimizer.rebase`: corrections and moments at zero).
+    by L-BFGS, and make that its starting pose (`CameraOptimizer.reset_to`: corrections and moments at zero).
 
     The mask-centroid start leaves each camera's roll and centre where the noise put them; the masks of the other
     views still constrain them, before any Gaussian is fitted. The solve runs on a float64 copy: the loss falls to

@@ -116,9 +116,17 @@ def read_image(path: Path, reduction: int = 1) -> np.ndarray:
 
 
 def read_images(
-    files: list[Path], full_paths: list[Path], resolution: int
+    files: list[Path], full_paths: list[Path], resolution: int, alpha_masks: bool = True
 ) -> tuple[np.ndarray, np.ndarray | None, int, int]:
-    """Read all images; resize those read at full size to 1/resolution. Returns images, alphas, width, height."""
+    """Read all images; resize those read at full size to 1/resolution. Returns images, alphas, width, height.
+
+    With `alpha_masks` (a scene without a mask folder) the images' alpha channels are their masks, so every image
+    must have one or none; without it the alphas are not kept (None).
+
+    Raises:
+        WarpbagsError: a missing or unreadable image, one of another size, or (with `alpha_masks`) an alpha
+            channel in some images only.
+    """
     images = alphas = None
     width = height = 0
     for index, (path, full_path) in enumerate(zip(files, full_paths)):
@@ -133,13 +141,13 @@ def read_images(
         if images is None:
             height, width = image.shape[:2]
             images = np.empty((len(files), height, width, 3), dtype=np.float32)
-            if image.shape[2] == 4:
+            if alpha_masks and image.shape[2] == 4:
                 alphas = np.empty((len(files), height, width), dtype=np.float32)
         if image.shape[:2] != (height, width):
             raise WarpbagsError(
                 f"image {path} is {image.shape[1]}x{image.shape[0]}, the others are {width}x{height}"
             )
-        if (image.shape[2] == 4) != (alphas is not None):  # an alpha channel is a mask: all images or none
+        if alpha_masks and (image.shape[2] == 4) != (alphas is not None):  # a mask each, or none
             raise WarpbagsError(f"image {path} {'has' if image.shape[2] == 4 else 'has no'} alpha channel, "
                                 f"{files[0]} {'has none' if alphas is None else 'has one'}: give every image one or "
                                 "none (masks/ holds masks otherwise)")
@@ -181,6 +189,14 @@ def _read_mask(path: Path, width: int) -> np.ndarray | None:
     return cv2.imread(str(path), JPEG_REDUCED_FLAGS[reduction][1] if reduced else cv2.IMREAD_GRAYSCALE | _AS_STORED)
 
 
+def mask_folder(root: Path, resolution: int) -> Path | None:
+    """The scene's mask folder: `masks_{resolution}/`, else `masks/`; None without either."""
+    for folder in (root / f"masks_{resolution}", root / "masks"):
+        if folder.is_dir():
+            return folder
+    return None
+
+
 def read_masks(root: Path, names: list[str], width: int, height: int, resolution: int) -> np.ndarray | None:
     """[C,H,W] float32 0/1 masks from `masks_{resolution}/` or `masks/`, or None without a mask folder. A mask file
     holds 0 / 255 (or grey levels, thresholded at half) or, as some segmentation tools save them, 0 / 1.
@@ -188,8 +204,8 @@ def read_masks(root: Path, names: list[str], width: int, height: int, resolution
     Raises:
         WarpbagsError: a mask missing, unreadable, of another size than its image, or without any object pixel.
     """
-    folder = root / f"masks_{resolution}" if (root / f"masks_{resolution}").is_dir() else root / "masks"
-    if not folder.is_dir():
+    folder = mask_folder(root, resolution)
+    if folder is None:
         return None
     masks = np.empty((len(names), height, width), dtype=np.float32)
     for index, name in enumerate(names):

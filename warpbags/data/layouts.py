@@ -184,10 +184,14 @@ def _frame_name(root: Path, frame: dict, source: Path) -> str:
     relative = Path(str(frame["file_path"]))
     if not relative.suffix:  # Blender writes "./train/r_0" for "./train/r_0.png"
         relative = relative.with_suffix(".png")
-    # Lexically (symbolic links inside the folder, such as a linked images/ or a DVC cache, are the user's)
-    lexical = lambda path: Path(os.path.normpath(path))  # noqa: E731
-    try:
-        return lexical(root.absolute() / relative).relative_to(lexical(root.absolute())).as_posix()
-    except ValueError:  # an absolute path or one that climbs out of the scene folder
-        raise WarpbagsError(f"{source}: frame file_path {frame['file_path']!r} is outside the scene folder {root}; "
-                            "file paths are relative to it") from None
+    # Inside the folder as written (a linked images/ or DVC cache is the user's) or once links are resolved (a
+    # scene folder reached through a link, named by its real path); else an absolute path elsewhere or one that
+    # climbs out of the folder
+    as_written, folder_as_written = (Path(os.path.normpath(path)) for path in (root.absolute() / relative,
+                                                                                root.absolute()))
+    for path, folder in ((as_written, folder_as_written), (as_written, root.resolve()),
+                         ((root / relative).resolve(), root.resolve())):
+        if path.is_relative_to(folder):
+            return path.relative_to(folder).as_posix()
+    raise WarpbagsError(f"{source}: frame file_path {frame['file_path']!r} is outside the scene folder {root}; "
+                        "file paths are relative to it")

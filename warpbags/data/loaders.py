@@ -6,7 +6,7 @@ Layouts (detected in this order):
 - nerfstudio / instant-ngp / Blender: `transforms.json` (OpenGL camera axes).
 
 Shared by all: `images`, `images_2|4|8` (a missing downsampled folder is made from `images` in memory), `masks/`
-(same stem, png or jpg, 255 = object), depth maps (`zoe_depth/*.png` 16-bit millimetres, or `depths/*.npy` in
+(same stem, png or jpg, 255 or 1 = object), depth maps (`zoe_depth/*.png` 16-bit millimetres, or `depths/*.npy` in
 scene units), split files `sparse_{4,6,9,test}.txt`.
 
 This module detects the layout, assembles the `Scene` and normalizes it about the object centre; the camera
@@ -23,8 +23,8 @@ import torch
 
 from warpbags.cameras import camera_centers
 from warpbags.data.images import (FACTORS, IMAGE_MEMORY_BUDGET, default_resolution, factor_within_budget, image_size,
-                                  physical_memory, read_depths, read_images, read_masks, resolution_path, scene_bytes,
-                                  undistort)
+                                  mask_folder, physical_memory, read_depths, read_images, read_masks, resolution_path,
+                                  scene_bytes, undistort)
 from warpbags.data.layouts import LayoutCameras, read_layout_cameras, scaled_intrinsics
 from warpbags.data.scene import ORBIT_RADIUS, Scene, SceneNormalization
 from warpbags.data.splits import read_splits
@@ -70,9 +70,11 @@ def load_scene(
     if cameras.layout != "transforms" and not any((root / folder).is_dir() for folder in image_folders):
         raise WarpbagsError(f"no images_{resolution}/ or images/ folder in {root} (resolution {resolution})")
     image_files = [resolution_path(root, path, resolution) for path in cameras.image_paths]
-    images, alphas, width, height = read_images(image_files, cameras.image_paths, resolution)
-    ratios = np.array([width, height]) / cameras.calibration_sizes  # [C, 2]: the images' scale of each calibration
-    skewed = np.flatnonzero(np.abs(ratios[:, 0] - ratios[:, 1]) > 0.01 * ratios[:, 0])
+    images, alphas, width, height = read_images(image_files, cameras.image_paths, resolution,
+                                                alpha_masks=mask_folder(root, resolution) is None)
+    # the height each calibration's shape gives images of this width, up to the rounding of a reduced size
+    expected_heights = width * cameras.calibration_sizes[:, 1] / cameras.calibration_sizes[:, 0]
+    skewed = np.flatnonzero(np.abs(expected_heights - height) > max(1.0, 0.01 * height))
     if len(skewed):
         calibrated = cameras.calibration_sizes[skewed[0]]
         raise WarpbagsError(f"image {image_files[skewed[0]]} is {width}x{height}, its camera is calibrated at "

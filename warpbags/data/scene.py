@@ -153,7 +153,8 @@ class Scene:
         if self.masks is None:
             return self.images
         masks = self.masks[..., None]
-        return self.images * masks + torch.as_tensor(background, dtype=self.images.dtype) * (1 - masks)
+        background = torch.as_tensor(background, dtype=self.images.dtype, device=self.images.device)
+        return self.images * masks + background * (1 - masks)
 
     def orbit_radius(self) -> float:
         """Mean distance of the camera centres from the world origin (the object centre)."""
