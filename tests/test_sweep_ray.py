@@ -40,14 +40,13 @@ def local_ray(monkeypatch):
 def _tiny_spec(scene, out) -> SweepSpec:
     """Two runs (baseline and BAGS, 4 views, 5 deg, seed 0) of 4 iterations each."""
     return SweepSpec(scene=str(scene), out=out, rot_noises=(5,), views=(4,), seeds=(0,), refine_iters=2,
-                     overrides=(("iters", 4),))
+                     overrides=(("iters", 4), ("render_threads", 2)))
 
 
 def test_ray_sweep_gives_the_local_results_and_resumes(scene, tmp_path, local_ray):
     local = run_sweep(_tiny_spec(scene, tmp_path / "local"), log=lambda message: None)
     messages = []
-    # Two CPUs per run: the renderer's thread count changes results at rounding level, and the local runs used
-    # both cores of the machine.
+    # Two render threads in both (the spec's): the thread count changes results at rounding level; two CPUs per run.
     spec = _tiny_spec(scene, tmp_path / "ray")
     rows = run_sweep(spec, log=messages.append, executor=RayExecutor(cpus_per_run=2))
     names = [row["run"] for row in local]
@@ -70,6 +69,12 @@ def test_ray_sweep_gives_the_local_results_and_resumes(scene, tmp_path, local_ra
     assert all(f"skip {name} (done)" in result.output for name in names) and "train " not in result.output
     assert evals == {name: (spec.out / name / "eval.json").stat().st_mtime_ns for name in names}
     assert json.loads((spec.out / "sweep.json").read_text()) == local
+    # Other settings into the same folder are refused before anything runs: its table would mix them.
+    result = runner.invoke(app, ["sweep", str(scene), "--rot-noises", "5", "--views", "4", "--seeds", "0",
+                                 "--iters", "5", "--out", str(spec.out)])
+    lines = [line for line in result.output.splitlines() if line.strip()]
+    assert result.exit_code == 2 and len(lines) == 1 and "holds a run with iters=4, not 5" in lines[0], result.output
+    assert evals == {name: (spec.out / name / "eval.json").stat().st_mtime_ns for name in names}
 
 
 @pytest.mark.parametrize("options, named", [

@@ -95,6 +95,10 @@ def test_read_ply_of_another_tool_layout(run_dir, tmp_path):
         torch.testing.assert_close(again[name], params[name], rtol=0, atol=0)
     write_ply(tmp_path / "ours.ply", again)  # and back through write_ply
     torch.testing.assert_close(read_ply(tmp_path / "ours.ply")["shN"], params["shN"], rtol=0, atol=0)
+    # 2 coefficients per channel beyond the DC term are no SH degree (a renderer would fail on them, not the reader)
+    write_ply(tmp_path / "odd.ply", {**params, "shN": params["shN"][:, :2]})
+    with pytest.raises(WarpbagsError, match="6 f_rest properties, where SH degrees 0-3 have 0, 9, 24 or 45"):
+        read_ply(tmp_path / "odd.ply")
 
 
 # ------------------------------------------------------------------------------------------------ cameras

@@ -133,9 +133,10 @@ def read_ply(path: str | Path) -> dict[str, torch.Tensor]:
     names = table.dtype.names
     missing = [name for name in _REQUIRED_PROPERTIES if name not in names]
     rest_count = sum(name.startswith("f_rest_") for name in names)
-    if missing or rest_count % 3:
+    coefficients = 1 + rest_count // 3  # per colour channel: (degree + 1)^2 for degree 0-3
+    if missing or rest_count % 3 or coefficients not in (1, 4, 9, 16):
         raise WarpbagsError(f"{path}: not a 3DGS Gaussian PLY (missing {', '.join(missing) or 'none'}; "
-                            f"{rest_count} f_rest properties)")
+                            f"{rest_count} f_rest properties, where SH degrees 0-3 have 0, 9, 24 or 45)")
 
     def columns(*column_names: str) -> torch.Tensor:
         return torch.from_numpy(np.stack([table[name].astype(np.float32) for name in column_names], axis=1))

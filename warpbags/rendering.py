@@ -140,7 +140,7 @@ def _check_inputs(means, quats, scales, opacities, colors, viewmats, Ks, sh_degr
             raise ValueError(f"sh_degree must be 0-3, got {sh_degree}")
         if colors.dim() != 3 or colors.shape[0] != n or colors.shape[2] != 3 or colors.shape[1] < (sh_degree + 1) ** 2:
             raise ValueError(f"colors must be [N, K>={(sh_degree + 1) ** 2}, 3] SH coefficients, got {list(colors.shape)}")
-    if colors.dtype != means.dtype:
-        raise ValueError(f"colors is {colors.dtype}; expected {means.dtype}")
+    if colors.dtype != means.dtype or colors.device != means.device:
+        raise ValueError(f"colors is {colors.dtype} on {colors.device}; expected {means.dtype} on {means.device}")
     if render_mode not in RENDER_MODES:
         raise ValueError(f"render_mode must be one of {', '.join(RENDER_MODES)}, got {render_mode!r}")

@@ -16,6 +16,7 @@ import csv
 import json
 import os
 import socket
+import dataclasses
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Callable, Protocol
@@ -82,7 +83,9 @@ def run_sweep(spec: SweepSpec, data_root: Path | None = None, log: Log = print,
     scene = open_scene(spec.scene, root=data_root)
     for run in sweep_runs(spec):  # every run's settings checked before the first one trains
         try:
-            scene.train_views(combination_config(spec, run).views)
+            config = combination_config(spec, run)
+            scene.train_views(config.views)
+            _check_earlier_run(spec.out / run.name, config, scene)
         except WarpbagsError as error:
             raise WarpbagsError(f"sweep run {run.name}: {error}") from None
     spec.out.mkdir(parents=True, exist_ok=True)
@@ -93,9 +96,14 @@ def run_sweep(spec: SweepSpec, data_root: Path | None = None, log: Log = print,
 
 
 def sweep_runs(spec: SweepSpec) -> list[SweepRun]:
-    """Every combination of `spec`, in the order of the tables: views, noise, seed, then method."""
-    return [SweepRun(method, views, noise, seed) for views in spec.views for noise in spec.rot_noises
+    """Every combination of `spec`, in the order of the tables: views, noise, seed, then method; a value given twice
+    (or two noise levels that name the same folder) once, so that no two runs write one folder."""
+    runs = [SweepRun(method, views, noise, seed) for views in spec.views for noise in spec.rot_noises
             for seed in spec.seeds for method in METHODS]
+    unique: dict[str, SweepRun] = {}
+    for run in runs:
+        unique.setdefault(run.name, run)
+    return list(unique.values())
 
 
 def combination_config(spec: SweepSpec, run: SweepRun, render_threads: int | None = None) -> TrainConfig:
@@ -125,7 +133,7 @@ def run_combination(spec: SweepSpec, run: SweepRun, scene: Scene, render_threads
         trainer = start_or_resume(training_scene(scene, config), config, run_dir, device=spec.device,
                                   resume=RunFolder(run_dir).has_checkpoint(), log=_quiet)
         trainer.train()
-        evaluate_run(run_dir, refine_iters=spec.refine_iters, log=_quiet)
+        evaluate_run(run_dir, refine_iters=spec.refine_iters, device=spec.device, log=_quiet)
     return _row(run_dir, run)
 
 
@@ -296,6 +304,25 @@ def _task_result(ray, ref, run: SweepRun) -> dict:
         if isinstance(error.cause, WarpbagsError):
             raise WarpbagsError(f"{run.name}: {error.cause}") from None
         raise
+
+
+def _check_earlier_run(run_dir: Path, config: TrainConfig, scene: Scene) -> None:
+    """Raise WarpbagsError when `run_dir` holds a run (finished or not) of another scene folder or other settings than
+    `config`: a resumed sweep skips finished runs and continues the others with their saved config, so its table
+    would mix settings. The render threads may differ (a machine's, not the run's)."""
+    folder = RunFolder(run_dir)
+    if not (run_dir / "config.json").is_file():
+        return
+    info = folder.read_info()
+    if info.get("scene_root") != str(Path(scene.root).resolve()):
+        raise WarpbagsError(f"{run_dir} holds a run of the scene in {info.get('scene_root')}: choose another --out")
+    saved = folder.saved_config(info)
+    differing = [field.name for field in dataclasses.fields(TrainConfig) if field.name != "render_threads"
+                 and getattr(saved, field.name) != getattr(config, field.name)]
+    if differing:
+        name = differing[0]
+        raise WarpbagsError(f"{run_dir} holds a run with {name}={getattr(saved, name)!r}, not "
+                            f"{getattr(config, name)!r}: choose another --out (or remove that run)")
 
 
 def _is_done(run_dir: Path) -> bool:

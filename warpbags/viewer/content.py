@@ -103,7 +103,7 @@ def load_viewer_content(path: str | Path, log: Callable[[str], None] = print) ->
     info = _read_run_info(path)
     if info is None:
         return ViewerContent(path.name, params)
-    background = BACKGROUNDS.get(info["config"].get("background", "white"), BACKGROUNDS["white"])
+    background = RunFolder(path).saved_config(info).background_rgb  # a config.json of no run is named
     return ViewerContent(path.name, params, background, _training_cameras(path, info, log))
 
 
