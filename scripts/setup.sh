@@ -2,7 +2,9 @@
 # CPU torch is pinned through constraints.txt (a bare `torch` requirement would pull a multi-GB CUDA build).
 set -euo pipefail
 cd "$(dirname "${BASH_SOURCE[0]}")/.."
-if [ ! -x .venv/bin/python ]; then
+# A .venv without a working pip (python3-venv missing when it was made, or a copied-in one) is made again.
+if ! .venv/bin/python -m pip --version > /dev/null 2>&1; then
+    rm -rf .venv
     python3 -m venv .venv
 fi
 stamp=.venv/.warpbags-installed
