@@ -13,10 +13,10 @@ It stays one module (a little over 300 lines) because the executors are the swee
 from __future__ import annotations
 
 import csv
+import dataclasses
 import json
 import os
 import socket
-import dataclasses
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Callable, Protocol
