@@ -39,6 +39,8 @@ def test_an_unknown_scene_is_one_error_line(script, tmp_path):
     ("pose_recovery.py", ["--rot", "a"], "--rot 'a': 'a' is not a number"),
     ("pose_recovery.py", ["--seeds", ","], "--seeds ','"),
     ("pose_recovery.py", ["--set", "seed=1"], "--set seed:"),
+    ("pose_recovery.py", ["--set", "camera.fix_first_camera=true"], "--set camera.fix_first_camera: this benchmark"),
+    ("pose_recovery.py", ["--set", "rot_noise_fixed=true"], "--set rot_noise_fixed: this benchmark"),
     ("fitted_loss.py", ["--seeds", ","], "--seeds ','"),
     ("fitted_loss.py", ["--set", "views=6"], "--set views:"),
     ("view_agreement.py", ["--sizes", "128,big"], "--sizes '128,big': 'big' is not an integer"),
