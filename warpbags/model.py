@@ -112,9 +112,14 @@ class GaussianModel:
     def __init__(self, config: TrainConfig, training_views: TrainingViews, params: dict[str, torch.nn.Parameter],
                  extent: float, generator: torch.Generator):
         self.config, self.training_views, self.generator = config, training_views, generator
-        self.params, self.scene_extent = params, extent
+        self.params = params
         self.optimizer = gaussian_optimizer(params, config, extent)
         self.strategy = DensifyStrategy(config.densify, extent)
+
+    @property
+    def scene_extent(self) -> float:
+        """The scene extent the position lr and the densification thresholds refer to (held by the strategy)."""
+        return self.strategy.scene_extent
 
     @classmethod
     def initialized(cls, config: TrainConfig, training_views: TrainingViews, viewmats: torch.Tensor, extent: float,
@@ -290,7 +295,7 @@ class GaussianModel:
     def continue_from(self, other: GaussianModel) -> None:
         """Take over `other`'s Gaussians, their optimizer and densification state and scene extent (the training
         views stay this model's): how a leave-one-out model goes on with its left-out view added back."""
-        self.scene_extent = self.strategy.scene_extent = other.scene_extent  # the lr's and densification's
+        self.strategy.scene_extent = other.scene_extent
         self.load_state_dict(copy.deepcopy(other.state_dict()))
 
     def state_dict(self) -> dict:

@@ -67,7 +67,7 @@ class RunFolder:
         """
         self.path.mkdir(parents=True, exist_ok=True)
         info = {"config": config.to_dict(), "scene": scene.name, "image_names": scene.image_names,
-                "scene_root": str(Path(scene.root).resolve()), "resolution": scene.resolution,
+                "scene_root": _root_of(scene), "resolution": scene.resolution,
                 "normalization": scene.normalization.to_dict(),
                 "width": scene.width, "height": scene.height, "device": device}
         with atomic_output(self.path / "config.json") as temporary:
@@ -100,6 +100,11 @@ class RunFolder:
             return TrainConfig.from_dict(info["config"])
         except (KeyError, TypeError) as error:
             raise WarpbagsError(f"{self.path / 'config.json'}: unreadable ({error})") from None
+
+    def trained_on(self, scene: Scene, info: dict | None = None) -> bool:
+        """Whether the run here trained on `scene`'s folder (config.json's, or `info`'s, scene_root)."""
+        info = self.read_info() if info is None else info
+        return info.get("scene_root") == _root_of(scene)
 
     def read_array(self, name: str) -> np.ndarray | None:
         """`name`.npy ([C,4,4] poses, or [C,3,3] intrinsics) as float64, None when the run has none.
@@ -198,6 +203,11 @@ class RunFolder:
             raise WarpbagsError(f"{path} was written by an older warpbags (no {', '.join(missing)}); it cannot be "
                                 "resumed, start a new run")
         return state
+
+
+def _root_of(scene: Scene) -> str:
+    """A scene's folder as a run records it: absolute, links resolved."""
+    return str(Path(scene.root).resolve())
 
 
 @dataclass

@@ -314,7 +314,7 @@ def _check_earlier_run(run_dir: Path, config: TrainConfig, scene: Scene) -> None
     if not (run_dir / "config.json").is_file():
         return
     info = folder.read_info()
-    if info.get("scene_root") != str(Path(scene.root).resolve()):
+    if not folder.trained_on(scene, info):
         raise WarpbagsError(f"{run_dir} holds a run of the scene in {info.get('scene_root')}: choose another --out")
     saved = folder.saved_config(info)
     differing = [field.name for field in dataclasses.fields(TrainConfig) if field.name != "render_threads"

@@ -528,9 +528,10 @@ def start_or_resume(scene: Scene, config: TrainConfig, out_dir: str | Path, devi
     run_folder = RunFolder(writable_folder(out_dir, "to train into"))
     if resume:
         config = saved_run_config(out_dir)
-        run_root, scene_root = run_folder.read_info().get("scene_root"), str(Path(scene.root).resolve())
-        if run_root != scene_root:
-            raise WarpbagsError(f"--resume: {out_dir} holds a run of the scene in {run_root}, not of {scene_root}")
+        info = run_folder.read_info()
+        if not run_folder.trained_on(scene, info):
+            raise WarpbagsError(f"--resume: {out_dir} holds a run of the scene in {info.get('scene_root')}, not of "
+                                f"{Path(scene.root).resolve()}")
     elif run_folder.has_checkpoint():
         raise WarpbagsError(f"{out_dir} already holds a run; pass --resume to continue it or choose another --out")
     trainer = Trainer(scene, config, out_dir, device=device, log=log, resuming=resume)
