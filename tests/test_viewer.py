@@ -6,6 +6,8 @@ from __future__ import annotations
 import json
 import os
 import shutil
+import threading
+import time
 
 import numpy as np
 import pytest
@@ -24,7 +26,7 @@ from warpbags.gaussians import read_ply, write_ply
 from warpbags.pose_history import read_pose_history, record_poses
 from warpbags.trainer import start_or_resume, training_scene
 from warpbags.viewer import Viewer, load_viewer_content
-from warpbags.viewer.render import (MIN_SCALE, camera_to_world, next_scale, pinhole_intrinsics,
+from warpbags.viewer.render import (MIN_SCALE, ClientRenderer, camera_to_world, next_scale, pinhole_intrinsics,
                                     world_to_camera)
 
 runner = CliRunner()
@@ -123,6 +125,64 @@ def test_resolution_adapts_to_the_render_time():
     assert next_scale(0.5, seconds=30.0, target_seconds=0.2) == pytest.approx(0.25)  # one stall: at most halved
     assert next_scale(MIN_SCALE, seconds=5.0, target_seconds=0.2) == MIN_SCALE
     assert next_scale(0.9, seconds=0.01, target_seconds=0.2) == 1.0
+
+
+class _FakeCamera:
+    """What `ClientRenderer` reads of a viser client's camera."""
+    wxyz, position, fov = np.array([1.0, 0, 0, 0]), np.array([0.0, 0, -3]), 0.8
+    image_width = image_height = 32
+    update_timestamp = 0.0
+
+    def __init__(self):
+        self.listeners = []
+
+    def on_update(self, listener):
+        self.listeners.append(listener)
+
+    def move(self):
+        self.update_timestamp += 1.0
+        for listener in self.listeners:
+            listener(self)
+
+
+class _FakeClient:
+    client_id = 0
+
+    def __init__(self):
+        self.camera, self.frames = _FakeCamera(), []
+        self.scene = type("Scene", (), {"set_background_image": lambda _, rgb, **kwargs: self.frames.append(rgb)})()
+
+
+class _FailingOnce:
+    """Gaussians whose first render fails, as an out-of-memory or a driver error would."""
+    device = torch.device("cpu")
+
+    def __init__(self):
+        self.calls = 0
+
+    def render(self, viewmat, Ks, width, height):
+        self.calls += 1
+        if self.calls == 1:
+            raise RuntimeError("out of memory\nwhile rendering")
+        return np.zeros((height, width, 3), np.uint8), np.ones((height, width), np.float32)
+
+
+def test_a_failed_frame_is_reported_and_the_view_goes_on():
+    client, errors = _FakeClient(), []
+    renderer = ClientRenderer(client, _FailingOnce(), threading.Lock(), on_error=errors.append)
+    renderer.start()
+    try:
+        client.camera.move()
+        deadline = time.monotonic() + 10
+        while not errors and time.monotonic() < deadline:
+            time.sleep(0.01)
+        assert errors == ["RuntimeError: out of memory"] and client.frames == []
+        client.camera.move()  # the thread still serves the browser: the next move renders
+        while not client.frames and time.monotonic() < deadline:
+            time.sleep(0.01)
+        assert len(client.frames) >= 1 and renderer._thread.is_alive()
+    finally:
+        renderer.stop()
 
 
 def test_content_of_a_run(run_dir):

@@ -22,6 +22,7 @@ import viser.transforms as vtf
 
 from warpbags.cameras import camera_centers, viewmats_from_centers
 from warpbags.devices import torch_device
+from warpbags.errors import one_line
 from warpbags.gaussians import render_gaussians
 from warpbags.threads import torch_threads
 from warpbags.viewer.content import ViewerContent
@@ -111,11 +112,15 @@ class ClientRenderer:
         render_lock: held while rendering; shared by every client, since on 2 cores parallel renders only slow
             each other down.
         on_frame: called with the stats of every frame sent (the GUI shows them).
+        on_error: called with a one-line message when a frame fails (the GUI shows it); the thread goes on, so
+            the next camera move tries again instead of leaving a browser whose view no longer follows.
     """
 
     def __init__(self, client: viser.ClientHandle, gaussians: DeviceGaussians, render_lock: threading.Lock,
-                 on_frame: Callable[[FrameStats], None] = lambda stats: None):
-        self.client, self.gaussians, self.render_lock, self.on_frame = client, gaussians, render_lock, on_frame
+                 on_frame: Callable[[FrameStats], None] = lambda stats: None,
+                 on_error: Callable[[str], None] = lambda message: None):
+        self.client, self.gaussians, self.render_lock = client, gaussians, render_lock
+        self.on_frame, self.on_error = on_frame, on_error
         self.target_seconds = TARGET_SECONDS[gaussians.device.type]
         self.scale = 0.25  # the first moving frame; next_scale steers it from there
         self.last_frame = FrameStats()
@@ -138,12 +143,16 @@ class ClientRenderer:
 
     def _loop(self) -> None:
         while not self._stopped.is_set():
-            if self._camera_moved.wait(timeout=STILL_AFTER):
-                self._camera_moved.clear()
-                seconds = self._render(self.scale)
-                self.scale = next_scale(self.scale, seconds, self.target_seconds)
-            elif self.last_frame.width and not self.last_frame.full_resolution:  # at rest: sharpen once
-                self._render(1.0)
+            try:
+                if self._camera_moved.wait(timeout=STILL_AFTER):
+                    self._camera_moved.clear()
+                    seconds = self._render(self.scale)
+                    self.scale = next_scale(self.scale, seconds, self.target_seconds)
+                elif self.last_frame.width and not self.last_frame.full_resolution:  # at rest: sharpen once
+                    self._render(1.0)
+            except Exception as error:  # noqa: BLE001 - any failure of one frame, reported; the view goes on
+                self.last_frame = FrameStats()  # not "at rest": no sharpening retried until the camera moves
+                self.on_error(one_line(error))
 
     def _render(self, scale: float) -> float:
         """Render at `scale` of the canvas (1 = full resolution) and send the frame; returns the render seconds."""

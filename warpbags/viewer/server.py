@@ -11,6 +11,7 @@ from __future__ import annotations
 import contextlib
 import io
 import socket
+import sys
 import threading
 from typing import Callable
 
@@ -87,7 +88,8 @@ class Viewer:
     # ------------------------------------------------------------------------------------------------ browsers
     def _connect(self, client: viser.ClientHandle) -> None:
         readout = client.gui.add_markdown("frame: waiting for the camera", order=100)
-        renderer = ClientRenderer(client, self.gaussians, self._render_lock, on_frame=_frame_readout(readout))
+        renderer = ClientRenderer(client, self.gaussians, self._render_lock, on_frame=_frame_readout(readout),
+                                  on_error=_error_readout(readout))
         self.renderers[client.client_id] = renderer
         renderer.start()
 
@@ -188,6 +190,20 @@ def _frame_readout(readout: viser.GuiMarkdownHandle) -> Callable[[FrameStats], N
     def show(stats: FrameStats) -> None:
         kind = "full resolution" if stats.full_resolution else "moving"
         readout.content = f"frame: {stats.width} x {stats.height} ({kind}), {1000 * stats.seconds:.0f} ms"
+
+    return show
+
+
+def _error_readout(readout: viser.GuiMarkdownHandle) -> Callable[[str], None]:
+    """Shows a failed frame's message in the browser's panel, and prints each new message once on stderr (a
+    failure that repeats at every camera move would otherwise flood the terminal)."""
+    printed: set[str] = set()
+
+    def show(message: str) -> None:
+        readout.content = f"frame failed: {message}"
+        if message not in printed:
+            printed.add(message)
+            print(f"warpbags view: a frame failed: {message}", file=sys.stderr)
 
     return show
 
