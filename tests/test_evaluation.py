@@ -465,6 +465,29 @@ def test_sweep_runs_every_combination_once_and_skips_finished_runs(finished_run,
     assert messages == [f"skip {r['run']} (done)" for r in rows] and again == rows
 
 
+def test_a_sweep_run_keeps_every_stage_to_its_threads(finished_run, tmp_path, monkeypatch):
+    """A Ray task renders with the CPUs it declared (`render_threads`); the run's other CPU stages (the coherence
+    solve at construction, projection, the loss, evaluation) keep to them too."""
+    import warpbags.sweep as sweep
+    from warpbags.threads import host_threads, usable_cores
+
+    seen = []
+
+    class Stop(Exception):
+        """Raised where the trainer would be built: the thread limit there is what this test reads."""
+
+    def start_or_resume(*args, **kwargs):
+        seen.append(host_threads())
+        raise Stop
+
+    monkeypatch.setattr(sweep, "start_or_resume", start_or_resume)
+    info = json.loads((finished_run / "config.json").read_text())
+    spec = sweep.SweepSpec(scene=info["scene_root"], out=tmp_path / "sweep", rot_noises=(0,), views=(4,), seeds=(0,))
+    with pytest.raises(Stop):
+        sweep.run_combination(spec, sweep.sweep_runs(spec)[0], sweep.open_scene(spec.scene), render_threads=1)
+    assert seen == [1] and host_threads() == usable_cores()  # and the limit ends with the run
+
+
 def test_report_has_the_metrics_and_pictures(finished_run):
     assert runner.invoke(app, ["eval", str(finished_run), "--refine-iters", "0"]).exit_code == 0
     report = (finished_run / "report.md").read_text()

@@ -533,6 +533,26 @@ def test_compositing_gradcheck_float64():
     assert torch.autograd.gradcheck(composite, tuple(leaves.values()), eps=1e-6, atol=1e-6, rtol=1e-5, fast_mode=True)
 
 
+def test_a_host_thread_limit_reaches_every_stage_given_no_count(monkeypatch):
+    """`limited_host_threads` (a Ray task's CPUs) caps the stages that name no thread count, nested limits restore
+    the one around them, and without a limit they take every usable core."""
+    import warpbags.threads as threads
+    import warpbags.wrapper as wrapper
+
+    monkeypatch.setattr(threads, "usable_cores", lambda: 8)  # a machine larger than the limits
+    big = (4, 10 ** 6)
+    assert wrapper._default_cpu_threads() == 8
+    with threads.limited_host_threads(3):
+        assert wrapper._default_cpu_threads() == 3
+        assert len(wrapper._GaussianRanges.of(wrapper._PROJECTION, big, torch.device("cpu")).ranges) == 3 + 1
+        with threads.limited_host_threads(1):
+            assert wrapper._GaussianRanges.of(wrapper._PROJECTION, big, torch.device("cpu")).ranges is None
+        with threads.limited_host_threads(None):
+            assert wrapper._default_cpu_threads() == 8
+        assert wrapper._default_cpu_threads() == 3
+    assert wrapper._default_cpu_threads() == 8
+
+
 @pytest.mark.parametrize("cores", [2, 3])
 def test_projection_and_sh_over_gaussian_ranges_match_one_launch(cores, monkeypatch):
     """On the CPU the projection and SH stages run forward and backward in ranges of Gaussians on the host threads:

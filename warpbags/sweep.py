@@ -29,7 +29,7 @@ from warpbags.evaluation import evaluate_run
 from warpbags.files import atomic_output, finite_json, writable_folder
 from warpbags.report import plot_sweep
 from warpbags.run_folder import RunFolder
-from warpbags.threads import usable_cores
+from warpbags.threads import limited_host_threads, usable_cores
 from warpbags.trainer import start_or_resume, training_scene
 
 METHODS = {"baseline": False, "bags": True}  # method -> pose optimization
@@ -125,15 +125,17 @@ def run_combination(spec: SweepSpec, run: SweepRun, scene: Scene, render_threads
     Args:
         scene: the opened `spec.scene`.
         render_threads: host threads for CPU rendering of a fresh run (None: the preset's); a resumed run keeps
-            the setting it was started with.
+            the setting it was started with. Every other CPU stage of the run (the coherence solve, projection,
+            the loss, evaluation) keeps to this many threads too.
     """
     run_dir = spec.out / run.name
     if not _is_done(run_dir):
         config = combination_config(spec, run, render_threads)
-        trainer = start_or_resume(training_scene(scene, config), config, run_dir, device=spec.device,
-                                  resume=RunFolder(run_dir).has_checkpoint(), log=_quiet)
-        trainer.train()
-        evaluate_run(run_dir, refine_iters=spec.refine_iters, device=spec.device, log=_quiet)
+        with limited_host_threads(render_threads):
+            trainer = start_or_resume(training_scene(scene, config), config, run_dir, device=spec.device,
+                                      resume=RunFolder(run_dir).has_checkpoint(), log=_quiet)
+            trainer.train()
+            evaluate_run(run_dir, refine_iters=spec.refine_iters, device=spec.device, log=_quiet)
     return _row(run_dir, run)
 
 

@@ -16,6 +16,31 @@ def usable_cores() -> int:
     return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
 
 
+_HOST_THREAD_LIMIT: int | None = None
+
+
+def host_threads() -> int:
+    """Host threads for a CPU stage that is given no count (projection, binning, the fused loss, the coherence
+    search, rendering without `cpu_threads`): the limit of `limited_host_threads` around the caller, else every
+    usable core."""
+    return _HOST_THREAD_LIMIT or usable_cores()
+
+
+@contextmanager
+def limited_host_threads(count: int | None) -> Iterator[None]:
+    """Run the block with every CPU stage that is given no thread count on at most `count` host threads (None: no
+    limit), then restore the limit before it. A process-wide setting, not a thread-local one, since the stages
+    run on pool threads: a Ray task that declared `count` CPUs keeps to them, where its stages took every core of
+    the machine beside the other tasks'."""
+    global _HOST_THREAD_LIMIT  # noqa: PLW0603 - the one process-wide setting this module holds
+    previous = _HOST_THREAD_LIMIT
+    _HOST_THREAD_LIMIT = count if count is None else max(1, min(count, usable_cores()))
+    try:
+        yield
+    finally:
+        _HOST_THREAD_LIMIT = previous
+
+
 @contextmanager
 def torch_threads(count: int) -> Iterator[None]:
     """Run the block with torch limited to `count` intra-op threads, then give the caller back its setting.

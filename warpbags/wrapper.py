@@ -53,7 +53,7 @@ from warpbags.kernels.pose import apply_object_deltas_kernel, apply_pose_deltas_
 from warpbags.kernels.project import project_gaussians_backward_kernel, project_gaussians_kernel
 from warpbags.kernels.rasterize import BACKWARD_KERNELS, FORWARD_KERNELS, TileGeometry
 from warpbags.kernels.sh import sh_to_colors_backward_kernel, sh_to_colors_kernel
-from warpbags.threads import thread_pool, usable_cores
+from warpbags.threads import host_threads, thread_pool
 
 _WP_SCALARS = {torch.float32: wp.float32, torch.float64: wp.float64}
 
@@ -975,8 +975,9 @@ def fused_photometric_loss(images: torch.Tensor, targets: torch.Tensor, lambda_d
 
 
 def _default_cpu_threads() -> int:
-    """Host threads for CPU launches when the caller names none: every usable core."""
-    return usable_cores()
+    """Host threads for CPU launches when the caller names none: every usable core, or the limit around the
+    caller (`threads.limited_host_threads`)."""
+    return host_threads()
 
 
 def _cost_balanced_ranges(tile_costs: torch.Tensor, items_per_tile: int, parts: int) -> list[tuple[int, int]]:
