@@ -32,11 +32,11 @@ def clean_errors(command: Callable) -> Callable:
     return wrapper
 
 
-def parse_numbers(text: str, option: str, kind: Callable = float) -> list:
+def parse_numbers(text: str, option: str, kind: Callable = float, minimum: float | None = None) -> list:
     """The comma-separated numbers of option `option` (empty items skipped): `kind` (float or int) of each.
 
     Raises:
-        WarpbagsError: an item that is not a `kind`, or no number at all.
+        WarpbagsError: an item that is not a `kind` or is below `minimum`, or no number at all.
     """
     numbers = []
     for item in text.split(","):
@@ -47,6 +47,8 @@ def parse_numbers(text: str, option: str, kind: Callable = float) -> list:
         except ValueError:
             what = "an integer" if kind is int else "a number"
             raise WarpbagsError(f"{option} {text!r}: {item.strip()!r} is not {what}") from None
+        if minimum is not None and numbers[-1] < minimum:
+            raise WarpbagsError(f"{option} {text!r}: {item.strip()} is below {minimum:g}")
     if not numbers:
         raise WarpbagsError(f"{option} {text!r}: expected comma-separated numbers, got none")
     return numbers

@@ -49,8 +49,8 @@ def sweep(
     overrides = {"iters": iters, "repair": None if repair_iters is None else {"iters": repair_iters}}
     overrides = tuple((key, value) for key, value in overrides.items() if value is not None)
     spec = SweepSpec(scene=scene, out=out or Path("runs") / f"sweep-{Path(scene).name}",
-                     rot_noises=tuple(parse_numbers(rot_noises, "--rot-noises")),
-                     views=tuple(parse_numbers(views, "--views", int)),
+                     rot_noises=tuple(parse_numbers(rot_noises, "--rot-noises", minimum=0)),
+                     views=tuple(parse_numbers(views, "--views", int, minimum=2)),  # a visual hull needs two
                      seeds=tuple(parse_numbers(seeds, "--seeds", int)),
                      trans_noise=trans_noise, preset=preset, overrides=overrides, device=device)
     rows = run_sweep(spec, data_root=data_root, log=stdout.print, executor=sweep_executor)

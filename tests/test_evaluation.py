@@ -506,8 +506,10 @@ def test_report_has_the_metrics_and_pictures(finished_run):
 def test_sweep_bad_values_one_line(tmp_path):
     result = runner.invoke(app, ["sweep", str(tmp_path), "--rot-noises", "a,b"])
     assert result.exit_code == 2 and "--rot-noises 'a,b': 'a' is not a number" in result.output
-    result = runner.invoke(app, ["sweep", "maryrose", "--views", "1", "--out", str(tmp_path / "s")])
-    assert result.exit_code == 2 and "--views must be >= 2" in result.output
+    result = runner.invoke(app, ["sweep", "maryrose", "--views", "4,1", "--out", str(tmp_path / "s")])
+    assert result.exit_code == 2 and "--views '4,1': 1 is below 2" in result.output
+    result = runner.invoke(app, ["sweep", "maryrose", "--rot-noises=0,-5", "--out", str(tmp_path / "s")])
+    assert result.exit_code == 2 and "--rot-noises '0,-5': -5 is below 0" in result.output  # the sweep's option
     (tmp_path / "a-file").write_text("")
     result = runner.invoke(app, ["sweep", "maryrose", "--out", str(tmp_path / "a-file")])
     message = " ".join(result.output.split())
