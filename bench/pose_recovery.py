@@ -211,9 +211,12 @@ def main() -> None:
                             folder = Path(root) / f"{scene_name}-{views}-{rot}-{variant}-{seed}"
                             runs.append(run_once(scene, settings, args.preset, folder, train=not args.start_only))
                         row = summarize(runs)
-                        results["rows"].append({"scene": scene_name, "views": views, "rot_noise": rot, "variant": variant,
+                        # the noise the runs had: a variant may set its own (truth-start: none)
+                        noise = dict(rot_noise=settings["rot_noise_deg"], trans_noise=settings["trans_noise"])
+                        results["rows"].append({"scene": scene_name, "views": views, **noise, "variant": variant,
                                                 "true_psnr": true_psnr, **row, "runs": runs})
-                        label = f"{scene_name:<20} {views:>5} {f'{rot:g}/{args.trans:g}':>9} {variant:<18} "
+                        noise_label = f"{noise['rot_noise']:g}/{noise['trans_noise']:g}"
+                        label = f"{scene_name:<20} {views:>5} {noise_label:>9} {variant:<18} "
                         if args.start_only:
                             print(label + f"{row['rot_init']:>8.2f} {row['rot_start']:>9.3f} "
                                   f"{' '.join(f'{v:5.2f}' for v in row['rot_start_per_seed']):<{per_seed_width}} "

@@ -15,10 +15,14 @@ BENCH = Path(__file__).resolve().parents[1] / "bench" / "pose_recovery.py"
 def test_start_only_reports_the_silhouettes_start_without_training(tmp_path):
     out = tmp_path / "start.json"
     result = subprocess.run([sys.executable, str(BENCH), "synthetic-small", "--seeds", "0", "--start-only",
-                             "--json", str(out)], capture_output=True, text=True, timeout=600, cwd=tmp_path,
-                            env={**os.environ, "WARPBAGS_CACHE": str(tmp_path / "cache")})
+                             "--variants", "bags,truth-start", "--json", str(out)], capture_output=True, text=True,
+                            timeout=600, cwd=tmp_path, env={**os.environ, "WARPBAGS_CACHE": str(tmp_path / "cache")})
     assert result.returncode == 0, result.stderr
-    [row] = json.loads(out.read_text())["rows"]
+    row, truth_start = json.loads(out.read_text())["rows"]
+    # each row names the noise its runs had: the truth-start variant has none, whatever --rot says
+    assert (row["rot_noise"], row["trans_noise"]) == (15.0, 0.3)
+    assert (truth_start["rot_noise"], truth_start["trans_noise"]) == (0.0, 0.0) and truth_start["rot_init"] < 1e-3
+    assert any(line.split()[2:4] == ["0/0", "truth-start"] for line in result.stdout.splitlines())
     # The mask-centroid start and the coherence solve bring 15-deg cameras in before any Gaussian is fitted (measured:
     # 14.17 -> 8.03 deg on this scene and seed); nothing was trained, so there is no end error to report.
     assert row["rot_start"] < 0.75 * row["rot_init"]
