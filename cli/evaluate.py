@@ -1,17 +1,23 @@
-"""`warpbags eval RUN`: held-out image metrics and camera-pose accuracy of a run."""
+"""`warpbags eval RUN`: held-out image metrics and camera-pose accuracy of a run; `warpbags agree RUN RUN ...`: how
+far several runs of one capture agree on its poses."""
 
 from __future__ import annotations
 
 from pathlib import Path
 from typing import Optional
 
+import numpy as np
 import typer
 from rich.console import Console
 from rich.table import Table
 
+from warpbags.agreement import pose_agreement
+from warpbags.alignment import pose_errors
 from warpbags.cli.common import clean_errors
+from warpbags.errors import WarpbagsError
 from warpbags.evaluation import evaluate_run
-from warpbags.run_folder import latest_run
+from warpbags.files import atomic_output, finite_json
+from warpbags.run_folder import latest_run, load_run
 
 stdout = Console(highlight=False)
 
@@ -69,6 +75,54 @@ def evaluate(
     stdout.print(f"wrote {run / 'eval.json'}, {run / 'eval'}/ and {run / 'report.md'}{curves}")
 
 
+def agree(
+    run_dirs: list[Path] = typer.Argument(..., help="Two or more finished runs of one capture and the same views "
+                                          "(e.g. trained with --seed 0, 1, 2)."),
+    procrustes: bool = typer.Option(True, "--procrustes/--pairwise",
+                                    help="Align each pair of runs by sim(3) Procrustes or SPARF's pairwise alignment."),
+    json_path: Optional[Path] = typer.Option(None, "--json", help="Also write the comparison to this JSON file."),
+) -> None:
+    """How far runs of one capture agree on each camera's pose, with no reference poses needed: where runs that
+    differ only in their seed end apart, the views do not determine that camera, and its error is at least that."""
+    if json_path is not None and json_path.is_dir():
+        raise WarpbagsError(f"--json {json_path} is a folder: name the file to write")
+    runs = [load_run(path) for path in run_dirs]
+    result = pose_agreement(runs, "procrustes" if procrustes else "pairwise")
+
+    noisy = all(run.config.rot_noise_deg > 0 or run.config.trans_noise > 0 for run in runs)
+    title = (f"pose agreement of {len(runs)} runs ({len(result.image_names)} views, {result.alignment} alignment of "
+             "each pair; over the pairs)")
+    table = Table(title=title, title_justify="left")
+    columns = ["camera", "image", "rot med", "rot max", "centre max", "px max"] + (["error"] if noisy else [])
+    for column in columns:
+        table.add_column(column)
+    errors = (np.mean([pose_errors(run.poses_final.double(), run.poses_true.double(),
+                                   alignment=result.alignment)["rotation_errors_deg"].numpy() for run in runs], axis=0)
+              if noisy else None)
+    for camera, name in enumerate(result.image_names):
+        row = [str(camera), name, f"{np.median(result.rotation_deg[:, camera]):.2f}",
+               f"{result.rotation_deg[:, camera].max():.2f}", f"{result.centre_percent[:, camera].max():.2f}",
+               "n/a" if result.pixels is None else f"{result.pixels[:, camera].max():.2f}"]
+        if errors is not None:
+            row.append(f"{errors[camera]:.2f}")
+        table.add_row(*row)
+    stdout.print(table)
+    central = result.central_run()
+    stdout.print(f"runs disagree by {result.rotation_deg.mean():.2f} deg (mean over pairs and cameras); each run's "
+                 "mean disagreement with the others: " + ", ".join(
+                     f"{path.name} {value:.2f}" for path, value in zip(result.runs, result.run_disagreement_deg())))
+    stdout.print(f"closest to the others: {result.runs[central]}")
+    stdout.print("rot: degrees between two runs' orientations of a camera; centre: % of the orbit radius; px: RMS "
+                 "pixels the object moves between two runs' cameras" + (
+                     "; error: each run's, against the scene's own poses, which the runs perturbed before training "
+                     "(mean over the runs)" if noisy else ""))
+    if json_path is not None:
+        with atomic_output(json_path) as temporary:
+            temporary.write_text(finite_json(result.to_json()))
+        stdout.print(f"wrote {json_path}")
+
+
 def register(app: typer.Typer) -> None:
-    """Add `eval` to `app`."""
+    """Add `eval` and `agree` to `app`."""
     app.command("eval")(clean_errors(evaluate))
+    app.command("agree")(clean_errors(agree))

@@ -10,7 +10,7 @@ import typer
 from warpbags.cli import evaluate, export, info, sweep, train, view
 from warpbags.devices import init_warp_quietly
 
-# In `warpbags --help` order: info, synth, train, eval, export, render, sweep, view.
+# In `warpbags --help` order: info, synth, train, eval, agree, export, render, sweep, view.
 COMMAND_GROUPS = (info, train, evaluate, export, sweep, view)
 
 

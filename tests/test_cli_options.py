@@ -150,7 +150,7 @@ def test_every_table_option_is_described():
 
 def test_every_command_group_registers_through_main():
     names = [command.name for command in app.registered_commands]
-    assert names == ["info", "synth", "train", "eval", "export", "render", "sweep", "view"]
+    assert names == ["info", "synth", "train", "eval", "agree", "export", "render", "sweep", "view"]
     assert all(callable(group.register) for group in COMMAND_GROUPS)
     for name in names:
         result = runner.invoke(app, [name, "--help"])

@@ -1,0 +1,153 @@
+"""`warpbags agree`: how far runs of one capture agree on each camera's pose, without reference poses."""
+
+from __future__ import annotations
+
+import json
+import math
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from random_poses import generator, random_sim3, random_viewmats, skew_reference
+from typer.testing import CliRunner
+
+from warpbags.agreement import pose_agreement
+from warpbags.alignment import align_viewmats
+from warpbags.cli.main import app
+from warpbags.configs.train import load_preset
+from warpbags.data import ORBIT_RADIUS, SyntheticOptions, ensure_synthetic_scene
+from warpbags.errors import WarpbagsError
+from warpbags.run_folder import TrainingRun
+
+runner = CliRunner()
+
+
+def turned_about_own_centre(viewmat: torch.Tensor, axis: list[float], degrees: float) -> torch.Tensor:
+    """The camera turned by `degrees` about `axis` (camera frame) through its own centre: its centre stays."""
+    omega = torch.tensor(axis, dtype=torch.float64)
+    turn = torch.linalg.matrix_exp(skew_reference(omega / omega.norm() * math.radians(degrees)))
+    turned = viewmat.clone()
+    turned[:3, :] = turn @ viewmat[:3, :]
+    return turned
+
+
+def fake_run(name: str, poses: torch.Tensor, *, root: str = "/scenes/a", views: int = 4) -> TrainingRun:
+    """A finished run's contents, as `load_run` returns them: poses, a model of points about the origin, intrinsics."""
+    points = torch.randn(500, 3, generator=generator(7), dtype=torch.float64) * 0.5
+    params = {"means": points, "opacities": torch.full((500,), 3.0, dtype=torch.float64)}
+    Ks = torch.tensor([[300.0, 0, 64], [0, 300, 64], [0, 0, 1]], dtype=torch.float64).repeat(len(poses), 1, 1)
+    info = {"scene_root": root, "image_names": [f"view_{k}.png" for k in range(views)]}
+    return TrainingRun(path=Path(name), info=info, config=load_preset("quick"), params=params, poses_true=poses,
+                       poses_init=poses, poses_final=poses, intrinsics=Ks)
+
+
+def orbit_viewmats(count: int) -> torch.Tensor:
+    """`count` cameras on a ring of the orbit radius, looking at the origin (where `fake_run`'s points are)."""
+    viewmats = []
+    for k in range(count):
+        angle = 2 * math.pi * k / count
+        centre = torch.tensor([ORBIT_RADIUS * math.cos(angle), ORBIT_RADIUS * math.sin(angle), 0.5], dtype=torch.float64)
+        forward = -centre / centre.norm()
+        right = torch.linalg.cross(forward, torch.tensor([0.0, 0, 1], dtype=torch.float64))
+        right = right / right.norm()
+        down = torch.linalg.cross(forward, right)
+        rotation = torch.stack([right, down, forward])
+        viewmat = torch.eye(4, dtype=torch.float64)
+        viewmat[:3, :3], viewmat[:3, 3] = rotation, -rotation @ centre
+        viewmats.append(viewmat)
+    return torch.stack(viewmats)
+
+
+def test_a_camera_one_run_turned_is_the_one_that_disagrees():
+    """Two runs whose cameras are the same up to a similarity, but for camera 2 turned 2 deg about its own centre:
+    the pair's alignment is exact, camera 2 disagrees by 2 deg and moves the object, the others by nothing."""
+    poses = orbit_viewmats(4)
+    other = align_viewmats(poses, random_sim3(generator(3)))  # another gauge: same relative poses
+    other[2] = turned_about_own_centre(other[2], [0.3, 1.0, 0.2], 2.0)
+    result = pose_agreement([fake_run("a", poses), fake_run("b", other)])
+    assert result.alignment == "procrustes" and result.pairs == [(0, 1)]
+    np.testing.assert_allclose(result.rotation_deg[0], [0, 0, 2, 0], atol=1e-6)
+    np.testing.assert_allclose(result.centre_percent[0], 0, atol=1e-6)
+    # 2 deg about the camera's own centre shifts a distant object by about f * 2 deg (300 px focal: ~10 px)
+    assert result.pixels[0, 2] == pytest.approx(300 * math.radians(2), rel=0.15)
+    assert result.pixels[0, [0, 1, 3]].max() < 1e-6
+
+
+def test_the_central_run_is_the_one_the_others_agree_with():
+    poses = orbit_viewmats(5)
+    near = poses.clone()
+    near[1] = turned_about_own_centre(near[1], [1.0, 0, 0], 0.5)
+    far = poses.clone()
+    far[1] = turned_about_own_centre(far[1], [-1.0, 0, 0], 6.0)
+    far[3] = turned_about_own_centre(far[3], [0, 1.0, 0], 4.0)
+    result = pose_agreement([fake_run("near", near), fake_run("far", far), fake_run("middle", poses)])
+    assert result.pairs == [(0, 1), (0, 2), (1, 2)]
+    assert result.central_run() == 2  # 0.5 deg from "near", 6 and 4 from "far": it has the least disagreement
+    summary = result.to_json()
+    assert summary["central_run"] == "middle" and len(summary["per_camera"]["rotation_deg_max"]) == 5
+    assert summary["per_camera"]["rotation_deg_max"][1] == pytest.approx(6.5, abs=1e-3)  # "near" against "far"
+
+
+def test_two_cameras_are_compared_after_the_pairwise_alignment():
+    poses = orbit_viewmats(2)
+    result = pose_agreement([fake_run("a", poses, views=2), fake_run("b", poses, views=2)])
+    assert result.alignment == "pairwise"
+    np.testing.assert_allclose(result.rotation_deg, 0, atol=1e-6)
+
+
+@pytest.mark.parametrize("case, message", [
+    ("one run", "at least two runs of one capture, got 1"),
+    ("other scene", "b is a run of /scenes/other, a of /scenes/a: compare runs of one capture"),
+    ("other views", "b was trained on other views than a"),
+])
+def test_runs_that_cannot_be_compared_are_named(case, message):
+    poses = random_viewmats(4, generator(1))
+    runs = {"one run": [fake_run("a", poses)],
+            "other scene": [fake_run("a", poses), fake_run("b", poses, root="/scenes/other")],
+            "other views": [fake_run("a", poses), fake_run("b", poses)]}[case]
+    if case == "other views":
+        runs[1].info["image_names"] = ["view_0.png", "view_1.png", "view_2.png", "view_9.png"]
+    with pytest.raises(WarpbagsError, match=message):
+        pose_agreement(runs)
+
+
+@pytest.fixture(scope="module")
+def two_runs(tmp_path_factory):
+    """A tiny finished run, and a copy of it whose camera 1 ends 3 deg further turned about its own centre."""
+    scene = ensure_synthetic_scene(SyntheticOptions(views=16, width=64, height=64),
+                                   cache_dir=tmp_path_factory.mktemp("cache"))
+    runs = tmp_path_factory.mktemp("runs")
+    result = runner.invoke(app, ["train", str(scene), "--iters", "6", "--rot-noise-deg", "4", "--trans-noise", "0.05",
+                                 "--repair-iters", "0", "--out", str(runs / "a")])
+    assert result.exit_code == 0, result.output
+    shutil.copytree(runs / "a", runs / "b")
+    poses = torch.from_numpy(np.load(runs / "b" / "poses_final.npy")).double()
+    poses[1] = turned_about_own_centre(poses[1], [0, 1.0, 0], 3.0)
+    np.save(runs / "b" / "poses_final.npy", poses.float().numpy())
+    return runs / "a", runs / "b"
+
+
+def test_agree_prints_and_writes_each_cameras_disagreement(two_runs, tmp_path):
+    out = tmp_path / "agreement.json"
+    result = runner.invoke(app, ["agree", str(two_runs[0]), str(two_runs[1]), "--json", str(out)])
+    assert result.exit_code == 0, result.output
+    text = " ".join(result.output.split())
+    assert "pose agreement of 2 runs (4 views, procrustes alignment" in text
+    assert "runs disagree by 0.75 deg" in text  # 3 deg on one camera of four
+    saved = json.loads(out.read_text())
+    np.testing.assert_allclose(saved["rotation_deg"][0], [0, 3, 0, 0], atol=2e-3)  # float32 poses on disk
+    assert saved["runs"] == [str(two_runs[0]), str(two_runs[1])] and saved["pixels"][0][1] > 1.0
+
+
+@pytest.mark.parametrize("arguments, message", [
+    (["A"], "agreement needs at least two runs of one capture, got 1"),
+    (["A", "NOT_A_RUN"], "is not a training run (no config.json)"),
+    (["A", "B", "--json", "FOLDER"], "is a folder: name the file to write"),
+])
+def test_agree_bad_input_is_one_line(two_runs, tmp_path, arguments, message):
+    names = {"A": str(two_runs[0]), "B": str(two_runs[1]), "NOT_A_RUN": str(tmp_path), "FOLDER": str(tmp_path)}
+    result = runner.invoke(app, ["agree", *(names.get(argument, argument) for argument in arguments)])
+    lines = [line for line in result.output.splitlines() if line.strip()]
+    assert result.exit_code == 2 and len(lines) == 1 and message in " ".join(result.output.split()), result.output
