@@ -16,7 +16,7 @@ BENCH = Path(__file__).resolve().parents[1] / "bench"
 
 @pytest.mark.parametrize("script", ["pose_recovery.py", "pose_optimum.py", "repair.py", "hull_noise.py",
                                     "reference_poses.py", "view_agreement.py", "hull_depths.py",
-                                    "fitted_loss.py", "view_matches.py"])
+                                    "fitted_loss.py", "view_matches.py", "run_agreement.py"])
 def test_an_unknown_scene_is_one_error_line(script, tmp_path):
     more = [str(tmp_path / "out")] if script == "hull_depths.py" else []  # its second argument: the copy to write
     result = subprocess.run([sys.executable, str(BENCH / script), "nosuchscene", *more], capture_output=True,
@@ -42,6 +42,9 @@ def test_an_unknown_scene_is_one_error_line(script, tmp_path):
     ("pose_recovery.py", ["--set", "camera.fix_first_camera=true"], "--set camera.fix_first_camera: this benchmark"),
     ("pose_recovery.py", ["--set", "rot_noise_fixed=true"], "--set rot_noise_fixed: this benchmark"),
     ("fitted_loss.py", ["--seeds", ","], "--seeds ','"),
+    ("run_agreement.py", ["--train-seeds", "3,3"], "--train-seeds '3,3': give two different seeds or more"),
+    ("run_agreement.py", ["--views", "1"], "--views '1': 1 is below 2"),
+    ("run_agreement.py", ["--set", "seed=1"], "--set seed: this benchmark sets seed itself (from --train-seeds)"),
     ("fitted_loss.py", ["--set", "views=6"], "--set views:"),
     ("view_agreement.py", ["--sizes", "128,big"], "--sizes '128,big': 'big' is not an integer"),
     ("view_agreement.py", ["--set", "max_image_size=64"], "--set max_image_size:"),

@@ -1,0 +1,119 @@
+"""Do runs that differ only in their training seed disagree where they are wrong? For each scene, view count and
+noise seed, the poses are perturbed once (rotation noise of std --rot about random axes, centre noise --trans per
+axis) and trained from there with each training seed; the table gives each run's error against the scene's poses
+and how far the runs' final poses disagree with each other (`warpbags agree`'s measure), both after sim(3)
+Procrustes alignment, so that the README can say what a disagreement tells a user who has no reference poses.
+
+    python bench/run_agreement.py SCENE [SCENE ...] [--views 4,9] [--noise-seeds 0] [--train-seeds 0,1,2]
+        [--rot 15] [--trans 0.3] [--depth true|monocular|none] [--preset quick] [--set NAME=VALUE ...] [--json F]
+
+Columns (degrees unless named): error: the runs' mean rotation error (per run: each run's, in training-seed
+order); disagree: the mean over pairs of runs and cameras of the angle between two runs' orientations of a camera;
+error/disagree: their ratio; cam r: the correlation over cameras (and noise seeds) of a camera's mean error with its
+mean disagreement; min: minutes of training a run. SCENE: a preset (maryrose, moldgoldcape, ethiopianhead, ...), a
+scene folder or one of bench/common.py's small synthetic scenes (synthetic-tele-small, ...).
+"""
+
+from __future__ import annotations
+
+import argparse
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+from common import add_training_options, merge_settings, open_bench_scene, training_overrides, with_depth, write_json
+
+from warpbags.agreement import pose_agreement
+from warpbags.alignment import pose_errors
+from warpbags.cli.common import clean_errors, parse_numbers
+from warpbags.configs.train import load_preset
+from warpbags.errors import WarpbagsError
+from warpbags.run_folder import load_run
+from warpbags.trainer import Trainer, training_scene
+
+
+def train_run(scene, settings: dict, preset: str, folder: Path) -> float:
+    """Train one run into `folder`; returns its minutes."""
+    config = load_preset(preset, **settings)
+    trainer = Trainer(training_scene(scene, config), config, folder, log=lambda message: None)
+    trainer.write_run_files()
+    started = time.perf_counter()
+    trainer.train()
+    return (time.perf_counter() - started) / 60
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("scenes", nargs="+")
+    parser.add_argument("--rot", type=float, default=15.0, help="rotation noise std, degrees")
+    parser.add_argument("--trans", type=float, default=0.3, help="camera-centre noise std per axis (orbit radius 4)")
+    parser.add_argument("--views", default="4", help="training view counts, comma-separated")
+    parser.add_argument("--noise-seeds", default="0", help="noise seeds, comma-separated: one start each")
+    parser.add_argument("--train-seeds", default="0,1,2", help="training seeds run from each start, comma-separated")
+    parser.add_argument("--depth", choices=("true", "monocular", "none"), default="true",
+                        help="depth maps seen in training: the scene's, degraded as a monocular network's, or none")
+    add_training_options(parser, "a TrainConfig field for every run (repeatable), as `warpbags train --set`",
+                         json_help="also write every run's numbers here")
+    args = parser.parse_args()
+    torch.set_num_threads(1)
+    view_counts = parse_numbers(args.views, "--views", int, minimum=2)
+    noise_seeds = parse_numbers(args.noise_seeds, "--noise-seeds", int)
+    train_seeds = parse_numbers(args.train_seeds, "--train-seeds", int)
+    if len(set(train_seeds)) < 2:
+        raise WarpbagsError(f"--train-seeds {args.train_seeds!r}: give two different seeds or more, to have runs "
+                            "to compare")
+    overrides = training_overrides(args, fixed={"views": "from --views", "rot_noise_deg": "from --rot",
+                                                "trans_noise": "from --trans", "noise_seed": "from --noise-seeds",
+                                                "seed": "from --train-seeds", "repair.iters": "0: no repair stage"},
+                                   runs=[dict(views=views) for views in view_counts])
+    scenes = {name: with_depth(open_bench_scene(name), args.depth) for name in args.scenes}
+    results: dict = {"preset": args.preset, "overrides": overrides, "rot_noise": args.rot, "trans_noise": args.trans,
+                     "depth": args.depth, "train_seeds": train_seeds, "rows": []}
+    header = (f"{'scene':<22} {'views':>5} {'noise seed':>10} {'error':>6} {'per run':<{6 * len(train_seeds)}} "
+              f"{'disagree':>8} {'error/disagree':>14} {'min':>5}")
+    print(f"preset {args.preset}, overrides {overrides}, noise {args.rot:g} deg / {args.trans:g}, depth maps: "
+          f"{args.depth}, training seeds {args.train_seeds}")
+    print(header + "\n" + "-" * len(header), flush=True)
+    with tempfile.TemporaryDirectory() as root:
+        for scene_name, scene in scenes.items():
+            for views in view_counts:
+                camera_errors, camera_disagreements = [], []
+                for noise_seed in noise_seeds:
+                    folders, minutes = [], []
+                    for seed in train_seeds:
+                        folder = Path(root) / f"{scene_name}-{views}-{noise_seed}-{seed}"
+                        settings = merge_settings(overrides, dict(views=views, rot_noise_deg=args.rot,
+                                                                  trans_noise=args.trans, noise_seed=noise_seed,
+                                                                  seed=seed, repair={"iters": 0}))
+                        minutes.append(train_run(scene, settings, args.preset, folder))
+                        folders.append(folder)
+                    runs = [load_run(folder) for folder in folders]
+                    errors = np.stack([pose_errors(run.poses_final.double(), run.poses_true.double())
+                                       ["rotation_errors_deg"].numpy() for run in runs])  # [R, C]
+                    agreement = pose_agreement(runs)
+                    camera_errors.append(errors.mean(0))
+                    camera_disagreements.append(agreement.rotation_deg.mean(0))
+                    row = {"scene": scene_name, "views": views, "noise_seed": noise_seed,
+                           "error": float(errors.mean()), "error_per_run": errors.mean(1).tolist(),
+                           "error_per_camera": errors.mean(0).tolist(),
+                           "disagreement": float(agreement.rotation_deg.mean()),
+                           "disagreement_per_camera": agreement.rotation_deg.mean(0).tolist(),
+                           "agreement": agreement.to_json(), "minutes": float(np.mean(minutes))}
+                    results["rows"].append(row)
+                    per_run = " ".join(f"{value:5.2f}" for value in row["error_per_run"])
+                    print(f"{scene_name:<22} {views:>5} {noise_seed:>10} {row['error']:>6.2f} "
+                          f"{per_run:<{6 * len(train_seeds)}} {row['disagreement']:>8.2f} "
+                          f"{row['error'] / max(row['disagreement'], 1e-9):>14.2f} {row['minutes']:>5.1f}", flush=True)
+                    if args.json:
+                        write_json(args.json, results)
+                correlation = np.corrcoef(np.concatenate(camera_errors), np.concatenate(camera_disagreements))[0, 1]
+                print(f"{'':<22} {views:>5} {'all':>10} cameras' error against their disagreement: correlation "
+                      f"{correlation:.2f} over {len(np.concatenate(camera_errors))} cameras", flush=True)
+    print("error: rotation error against the scene's poses (deg, mean over cameras); disagree: angle between two "
+          "runs' orientations of a camera (deg, mean over pairs and cameras); both after sim(3) Procrustes")
+
+
+if __name__ == "__main__":
+    clean_errors(main)()

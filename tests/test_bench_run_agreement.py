@@ -1,0 +1,28 @@
+"""`bench/run_agreement.py`: runs from one start, their errors and how far they disagree, as a table row and JSON."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+BENCH = Path(__file__).resolve().parents[1] / "bench" / "run_agreement.py"
+
+
+def test_runs_from_one_start_are_compared_with_each_other_and_the_truth(tmp_path):
+    out = tmp_path / "agreement.json"
+    result = subprocess.run([sys.executable, str(BENCH), "synthetic-small", "--train-seeds", "0,1", "--set", "iters=6",
+                             "--json", str(out)], capture_output=True, text=True, timeout=600, cwd=tmp_path,
+                            env={**os.environ, "WARPBAGS_CACHE": str(tmp_path / "cache")})
+    assert result.returncode == 0, result.stderr
+    [row] = json.loads(out.read_text())["rows"]
+    assert len(row["error_per_run"]) == 2 and len(row["error_per_camera"]) == 4
+    assert row["error"] == pytest.approx(sum(row["error_per_run"]) / 2)
+    # the two seeds start from the same noisy poses (noise seed 0) and end apart, though not by more than they err
+    assert row["agreement"]["pairs"] == [[0, 1]] and 0 < row["disagreement"] < 4 * row["error"]
+    assert row["disagreement"] == pytest.approx(row["agreement"]["rotation_deg_mean"])
+    assert any(line.startswith("synthetic-small") for line in result.stdout.splitlines())
