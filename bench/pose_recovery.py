@@ -202,6 +202,8 @@ def main() -> None:
                 true_psnr = float(np.mean([r["psnr"] for r in true_pose.values()])) if true_pose else float("nan")
                 for rot in rots:
                     for variant in variants:
+                        if "rot_noise_deg" in VARIANTS[variant] and rot != rots[0]:
+                            continue  # a variant with its own noise (truth-start) runs once, not once per --rot
                         runs = []
                         for seed in seeds:
                             settings = merge_settings(overrides, dict(views=views, rot_noise_deg=rot,

@@ -26,7 +26,6 @@ import torch
 from common import add_training_options, merge_settings, open_bench_scene, training_overrides, with_depth, write_json
 
 from warpbags.agreement import pose_agreement
-from warpbags.alignment import pose_errors
 from warpbags.cli.common import clean_errors, parse_numbers
 from warpbags.configs.train import load_preset
 from warpbags.errors import WarpbagsError
@@ -61,9 +60,13 @@ def main() -> None:
     view_counts = parse_numbers(args.views, "--views", int, minimum=2)
     noise_seeds = parse_numbers(args.noise_seeds, "--noise-seeds", int)
     train_seeds = parse_numbers(args.train_seeds, "--train-seeds", int)
-    if len(set(train_seeds)) < 2:
-        raise WarpbagsError(f"--train-seeds {args.train_seeds!r}: give two different seeds or more, to have runs "
-                            "to compare")
+    if len(set(train_seeds)) < 2 or len(set(train_seeds)) < len(train_seeds):
+        raise WarpbagsError(f"--train-seeds {args.train_seeds!r}: give two different seeds or more, each once, to "
+                            "have runs to compare")
+    if len(set(noise_seeds)) < len(noise_seeds):
+        raise WarpbagsError(f"--noise-seeds {args.noise_seeds!r}: a seed given twice")
+    if args.rot <= 0 and args.trans <= 0:
+        raise WarpbagsError("--rot 0 and --trans 0: without noise the scene's poses are no truth to measure errors by")
     overrides = training_overrides(args, fixed={"views": "from --views", "rot_noise_deg": "from --rot",
                                                 "trans_noise": "from --trans", "noise_seed": "from --noise-seeds",
                                                 "seed": "from --train-seeds", "repair.iters": "0: no repair stage"},
@@ -89,13 +92,11 @@ def main() -> None:
                                                                   seed=seed, repair={"iters": 0}))
                         minutes.append(train_run(scene, settings, args.preset, folder))
                         folders.append(folder)
-                    runs = [load_run(folder) for folder in folders]
-                    errors = np.stack([pose_errors(run.poses_final.double(), run.poses_true.double())
-                                       ["rotation_errors_deg"].numpy() for run in runs])  # [R, C]
-                    agreement = pose_agreement(runs)
+                    agreement = pose_agreement([load_run(folder) for folder in folders])
+                    errors = agreement.error_deg  # [R, C], with the pairs' alignment
                     camera_errors.append(errors.mean(0))
                     camera_disagreements.append(agreement.rotation_deg.mean(0))
-                    row = {"scene": scene_name, "views": views, "noise_seed": noise_seed,
+                    row = {"scene": scene_name, "views": views, "noise_seed": noise_seed, "alignment": agreement.alignment,
                            "error": float(errors.mean()), "error_per_run": errors.mean(1).tolist(),
                            "error_per_camera": errors.mean(0).tolist(),
                            "disagreement": float(agreement.rotation_deg.mean()),
@@ -112,7 +113,8 @@ def main() -> None:
                 print(f"{'':<22} {views:>5} {'all':>10} cameras' error against their disagreement: correlation "
                       f"{correlation:.2f} over {len(np.concatenate(camera_errors))} cameras", flush=True)
     print("error: rotation error against the scene's poses (deg, mean over cameras); disagree: angle between two "
-          "runs' orientations of a camera (deg, mean over pairs and cameras); both after sim(3) Procrustes")
+          "runs' orientations of a camera (deg, mean over pairs and cameras); both after sim(3) Procrustes (SPARF's "
+          "pairwise alignment with 2 views)")
 
 
 if __name__ == "__main__":

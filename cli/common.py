@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import functools
+import math
 import sys
 from typing import Callable
 
@@ -32,11 +33,12 @@ def clean_errors(command: Callable) -> Callable:
     return wrapper
 
 
-def parse_numbers(text: str, option: str, kind: Callable = float, minimum: float | None = None) -> list:
+def parse_numbers(text: str, option: str, kind: Callable = float, minimum: float | None = None,
+                  maximum: float | None = None) -> list:
     """The comma-separated numbers of option `option` (empty items skipped): `kind` (float or int) of each.
 
     Raises:
-        WarpbagsError: an item that is not a `kind` or is below `minimum`, or no number at all.
+        WarpbagsError: an item that is not a finite `kind` or is outside [`minimum`, `maximum`], or no number at all.
     """
     numbers = []
     for item in text.split(","):
@@ -47,8 +49,12 @@ def parse_numbers(text: str, option: str, kind: Callable = float, minimum: float
         except ValueError:
             what = "an integer" if kind is int else "a number"
             raise WarpbagsError(f"{option} {text!r}: {item.strip()!r} is not {what}") from None
+        if not math.isfinite(numbers[-1]):
+            raise WarpbagsError(f"{option} {text!r}: {item.strip()!r} is not a finite number")
         if minimum is not None and numbers[-1] < minimum:
             raise WarpbagsError(f"{option} {text!r}: {item.strip()} is below {minimum:g}")
+        if maximum is not None and numbers[-1] > maximum:
+            raise WarpbagsError(f"{option} {text!r}: {item.strip()} is above {maximum:g}")
     if not numbers:
         raise WarpbagsError(f"{option} {text!r}: expected comma-separated numbers, got none")
     return numbers

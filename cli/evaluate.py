@@ -9,14 +9,14 @@ from typing import Optional
 import numpy as np
 import typer
 from rich.console import Console
+from rich.markup import escape
 from rich.table import Table
 
 from warpbags.agreement import pose_agreement
-from warpbags.alignment import pose_errors
 from warpbags.cli.common import clean_errors
 from warpbags.errors import WarpbagsError
 from warpbags.evaluation import evaluate_run
-from warpbags.files import atomic_output, finite_json
+from warpbags.files import atomic_output, finite_json, writable_folder
 from warpbags.run_folder import latest_run, load_run
 
 stdout = Console(highlight=False)
@@ -76,50 +76,53 @@ def evaluate(
 
 
 def agree(
-    run_dirs: list[Path] = typer.Argument(..., help="Two or more finished runs of one capture and the same views "
-                                          "(e.g. trained with --seed 0, 1, 2)."),
+    run_dirs: list[Path] = typer.Argument(..., help="Two or more finished runs of one capture and the same views, "
+                                          "started from the same poses (e.g. --seed 0, 1, 2; with injected noise, "
+                                          "one --noise-seed)."),
     procrustes: bool = typer.Option(True, "--procrustes/--pairwise",
                                     help="Align each pair of runs by sim(3) Procrustes or SPARF's pairwise alignment."),
     json_path: Optional[Path] = typer.Option(None, "--json", help="Also write the comparison to this JSON file."),
 ) -> None:
     """How far runs of one capture agree on each camera's pose, with no reference poses needed: where runs that
-    differ only in their seed end apart, the views do not determine that camera, and its error is at least that."""
-    if json_path is not None and json_path.is_dir():
-        raise WarpbagsError(f"--json {json_path} is a folder: name the file to write")
+    differ only in their seed end d degrees apart, the views do not determine that camera, and the runs' errors
+    there add up to at least d."""
+    if json_path is not None:
+        if json_path.is_dir():
+            raise WarpbagsError(f"--json {json_path} is a folder: name the file to write")
+        writable_folder(json_path.parent, "to write --json into")
     runs = [load_run(path) for path in run_dirs]
     result = pose_agreement(runs, "procrustes" if procrustes else "pairwise")
 
-    noisy = all(run.config.rot_noise_deg > 0 or run.config.trans_noise > 0 for run in runs)
     title = (f"pose agreement of {len(runs)} runs ({len(result.image_names)} views, {result.alignment} alignment of "
              "each pair; over the pairs)")
     table = Table(title=title, title_justify="left")
-    columns = ["camera", "image", "rot med", "rot max", "centre max", "px max"] + (["error"] if noisy else [])
-    for column in columns:
+    columns = ["camera", "image", "rot med", "rot max", "centre max", "px max"]
+    for column in columns + (["error"] if result.error_deg is not None else []):
         table.add_column(column)
-    errors = (np.mean([pose_errors(run.poses_final.double(), run.poses_true.double(),
-                                   alignment=result.alignment)["rotation_errors_deg"].numpy() for run in runs], axis=0)
-              if noisy else None)
     for camera, name in enumerate(result.image_names):
-        row = [str(camera), name, f"{np.median(result.rotation_deg[:, camera]):.2f}",
-               f"{result.rotation_deg[:, camera].max():.2f}", f"{result.centre_percent[:, camera].max():.2f}",
+        rotations = result.rotation_deg[:, camera]
+        row = [str(camera), escape(name), f"{np.median(rotations):.2f}", f"{rotations.max():.2f}",
+               f"{result.centre_percent[:, camera].max():.2f}",
                "n/a" if result.pixels is None else f"{result.pixels[:, camera].max():.2f}"]
-        if errors is not None:
-            row.append(f"{errors[camera]:.2f}")
+        if result.error_deg is not None:
+            row.append(f"{result.error_deg[:, camera].mean():.2f}")
         table.add_row(*row)
     stdout.print(table)
-    central = result.central_run()
     stdout.print(f"runs disagree by {result.rotation_deg.mean():.2f} deg (mean over pairs and cameras); each run's "
                  "mean disagreement with the others: " + ", ".join(
-                     f"{path.name} {value:.2f}" for path, value in zip(result.runs, result.run_disagreement_deg())))
-    stdout.print(f"closest to the others: {result.runs[central]}")
+                     f"{escape(str(path))} {value:.2f}" for path, value in zip(result.runs, result.run_disagreement_deg())))
+    stdout.print(f"closest to the others: {escape(str(result.runs[result.central_run()]))}")
+    if not result.same_start:
+        stdout.print("the runs started from different poses: their disagreement includes how far apart they started")
     stdout.print("rot: degrees between two runs' orientations of a camera; centre: % of the orbit radius; px: RMS "
                  "pixels the object moves between two runs' cameras" + (
-                     "; error: each run's, against the scene's own poses, which the runs perturbed before training "
-                     "(mean over the runs)" if noisy else ""))
+                     "; error: against the scene's own poses, which the runs perturbed before training (degrees, mean "
+                     "over the runs)" if result.error_deg is not None else ""))
     if json_path is not None:
+        json_path.parent.mkdir(parents=True, exist_ok=True)
         with atomic_output(json_path) as temporary:
             temporary.write_text(finite_json(result.to_json()))
-        stdout.print(f"wrote {json_path}")
+        stdout.print(f"wrote {escape(str(json_path))}")
 
 
 def register(app: typer.Typer) -> None:

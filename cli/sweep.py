@@ -49,7 +49,7 @@ def sweep(
     overrides = {"iters": iters, "repair": None if repair_iters is None else {"iters": repair_iters}}
     overrides = tuple((key, value) for key, value in overrides.items() if value is not None)
     spec = SweepSpec(scene=scene, out=out or Path("runs") / f"sweep-{Path(scene).name}",
-                     rot_noises=tuple(parse_numbers(rot_noises, "--rot-noises", minimum=0)),
+                     rot_noises=tuple(parse_numbers(rot_noises, "--rot-noises", minimum=0, maximum=180)),
                      views=tuple(parse_numbers(views, "--views", int, minimum=2)),  # a visual hull needs two
                      seeds=tuple(parse_numbers(seeds, "--seeds", int)),
                      trans_noise=trans_noise, preset=preset, overrides=overrides, device=device)

@@ -33,14 +33,18 @@ def turned_about_own_centre(viewmat: torch.Tensor, axis: list[float], degrees: f
     return turned
 
 
-def fake_run(name: str, poses: torch.Tensor, *, root: str = "/scenes/a", views: int = 4) -> TrainingRun:
-    """A finished run's contents, as `load_run` returns them: poses, a model of points about the origin, intrinsics."""
+def fake_run(name: str, poses: torch.Tensor, *, root: str = "/scenes/a", views: int = 4, start=None, truth=None,
+             width: int = 128) -> TrainingRun:
+    """A finished run's contents, as `load_run` returns them: final poses `poses` from `start` (default: the same),
+    a model of points about the origin, intrinsics; with `truth`, a run that perturbed those poses before training."""
     points = torch.randn(500, 3, generator=generator(7), dtype=torch.float64) * 0.5
     params = {"means": points, "opacities": torch.full((500,), 3.0, dtype=torch.float64)}
     Ks = torch.tensor([[300.0, 0, 64], [0, 300, 64], [0, 0, 1]], dtype=torch.float64).repeat(len(poses), 1, 1)
-    info = {"scene_root": root, "image_names": [f"view_{k}.png" for k in range(views)]}
-    return TrainingRun(path=Path(name), info=info, config=load_preset("quick"), params=params, poses_true=poses,
-                       poses_init=poses, poses_final=poses, intrinsics=Ks)
+    info = {"scene_root": root, "image_names": [f"view_{k}.png" for k in range(views)], "width": width, "height": 128}
+    config = load_preset("quick", rot_noise_deg=15.0 if truth is not None else 0.0)
+    return TrainingRun(path=Path(name), info=info, config=config, params=params,
+                       poses_true=poses if truth is None else truth, poses_init=poses if start is None else start,
+                       poses_final=poses, intrinsics=Ks)
 
 
 def orbit_viewmats(count: int) -> torch.Tensor:
@@ -67,7 +71,7 @@ def test_a_camera_one_run_turned_is_the_one_that_disagrees():
     other = align_viewmats(poses, random_sim3(generator(3)))  # another gauge: same relative poses
     other[2] = turned_about_own_centre(other[2], [0.3, 1.0, 0.2], 2.0)
     result = pose_agreement([fake_run("a", poses), fake_run("b", other)])
-    assert result.alignment == "procrustes" and result.pairs == [(0, 1)]
+    assert result.alignment == "procrustes" and result.pairs == [(0, 1)] and result.error_deg is None
     np.testing.assert_allclose(result.rotation_deg[0], [0, 0, 2, 0], atol=1e-6)
     np.testing.assert_allclose(result.centre_percent[0], 0, atol=1e-6)
     # 2 deg about the camera's own centre shifts a distant object by about f * 2 deg (300 px focal: ~10 px)
@@ -90,6 +94,18 @@ def test_the_central_run_is_the_one_the_others_agree_with():
     assert summary["per_camera"]["rotation_deg_max"][1] == pytest.approx(6.5, abs=1e-3)  # "near" against "far"
 
 
+def test_runs_that_perturbed_the_truth_report_their_errors_and_whether_they_started_alike():
+    truth = orbit_viewmats(4)
+    ended = truth.clone()
+    ended[0] = turned_about_own_centre(ended[0], [0, 0, 1.0], 1.5)
+    start, other_start = random_viewmats(4, generator(5)), random_viewmats(4, generator(6))
+    alike = pose_agreement([fake_run("a", ended, start=start, truth=truth), fake_run("b", truth, start=start, truth=truth)])
+    np.testing.assert_allclose(alike.error_deg, [[1.5, 0, 0, 0], [0, 0, 0, 0]], atol=1e-6)
+    assert alike.same_start and alike.to_json()["error_deg"][0][0] == pytest.approx(1.5)
+    apart = pose_agreement([fake_run("a", ended, start=start), fake_run("b", truth, start=other_start)])
+    assert not apart.same_start and apart.error_deg is None  # no noise injected: the scene's poses are no truth
+
+
 def test_two_cameras_are_compared_after_the_pairwise_alignment():
     poses = orbit_viewmats(2)
     result = pose_agreement([fake_run("a", poses, views=2), fake_run("b", poses, views=2)])
@@ -101,12 +117,16 @@ def test_two_cameras_are_compared_after_the_pairwise_alignment():
     ("one run", "at least two runs of one capture, got 1"),
     ("other scene", "b is a run of /scenes/other, a of /scenes/a: compare runs of one capture"),
     ("other views", "b was trained on other views than a"),
+    ("other resolution", "b trained at 256x128 px, a at 128x128: compare runs of one resolution"),
+    ("diverged", "poses_final.npy holds poses that are not finite"),
 ])
 def test_runs_that_cannot_be_compared_are_named(case, message):
     poses = random_viewmats(4, generator(1))
     runs = {"one run": [fake_run("a", poses)],
             "other scene": [fake_run("a", poses), fake_run("b", poses, root="/scenes/other")],
-            "other views": [fake_run("a", poses), fake_run("b", poses)]}[case]
+            "other views": [fake_run("a", poses), fake_run("b", poses)],
+            "other resolution": [fake_run("a", poses), fake_run("b", poses, width=256)],
+            "diverged": [fake_run("a", poses), fake_run("b", torch.full_like(poses, float("nan")))]}[case]
     if case == "other views":
         runs[1].info["image_names"] = ["view_0.png", "view_1.png", "view_2.png", "view_9.png"]
     with pytest.raises(WarpbagsError, match=message):
@@ -130,7 +150,7 @@ def two_runs(tmp_path_factory):
 
 
 def test_agree_prints_and_writes_each_cameras_disagreement(two_runs, tmp_path):
-    out = tmp_path / "agreement.json"
+    out = tmp_path / "new folder" / "agreement.json"  # its folder is made
     result = runner.invoke(app, ["agree", str(two_runs[0]), str(two_runs[1]), "--json", str(out)])
     assert result.exit_code == 0, result.output
     text = " ".join(result.output.split())
@@ -139,15 +159,20 @@ def test_agree_prints_and_writes_each_cameras_disagreement(two_runs, tmp_path):
     saved = json.loads(out.read_text())
     np.testing.assert_allclose(saved["rotation_deg"][0], [0, 3, 0, 0], atol=2e-3)  # float32 poses on disk
     assert saved["runs"] == [str(two_runs[0]), str(two_runs[1])] and saved["pixels"][0][1] > 1.0
+    # the runs perturbed the scene's poses (4 deg): their errors against them are shown and saved
+    assert "| error" in result.output.replace("┃", "|") and len(saved["error_deg"]) == 2 and saved["same_start"]
 
 
 @pytest.mark.parametrize("arguments, message", [
     (["A"], "agreement needs at least two runs of one capture, got 1"),
     (["A", "NOT_A_RUN"], "is not a training run (no config.json)"),
     (["A", "B", "--json", "FOLDER"], "is a folder: name the file to write"),
+    (["A", "B", "--json", "INSIDE_A_FILE"], "is a file, not a folder to write --json into"),
 ])
 def test_agree_bad_input_is_one_line(two_runs, tmp_path, arguments, message):
-    names = {"A": str(two_runs[0]), "B": str(two_runs[1]), "NOT_A_RUN": str(tmp_path), "FOLDER": str(tmp_path)}
+    (tmp_path / "a-file").write_text("")
+    names = {"A": str(two_runs[0]), "B": str(two_runs[1]), "NOT_A_RUN": str(tmp_path), "FOLDER": str(tmp_path),
+             "INSIDE_A_FILE": str(tmp_path / "a-file" / "agreement.json")}
     result = runner.invoke(app, ["agree", *(names.get(argument, argument) for argument in arguments)])
     lines = [line for line in result.output.splitlines() if line.strip()]
     assert result.exit_code == 2 and len(lines) == 1 and message in " ".join(result.output.split()), result.output

@@ -469,8 +469,10 @@ def test_a_sweep_run_keeps_every_stage_to_its_threads(finished_run, tmp_path, mo
     """A Ray task renders with the CPUs it declared (`render_threads`); the run's other CPU stages (the coherence
     solve at construction, projection, the loss, evaluation) keep to them too."""
     import warpbags.sweep as sweep
-    from warpbags.threads import host_threads, usable_cores
+    import warpbags.threads as threads
+    from warpbags.threads import host_threads
 
+    monkeypatch.setattr(threads, "usable_cores", lambda: 8)  # more cores than the run's share, on any machine
     seen = []
 
     class Stop(Exception):
@@ -485,7 +487,7 @@ def test_a_sweep_run_keeps_every_stage_to_its_threads(finished_run, tmp_path, mo
     spec = sweep.SweepSpec(scene=info["scene_root"], out=tmp_path / "sweep", rot_noises=(0,), views=(4,), seeds=(0,))
     with pytest.raises(Stop):
         sweep.run_combination(spec, sweep.sweep_runs(spec)[0], sweep.open_scene(spec.scene), render_threads=1)
-    assert seen == [1] and host_threads() == usable_cores()  # and the limit ends with the run
+    assert seen == [1] and host_threads() == 8  # and the limit ends with the run
 
 
 def test_report_has_the_metrics_and_pictures(finished_run):
@@ -510,6 +512,10 @@ def test_sweep_bad_values_one_line(tmp_path):
     assert result.exit_code == 2 and "--views '4,1': 1 is below 2" in result.output
     result = runner.invoke(app, ["sweep", "maryrose", "--rot-noises=0,-5", "--out", str(tmp_path / "s")])
     assert result.exit_code == 2 and "--rot-noises '0,-5': -5 is below 0" in result.output  # the sweep's option
+    result = runner.invoke(app, ["sweep", "maryrose", "--rot-noises", "10,200", "--out", str(tmp_path / "s")])
+    assert result.exit_code == 2 and "--rot-noises '10,200': 200 is above 180" in result.output
+    result = runner.invoke(app, ["sweep", "maryrose", "--rot-noises", "nan", "--out", str(tmp_path / "s")])
+    assert result.exit_code == 2 and "--rot-noises 'nan': 'nan' is not a finite number" in result.output
     (tmp_path / "a-file").write_text("")
     result = runner.invoke(app, ["sweep", "maryrose", "--out", str(tmp_path / "a-file")])
     message = " ".join(result.output.split())

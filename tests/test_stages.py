@@ -534,8 +534,8 @@ def test_compositing_gradcheck_float64():
 
 
 def test_a_host_thread_limit_reaches_every_stage_given_no_count(monkeypatch):
-    """`limited_host_threads` (a Ray task's CPUs) caps the stages that name no thread count, nested limits restore
-    the one around them, and without a limit they take every usable core."""
+    """`limited_host_threads` (a Ray task's CPUs) caps the stages that name no thread count, a limit inside another
+    never raises it and each restores the one around it, and without a limit they take every usable core."""
     import warpbags.threads as threads
     import warpbags.wrapper as wrapper
 
@@ -547,8 +547,8 @@ def test_a_host_thread_limit_reaches_every_stage_given_no_count(monkeypatch):
         assert len(wrapper._GaussianRanges.of(wrapper._PROJECTION, big, torch.device("cpu")).ranges) == 3 + 1
         with threads.limited_host_threads(1):
             assert wrapper._GaussianRanges.of(wrapper._PROJECTION, big, torch.device("cpu")).ranges is None
-        with threads.limited_host_threads(None):
-            assert wrapper._default_cpu_threads() == 8
+        with threads.limited_host_threads(None), threads.limited_host_threads(6):
+            assert wrapper._default_cpu_threads() == 3
         assert wrapper._default_cpu_threads() == 3
     assert wrapper._default_cpu_threads() == 8
 

@@ -3,11 +3,9 @@ needs no reference poses.
 
 Runs that start from the same given poses and differ only in their training seed (the Gaussians' initial sample,
 and so every step after it) end where the images let them: on a capture whose views pin the cameras they end close
-together, on one whose views do not they end apart. The measured relation (README, "Pose recovery"): on the
-telephoto synthetic scene three such runs disagree by 0.50 deg (mean over camera pairs of runs) and end 0.56 deg
-from the truth; on maryrose with four views they disagree by 4.5 deg and end 9.1 deg from its reference poses. The
-disagreement is a lower bound of the error, not an estimate of it: what all runs share (the start, the views'
-own ambiguity) is not seen.
+together, on one whose views do not they end apart. Two runs d degrees apart on a camera cannot both be within
+d / 2 of its true pose (up to the alignments), so the disagreement bounds the error from below; what all runs share
+(the start, the views' own ambiguity) it does not see. Measured relation: README, "Pose recovery".
 """
 
 from __future__ import annotations
@@ -18,6 +16,7 @@ from pathlib import Path
 from typing import Sequence
 
 import numpy as np
+import torch
 
 from warpbags.alignment import alignment_for, pose_errors, reprojection_errors
 from warpbags.data import ORBIT_RADIUS
@@ -33,13 +32,19 @@ class PoseAgreement:
     Attributes:
         runs: the run folders, in the order given.
         image_names: the training views, the cameras' order.
-        alignment: how each pair was aligned ("procrustes" from 3 cameras, else "pairwise").
+        alignment: how each pair was aligned: the one asked for, "pairwise" where Procrustes cannot be fitted
+            (fewer than 3 cameras).
         pairs: (i, j) indices into `runs`, i < j.
         rotation_deg: [P, C] angle between the two runs' orientations of each camera, after a sim(3) alignment of
             run i's cameras to run j's.
-        centre_percent: [P, C] distance between the aligned camera centres, % of the orbit radius.
+        centre_percent: [P, C] distance between the aligned camera centres, % of the orbit radius (in run j's frame,
+            whose scale training keeps close to the normalized scene's).
         pixels: [P, C] RMS pixels (training resolution) between where the two runs' cameras put run i's object;
-            None where a run saved no intrinsics (an older warpbags).
+            None when a run saved no intrinsics (an older warpbags).
+        same_start: whether every run started from the same poses (`poses_init`); if not, the disagreement
+            includes how far apart they started.
+        error_deg: [R, C] each run's rotation error against the scene's poses, with the same alignment, when every
+            run perturbed them before training (an experiment: they are the truth); else None.
     """
 
     runs: list[Path]
@@ -49,6 +54,8 @@ class PoseAgreement:
     rotation_deg: np.ndarray
     centre_percent: np.ndarray
     pixels: np.ndarray | None
+    same_start: bool
+    error_deg: np.ndarray | None
 
     def run_disagreement_deg(self) -> np.ndarray:
         """[R] each run's mean rotation disagreement with the others (over its pairs and the cameras)."""
@@ -82,6 +89,8 @@ class PoseAgreement:
             "rotation_deg_mean": float(self.rotation_deg.mean()),
             "run_disagreement_deg": self.run_disagreement_deg().tolist(),
             "central_run": str(self.runs[self.central_run()]),
+            "same_start": self.same_start,
+            "error_deg": None if self.error_deg is None else self.error_deg.tolist(),
         }
 
 
@@ -89,13 +98,15 @@ def pose_agreement(runs: Sequence[TrainingRun], preferred: str = "procrustes") -
     """Compare the final poses of `runs`, every pair of them.
 
     Raises:
-        WarpbagsError: fewer than two runs, or a run of another scene folder or other training views than the
-            first, named.
+        WarpbagsError: fewer than two runs; a run of another scene folder, other training views or another
+            training resolution than the first, or with poses that are not finite, named.
     """
     if len(runs) < 2:
         raise WarpbagsError(f"agreement needs at least two runs of one capture, got {len(runs)}")
     for run in runs:
-        require_info(run, "scene_root", "image_names")
+        require_info(run, "scene_root", "image_names", "width", "height")
+        if not torch.isfinite(run.poses_final).all():
+            raise WarpbagsError(f"{run.path / 'poses_final.npy'} holds poses that are not finite")
     first = runs[0]
     for run in runs[1:]:
         if run.info["scene_root"] != first.info["scene_root"]:
@@ -104,21 +115,34 @@ def pose_agreement(runs: Sequence[TrainingRun], preferred: str = "procrustes") -
         if run.info["image_names"] != first.info["image_names"]:
             raise WarpbagsError(f"{run.path} was trained on other views than {first.path} "
                                 f"({', '.join(run.info['image_names'])}): compare runs of the same views")
+        if (run.info["width"], run.info["height"]) != (first.info["width"], first.info["height"]):
+            raise WarpbagsError(f"{run.path} trained at {run.info['width']}x{run.info['height']} px, {first.path} at "
+                                f"{first.info['width']}x{first.info['height']}: compare runs of one resolution")
     alignment = alignment_for(len(first.info["image_names"]), preferred)
     pairs = list(itertools.combinations(range(len(runs)), 2))
+    with_intrinsics = all(run.intrinsics is not None for run in runs)
     rotations, centres, pixels = [], [], []
     for i, j in pairs:
-        try:
-            errors = pose_errors(runs[i].poses_final.double(), runs[j].poses_final.double(), alignment=alignment)
-        except ValueError as error:  # cameras in a line, or a run whose poses collapsed
-            raise WarpbagsError(f"{runs[i].path} against {runs[j].path}: {error}") from None
+        errors = _errors(runs[i].poses_final, runs[j].poses_final, alignment, f"{runs[i].path} against {runs[j].path}")
         rotations.append(errors["rotation_errors_deg"].numpy())
         centres.append(100 * errors["translation_errors"].numpy() / ORBIT_RADIUS)
-        if runs[j].intrinsics is not None:
+        if with_intrinsics:
             points = errors["sim3"].apply(object_points(runs[i].params).double())  # run i's object in run j's frame
             pixels.append(reprojection_errors(runs[i].poses_final.double(), runs[j].poses_final.double(),
                                               runs[j].intrinsics.double(), points, errors["sim3"]).numpy())
+    noisy = all(run.config.injects_pose_noise for run in runs)
+    error_deg = (np.stack([_errors(run.poses_final, run.poses_true, alignment, str(run.path))["rotation_errors_deg"]
+                           .numpy() for run in runs]) if noisy else None)
+    same_start = all(torch.allclose(run.poses_init.double(), first.poses_init.double(), atol=1e-6) for run in runs)
     return PoseAgreement(runs=[run.path for run in runs], image_names=list(first.info["image_names"]),
                          alignment=alignment, pairs=pairs, rotation_deg=np.stack(rotations),
-                         centre_percent=np.stack(centres),
-                         pixels=np.stack(pixels) if len(pixels) == len(pairs) else None)
+                         centre_percent=np.stack(centres), pixels=np.stack(pixels) if with_intrinsics else None,
+                         same_start=same_start, error_deg=error_deg)
+
+
+def _errors(viewmats: torch.Tensor, viewmats_ref: torch.Tensor, alignment: str, what: str) -> dict:
+    """`pose_errors` in float64, its failure (cameras in a line, poses collapsed to a point) as one line."""
+    try:
+        return pose_errors(viewmats.double(), viewmats_ref.double(), alignment=alignment)
+    except ValueError as error:
+        raise WarpbagsError(f"{what}: {error}") from None

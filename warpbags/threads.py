@@ -29,12 +29,16 @@ def host_threads() -> int:
 @contextmanager
 def limited_host_threads(count: int | None) -> Iterator[None]:
     """Run the block with every CPU stage that is given no thread count on at most `count` host threads (None: no
-    limit), then restore the limit before it. A process-wide setting, not a thread-local one, since the stages
-    run on pool threads: a Ray task that declared `count` CPUs keeps to them, where its stages took every core of
-    the machine beside the other tasks'."""
+    new limit), then restore the limit before it; a limit inside another never raises it.
+
+    A process-wide setting, not a thread-local one, since the stages run on pool threads: a Ray task that declared
+    `count` CPUs keeps to them, where its stages took every core of the machine beside the other tasks'. Enter it
+    from one thread at a time (a sweep runs one task per worker process): blocks that overlap from several threads
+    would restore each other's limits out of order."""
     global _HOST_THREAD_LIMIT  # noqa: PLW0603 - the one process-wide setting this module holds
     previous = _HOST_THREAD_LIMIT
-    _HOST_THREAD_LIMIT = count if count is None else max(1, min(count, usable_cores()))
+    if count is not None:
+        _HOST_THREAD_LIMIT = max(1, min(count, previous or usable_cores()))
     try:
         yield
     finally:

@@ -23,7 +23,7 @@ from torch import nn
 from warpbags.configs.train import RepairConfig
 from warpbags.errors import WarpbagsError
 from warpbags.repair.pairs import NOISE, RepairPairs
-from warpbags.threads import torch_threads, usable_cores
+from warpbags.threads import host_threads, torch_threads
 
 
 @runtime_checkable
@@ -170,8 +170,8 @@ class UNetRepairer:
             validation = pairs.select([view == held_out_view for view in pairs.views])
         training = pairs.select([view != held_out_view for view in pairs.views])
         before = self.l1_by_kind(pairs, repaired=False)
-        # Convolutions use every core the process may run on; the renderer is idle meanwhile.
-        with torch_threads(usable_cores()):
+        # Convolutions use every core the process may run on (or a sweep task's share); the renderer is idle.
+        with torch_threads(host_threads()):
             check_every = max(config.fit_steps // 10, 1)
             _, checks = self._train(training, config.fit_steps, size, validation, check_every)
             identity = ((validation.corrupted - validation.targets) ** 2).mean().item()
