@@ -13,7 +13,7 @@ from conftest import look_at
 
 from warpbags.camera_optimizer import (CameraOptimizer, CameraOptimizerSettings, corrected_viewmats, hypothesis_turns,
                                        preconditioner)
-from warpbags.cameras import project_points
+from warpbags.cameras import camera_centers, mean_viewmats, project_points
 from warpbags.lie import se3_exp
 from warpbags.wrapper import apply_object_deltas
 
@@ -220,3 +220,33 @@ def test_a_turn_about_the_object_keeps_its_centre_and_turns_by_the_angle(paramet
     assert math.degrees(math.acos((turn.trace().item() - 1) / 2)) == pytest.approx(15.0, abs=1e-9)
     assert turn[2, 2].item() == pytest.approx(1.0, abs=1e-12)
     assert torch.all(cameras.rotations == 0) and not cameras.optimizer.state
+
+
+def test_the_average_of_the_estimates_becomes_the_poses_and_survives_a_checkpoint():
+    cameras = _optimizer(CameraOptimizerSettings(lr=1e-2), dtype=torch.float64)
+    cameras.apply_average()  # none accumulated: nothing changes
+    torch.testing.assert_close(cameras.viewmats(), cameras.viewmats_init, rtol=0, atol=0)
+    estimates = []
+    for _ in range(3):
+        cameras()[:, :3, 3].pow(2).sum().backward()
+        cameras.step()
+        cameras.zero_grad()
+        cameras.accumulate_average()
+        estimates.append(cameras.viewmats())
+    saved = io.BytesIO()
+    torch.save(cameras.state(), saved)
+    saved.seek(0)
+    restored = _optimizer(CameraOptimizerSettings(lr=1e-2), dtype=torch.float64)
+    restored.load_state(torch.load(saved, weights_only=False))
+    expected = mean_viewmats(sum(e[:, :3, :3] for e in estimates), sum(camera_centers(e) for e in estimates), 3)
+    for optimizer in (cameras, restored):
+        optimizer.apply_average()
+        torch.testing.assert_close(optimizer.viewmats(), expected, rtol=0, atol=1e-12)
+        assert torch.all(optimizer.params() == 0) and optimizer.average_count == 0
+    assert (expected - estimates[-1]).abs().max() > 1e-6  # the mean is not the last estimate
+    # a checkpoint of a warpbags without the average loads with an empty one
+    old = cameras.state()
+    old = {"module": {k: v for k, v in old["module"].items() if not k.startswith("average_")},
+           "optimizer": old["optimizer"]}
+    restored.load_state(old)
+    assert restored.average_count == 0

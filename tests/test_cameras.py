@@ -3,9 +3,9 @@
 from __future__ import annotations
 
 import torch
-from random_poses import F64, generator, random_rotations, random_viewmats
+from random_poses import F64, generator, random_rotations, random_viewmats, skew_reference
 
-from warpbags.cameras import (camera_centers, moved_keeping_target, pixel_directions, project_points,
+from warpbags.cameras import (camera_centers, mean_viewmats, moved_keeping_target, pixel_directions, project_points,
                               viewmats_from_centers)
 
 
@@ -77,3 +77,23 @@ def test_moved_keeping_target_keeps_the_target_on_its_ray_and_turns_least():
     assert ((axis * ray).sum(-1).abs() <= 1e-9 * ray.norm(dim=-1)).all()
     # Not moving is the identity.
     torch.testing.assert_close(moved_keeping_target(viewmats, camera_centers(viewmats), target), viewmats)
+
+
+def test_mean_viewmats_of_turns_either_way_is_the_middle_pose():
+    """A camera turned by +a and -a about one axis averages to the unturned pose, its centres to their mean; the
+    mean of one estimate is that estimate, and of nearly opposite rotations still a rotation."""
+    viewmats = random_viewmats(3, generator(4))
+    axis = torch.tensor([0.2, -0.5, 0.8], dtype=F64)
+    turns = [torch.linalg.matrix_exp(skew_reference(axis * sign * 0.3)) for sign in (1, -1)]
+    rotations = [turn @ viewmats[:, :3, :3] for turn in turns]
+    centers = [camera_centers(viewmats) + shift for shift in (0.1, -0.3)]
+    mean = mean_viewmats(sum(rotations), sum(centers), 2)
+    torch.testing.assert_close(mean[:, :3, :3], viewmats[:, :3, :3], rtol=0, atol=1e-12)
+    torch.testing.assert_close(camera_centers(mean), camera_centers(viewmats) - 0.1, rtol=0, atol=1e-12)
+    torch.testing.assert_close(mean_viewmats(viewmats[:, :3, :3], camera_centers(viewmats), 1), viewmats,
+                               rtol=0, atol=1e-12)
+    flipped = random_rotations(1, generator(5))[0]
+    opposite = mean_viewmats((flipped + torch.diag(torch.tensor([1.0, -1.0, -1.0], dtype=F64)) @ flipped)[None],
+                             torch.zeros(1, 3, dtype=F64), 2)[0, :3, :3]
+    torch.testing.assert_close(opposite @ opposite.T, torch.eye(3, dtype=F64), rtol=0, atol=1e-12)
+    assert torch.linalg.det(opposite) > 0

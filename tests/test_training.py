@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 import torch
 from typer.testing import CliRunner
+from warpbags.cameras import camera_centers, mean_viewmats
 from warpbags.cli.main import app
 from warpbags.configs.train import TrainConfig, load_preset, parse_settings
 
@@ -247,6 +248,8 @@ def test_resume_equals_uninterrupted(scene_dir, tmp_path, rounds):
     for name in full.params:
         torch.testing.assert_close(resumed.params[name], full.params[name], rtol=0, atol=1e-6)
     torch.testing.assert_close(resumed.cameras.params(), full.cameras.params(), rtol=0, atol=1e-7)
+    # the final poses are the average of the last round's estimates, half of which came before the checkpoint
+    torch.testing.assert_close(resumed.current_viewmats(), full.current_viewmats(), rtol=0, atol=1e-6)
     log = (tmp_path / "part" / "log.jsonl").read_text().splitlines()
     assert [json.loads(line)["iter"] for line in log] == list(range(1, 25))
     # The pose history (every 10 iterations) follows the resumed trajectory, and records where it was resumed.
@@ -678,6 +681,42 @@ def test_rounds_take_their_own_pose_windows():
     for bad in ([[0.5, 0.5]], [[0.2]], [3], [["a", "b"]], [[True, 1]]):
         with pytest.raises(WarpbagsError, match="pose_round_windows must be"):
             load_preset("quick", pose_round_windows=bad)
+
+
+def test_the_poses_are_averaged_over_the_last_share_of_the_last_rounds_window():
+    """Rounds of 20 with poses from a quarter in: the last round's window is 25-39; its last half (8 of 15 steps)
+    with average_share 0.5, all of it with 1, none with 0, and none without pose optimization."""
+    def averaged(**overrides):
+        schedule = Schedule(load_preset("quick", iters=40, rounds=2, **overrides))
+        return [i for i in range(40) if schedule.at(i).pose_average]
+
+    assert averaged(camera={"average_share": 1.0}) == list(range(25, 40))
+    assert averaged(camera={"average_share": 0.5}) == list(range(32, 40))
+    assert averaged(camera={"average_share": 0.0}) == [] and averaged(pose_opt=False) == []
+    assert load_preset("quick").camera.average_share == 1.0 and load_preset("paper").camera.average_share == 0.0
+    with pytest.raises(WarpbagsError, match="camera.average_share must be in"):
+        load_preset("quick", camera={"average_share": 1.5})
+
+
+def test_a_run_ends_with_the_mean_of_its_last_rounds_estimates(scene_dir, tmp_path):
+    """The training is the same with or without the average (the same Gaussians, to the bit); only the final poses
+    differ: the mean of the estimates after each step of the averaged window (steps 9, 10 and 11 of rounds of 6 with
+    poses in their second half), which poses_final holds."""
+    overrides = dict(iters=12, rounds=2, pose_opt_start=0, pose_round_window=(0.5, 1.0), rot_noise_deg=3.0)
+    estimates = {}
+    averaged = make_trainer(scene_dir, tmp_path / "averaged", **overrides, camera={"average_share": 1.0})
+    averaged.train(callback=lambda record: estimates.setdefault(record["iter"], averaged.current_viewmats().double()))
+    last = make_trainer(scene_dir, tmp_path / "last", **overrides, camera={"average_share": 0.0})
+    last.train()
+    for name in last.params:
+        assert torch.equal(averaged.params[name], last.params[name]), name
+    assert [i for i in range(12) if averaged.schedule.at(i).pose_average] == [9, 10, 11]
+    window = [estimates[10], estimates[11], last.current_viewmats().double()]  # after steps 9, 10 and 11
+    expected = mean_viewmats(sum(e[:, :3, :3] for e in window), sum(camera_centers(e) for e in window), 3)
+    final = torch.from_numpy(np.load(tmp_path / "averaged" / "poses_final.npy")).double()
+    torch.testing.assert_close(final, expected, rtol=0, atol=1e-6)
+    torch.testing.assert_close(estimates[12], final, rtol=0, atol=1e-6)  # the last record's poses are the mean
+    assert (final - last.current_viewmats().double()).abs().max() > 1e-5
 
 
 def test_the_pose_lr_warms_up_at_the_start_of_every_rounds_pose_window():

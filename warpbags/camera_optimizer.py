@@ -31,7 +31,7 @@ from typing import Callable
 
 import torch
 
-from warpbags.cameras import project_points
+from warpbags.cameras import camera_centers, mean_viewmats, project_points
 from warpbags.configs.train import CameraConfig
 from warpbags.errors import WarpbagsError
 from warpbags.wrapper import apply_object_deltas, apply_pose_deltas
@@ -149,6 +149,12 @@ class CameraOptimizer(torch.nn.Module):
             matrix = torch.eye(6, dtype=torch.float64).expand(cams, 6, 6)
         self.register_buffer("preconditioner", matrix.to(**options).contiguous())
         self.register_buffer("free_rows", torch.ones(6, **options))  # 0 where a parameter is held (orbit freezing)
+        # Sums of the estimates averaged into the final poses (`accumulate_average`), in float64: a checkpoint keeps
+        # them, and so does the state a searched round restarts from.
+        sums = dict(dtype=torch.float64, device=viewmats_init.device)
+        self.register_buffer("average_rotation_sums", torch.zeros(cams, 3, 3, **sums))
+        self.register_buffer("average_center_sums", torch.zeros(cams, 3, **sums))
+        self.register_buffer("average_count", torch.zeros((), **sums))
         # Rotation and translation latents: two Adam groups, each created once (resume loads into them).
         self.rotations = torch.nn.Parameter(torch.zeros(cams, 3, **options))
         self.translations = torch.nn.Parameter(torch.zeros(cams, 3, **options))
@@ -216,6 +222,25 @@ class CameraOptimizer(torch.nn.Module):
             self.rotations.zero_()
             self.translations.zero_()
         self.reset_moments()
+
+    def accumulate_average(self) -> None:
+        """Add every camera's current estimate to the average that `apply_average` makes the poses."""
+        with torch.no_grad():
+            viewmats = self().double()
+            self.average_rotation_sums += viewmats[:, :3, :3]
+            self.average_center_sums += camera_centers(viewmats)
+            self.average_count += 1
+
+    def apply_average(self) -> None:
+        """Make the mean of the accumulated estimates the cameras' poses (`reset_to`: no corrections left) and empty
+        the average; nothing when no estimate was accumulated."""
+        count = int(self.average_count.item())
+        if count == 0:
+            return
+        self.reset_to(mean_viewmats(self.average_rotation_sums, self.average_center_sums, count))
+        with torch.no_grad():
+            for buffer in (self.average_rotation_sums, self.average_center_sums, self.average_count):
+                buffer.zero_()
 
     def turn_about_object(self, camera: int, rotation: torch.Tensor) -> None:
         """Turn camera `camera` about the object centre by [3] axis-angle `rotation` in its own frame (z: about the
@@ -303,7 +328,10 @@ class CameraOptimizer(torch.nn.Module):
         return {"module": self.state_dict(), "optimizer": self.optimizer.state_dict()}
 
     def load_state(self, state: dict) -> None:
-        self.load_state_dict(state["module"])
+        module = dict(state["module"])
+        for name in ("average_rotation_sums", "average_center_sums", "average_count"):  # none before they existed
+            module.setdefault(name, torch.zeros_like(getattr(self, name)))
+        self.load_state_dict(module)
         self.optimizer.load_state_dict(state["optimizer"])
 
 

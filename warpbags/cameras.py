@@ -11,7 +11,8 @@ import torch
 
 from warpbags.lie import rotation_between
 
-__all__ = ["camera_centers", "moved_keeping_target", "pixel_directions", "project_points", "viewmats_from_centers"]
+__all__ = ["camera_centers", "mean_viewmats", "moved_keeping_target", "pixel_directions", "project_points",
+           "viewmats_from_centers"]
 
 
 def camera_centers(viewmats: torch.Tensor) -> torch.Tensor:
@@ -69,6 +70,22 @@ def viewmats_from_centers(rotations: torch.Tensor, centers: torch.Tensor) -> tor
     bottom = torch.zeros(*rotations.shape[:-2], 1, 4, dtype=rotations.dtype, device=rotations.device)
     bottom[..., 0, 3] = 1.0
     return torch.cat([top, bottom], dim=-2)
+
+
+def mean_viewmats(rotation_sums: torch.Tensor, center_sums: torch.Tensor, count: int) -> torch.Tensor:
+    """The mean pose of each camera over `count` estimates, from their sums: the rotation nearest (Frobenius) to
+    the mean rotation matrix, the chordal L2 mean, and the mean centre.
+
+    Args:
+        rotation_sums: ``[..., 3, 3]`` sums of world-to-camera rotations. center_sums: ``[..., 3]`` sums of centres.
+
+    Returns:
+        ``[..., 4, 4]`` world-to-camera matrices.
+    """
+    u, _, vh = torch.linalg.svd(rotation_sums / count)
+    flip = torch.ones_like(rotation_sums[..., 0])  # a reflection's last axis turned back: a proper rotation
+    flip[..., 2] = torch.sign(torch.linalg.det(u @ vh))
+    return viewmats_from_centers(u @ (flip[..., None] * vh), center_sums / count)
 
 
 def moved_keeping_target(viewmats: torch.Tensor, centers: torch.Tensor, target: torch.Tensor) -> torch.Tensor:

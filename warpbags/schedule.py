@@ -40,6 +40,8 @@ class StepSettings:
         orbit_free: the object-centric orbit rows are optimized (`camera.orbit_from_round`).
         pose_anchor: weight of the pull of the rendered cameras' corrections towards where the round started
             (`camera.round_anchor` from the second round on and in the repair stage, else 0).
+        pose_average: the poses after this step join the average that becomes the final poses
+            (`camera.average_share`).
     """
 
     round_iteration: int
@@ -53,6 +55,7 @@ class StepSettings:
     pose_lr: float
     orbit_free: bool
     pose_anchor: float
+    pose_average: bool
 
 
 class Schedule:
@@ -128,6 +131,15 @@ class Schedule:
         start, end = self.pose_window(iteration)
         return self.in_repair(iteration) or start <= iteration < end
 
+    def averages_poses(self, iteration: int) -> bool:
+        """The poses after this coarse iteration join the average that becomes the final poses: the last
+        `camera.average_share` of the last round's pose window, when poses are optimized."""
+        share = self.config.camera.average_share
+        if share <= 0 or self.in_repair(iteration) or self.round_index(iteration) < self.rounds - 1:
+            return False
+        start, end = self.pose_window(iteration)
+        return self.poses_move(iteration) and iteration >= end - math.ceil(share * (end - start))
+
     def solves_poses(self, iteration: int) -> bool:
         """Poses move by L-BFGS solves instead of Adam steps in this iteration's round (`camera.lbfgs_from_round`;
         coarse rounds only)."""
@@ -158,4 +170,5 @@ class Schedule:
             pose_lr=exponential_lr(config.lr.pose, config.lr.pose_final, pose_fraction) * warmup,
             orbit_free=self.orbit_free(iteration),
             pose_anchor=config.camera.round_anchor if in_repair or self.round_index(iteration) > 0 else 0.0,
+            pose_average=self.averages_poses(iteration),
         )

@@ -193,7 +193,11 @@ class Trainer:
             loss, terms = self.model.fit_step(self.cameras, settings)
             if settings.pose_solve:
                 self._solve_poses(settings)
+        if settings.pose_average:
+            self.cameras.accumulate_average()
         self.iteration += 1
+        if self.iteration == self.config.iters:  # the coarse stage ends with the average of its last estimates
+            self.cameras.apply_average()
         return self._record("coarse", loss, terms, started)
 
     def _solve_poses(self, settings: StepSettings) -> None:
