@@ -250,3 +250,16 @@ def test_the_average_of_the_estimates_becomes_the_poses_and_survives_a_checkpoin
            "optimizer": old["optimizer"]}
     restored.load_state(old)
     assert restored.average_count == 0
+
+
+def test_a_gauge_camera_keeps_its_given_pose_through_the_average():
+    cameras = _optimizer(CameraOptimizerSettings(fix_first_camera=True, lr=1e-2))
+    given = cameras.viewmats()[0].clone()
+    for _ in range(3):
+        cameras()[:, :3, 3].pow(2).sum().backward()
+        cameras.step()
+        cameras.zero_grad()
+        cameras.accumulate_average()
+    cameras.apply_average()
+    assert torch.equal(cameras.viewmats()[0], given)  # not re-projected onto SO(3) in float32
+    assert (cameras.viewmats()[1:] - cameras.viewmats_init[1:]).abs().max() == 0  # the others at their mean

@@ -358,6 +358,25 @@ def test_a_step_that_diverges_on_a_checkpoint_iteration_is_not_checkpointed(scen
     assert trainer.latest_checkpoint().name == "checkpoint_000005.pt"
 
 
+def test_a_last_step_that_leaves_the_cameras_non_finite_is_reported_not_averaged(scene_dir, tmp_path):
+    """The coarse stage's last step is followed by the average of the estimates (`camera.average_share`), which
+    would turn NaN cameras into an SVD failure or NaN base poses with zero corrections: it is Diverged instead."""
+    trainer = make_trainer(scene_dir, tmp_path, iters=12, checkpoint_every=5, pose_opt_start=0,
+                           camera={"average_share": 1.0})
+    trainer.train(stop_at=10)
+    step = trainer.cameras.step
+
+    def diverging_step(*args, **kwargs):
+        step(*args, **kwargs)
+        if trainer.iteration == 11:  # the last step
+            with torch.no_grad():
+                trainer.cameras.rotations[0, 0] = float("nan")
+
+    trainer.cameras.step = diverging_step
+    with pytest.raises(WarpbagsError, match="diverged at iteration 12: parameter camera parameters has NaN.*checkpoint_000010"):
+        trainer.train()
+
+
 def test_a_log_record_describes_the_step_it_logs(scene_dir, tmp_path):
     """Record "iter" n is the n-th step (index n - 1): its pose flag and SH degree are that step's schedule's."""
     trainer = make_trainer(scene_dir, tmp_path, iters=6, pose_opt_start=3, sh_degree=1, sh_degree_every=2)

@@ -237,7 +237,10 @@ class CameraOptimizer(torch.nn.Module):
         count = int(self.average_count.item())
         if count == 0:
             return
-        self.reset_to(mean_viewmats(self.average_rotation_sums, self.average_center_sums, count))
+        mean = mean_viewmats(self.average_rotation_sums, self.average_center_sums, count).to(self.viewmats_init)
+        held = self.gauge[:, 0] == 0
+        mean[held] = self.viewmats_init[held]  # a gauge camera keeps its given pose to the bit
+        self.reset_to(mean)
         with torch.no_grad():
             for buffer in (self.average_rotation_sums, self.average_center_sums, self.average_count):
                 buffer.zero_()

@@ -197,7 +197,9 @@ class Trainer:
             self.cameras.accumulate_average()
         self.iteration += 1
         if self.iteration == self.config.iters:  # the coarse stage ends with the average of its last estimates
-            self.cameras.apply_average()
+            with self._divergence_reported():
+                self.model.check_finite_parameters(self.cameras)  # the last step's, before they are averaged away
+                self.cameras.apply_average()
         return self._record("coarse", loss, terms, started)
 
     def _solve_poses(self, settings: StepSettings) -> None:
