@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import time
 from pathlib import Path
 from typing import Any, Iterable
 
@@ -23,6 +24,7 @@ from warpbags.data import SyntheticOptions, ensure_synthetic_scene, load_scene, 
 from warpbags.data.noise import monocular_like_depths  # noqa: E402
 from warpbags.errors import WarpbagsError  # noqa: E402
 from warpbags.files import atomic_output, finite_json  # noqa: E402
+from warpbags.trainer import Trainer, training_scene  # noqa: E402
 
 SMALL_SCENES = {
     # the synthetic scene, small enough for many runs
@@ -105,6 +107,21 @@ def training_overrides(args: argparse.Namespace, fixed: dict[str, str] | None = 
     for run in runs:
         load_preset(args.preset, **merge_settings(overrides, run))
     return overrides
+
+
+def quiet_trainer(scene, settings: dict, preset: str, folder: Path) -> Trainer:
+    """A Trainer of `preset` with `settings` on `scene`, writing into `folder`, that logs nothing (the start
+    procedures have run; the run files are not written yet)."""
+    config = load_preset(preset, **settings)
+    return Trainer(training_scene(scene, config), config, folder, log=lambda message: None)
+
+
+def timed_training(trainer: Trainer) -> float:
+    """Write `trainer`'s run files and train it to the end; returns the minutes of the training iterations alone."""
+    trainer.write_run_files()
+    started = time.perf_counter()
+    trainer.train()
+    return (time.perf_counter() - started) / 60
 
 
 def write_json(path: Path, data: Any, indent: int = 1) -> None:

@@ -42,19 +42,16 @@ from __future__ import annotations
 
 import argparse
 import tempfile
-import time
 from pathlib import Path
 
 import numpy as np
 import torch
 
-from common import (add_training_options, merge_settings, open_bench_scene, training_overrides,
-                    with_depth, write_json)
+from common import (add_training_options, merge_settings, open_bench_scene, quiet_trainer, timed_training,
+                    training_overrides, with_depth, write_json)
 from warpbags.alignment import pose_errors
-from warpbags.configs.train import load_preset
 from warpbags.data import ORBIT_RADIUS
 from warpbags.evaluation import evaluate_run
-from warpbags.trainer import Trainer, training_scene
 from warpbags.cli.common import clean_errors, parse_numbers
 
 VARIANTS = {
@@ -84,8 +81,7 @@ def run_once(scene, settings: dict, preset: str, root: Path, train: bool = True)
     """Train and evaluate one configuration; returns its pose errors, image metrics and minutes. The poses training
     starts from (after the mask-centroid start and the silhouette-coherence solve) are measured too; with `train`
     False only those, without training."""
-    config = load_preset(preset, **settings)
-    trainer = Trainer(training_scene(scene, config), config, root, log=lambda message: None)
+    trainer = quiet_trainer(scene, settings, preset, root)
     truth = trainer.viewmats_true.double().cpu()
     start = pose_errors(trainer.viewmats_start.double().cpu(), truth, alignment="procrustes")
     if not train:
@@ -94,10 +90,7 @@ def run_once(scene, settings: dict, preset: str, root: Path, train: bool = True)
                 "rotation_start": start["rotation_errors_deg"].tolist(),
                 "translation_initial": initial["translation_errors"].tolist(),
                 "translation_start": start["translation_errors"].tolist()}
-    trainer.write_run_files()
-    started = time.perf_counter()
-    trainer.train()
-    minutes = (time.perf_counter() - started) / 60
+    minutes = timed_training(trainer)
     report = evaluate_run(root, refine_iters=50, log=lambda message: None)
     poses = report["poses"]["procrustes"]
     return {

@@ -18,29 +18,17 @@ from __future__ import annotations
 
 import argparse
 import tempfile
-import time
 from pathlib import Path
 
 import numpy as np
 import torch
-from common import add_training_options, merge_settings, open_bench_scene, training_overrides, with_depth, write_json
+from common import (add_training_options, merge_settings, open_bench_scene, quiet_trainer, timed_training,
+                    training_overrides, with_depth, write_json)
 
 from warpbags.agreement import pose_agreement
 from warpbags.cli.common import clean_errors, parse_numbers
-from warpbags.configs.train import load_preset
 from warpbags.errors import WarpbagsError
 from warpbags.run_folder import load_run
-from warpbags.trainer import Trainer, training_scene
-
-
-def train_run(scene, settings: dict, preset: str, folder: Path) -> float:
-    """Train one run into `folder`; returns its minutes."""
-    config = load_preset(preset, **settings)
-    trainer = Trainer(training_scene(scene, config), config, folder, log=lambda message: None)
-    trainer.write_run_files()
-    started = time.perf_counter()
-    trainer.train()
-    return (time.perf_counter() - started) / 60
 
 
 def main() -> None:
@@ -90,7 +78,7 @@ def main() -> None:
                         settings = merge_settings(overrides, dict(views=views, rot_noise_deg=args.rot,
                                                                   trans_noise=args.trans, noise_seed=noise_seed,
                                                                   seed=seed, repair={"iters": 0}))
-                        minutes.append(train_run(scene, settings, args.preset, folder))
+                        minutes.append(timed_training(quiet_trainer(scene, settings, args.preset, folder)))
                         folders.append(folder)
                     agreement = pose_agreement([load_run(folder) for folder in folders])
                     errors = agreement.error_deg  # [R, C], with the pairs' alignment
@@ -109,9 +97,10 @@ def main() -> None:
                           f"{row['error'] / max(row['disagreement'], 1e-9):>14.2f} {row['minutes']:>5.1f}", flush=True)
                     if args.json:
                         write_json(args.json, results)
-                correlation = np.corrcoef(np.concatenate(camera_errors), np.concatenate(camera_disagreements))[0, 1]
+                camera_errors, camera_disagreements = np.concatenate(camera_errors), np.concatenate(camera_disagreements)
+                correlation = np.corrcoef(camera_errors, camera_disagreements)[0, 1]
                 print(f"{'':<22} {views:>5} {'all':>10} cameras' error against their disagreement: correlation "
-                      f"{correlation:.2f} over {len(np.concatenate(camera_errors))} cameras", flush=True)
+                      f"{correlation:.2f} over {len(camera_errors)} cameras", flush=True)
     print("error: rotation error against the scene's poses (deg, mean over cameras); disagree: angle between two "
           "runs' orientations of a camera (deg, mean over pairs and cameras); both after sim(3) Procrustes (SPARF's "
           "pairwise alignment with 2 views)")
