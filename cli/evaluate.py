@@ -6,7 +6,6 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Optional
 
-import numpy as np
 import typer
 from rich.console import Console
 from rich.markup import escape
@@ -99,11 +98,11 @@ def agree(
     columns = ["camera", "image", "rot med", "rot max", "centre max", "px max"]
     for column in columns + (["error"] if result.error_deg is not None else []):
         table.add_column(column)
+    summary = result.per_camera()
     for camera, name in enumerate(result.image_names):
-        rotations = result.rotation_deg[:, camera]
-        row = [str(camera), escape(name), f"{np.median(rotations):.2f}", f"{rotations.max():.2f}",
-               f"{result.centre_percent[:, camera].max():.2f}",
-               "n/a" if result.pixels is None else f"{result.pixels[:, camera].max():.2f}"]
+        row = [str(camera), escape(name), f"{summary['rotation_deg_median'][camera]:.2f}",
+               f"{summary['rotation_deg_max'][camera]:.2f}", f"{summary['centre_percent_of_orbit_max'][camera]:.2f}",
+               f"{summary['pixels_max'][camera]:.2f}" if "pixels_max" in summary else "n/a"]
         if result.error_deg is not None:
             row.append(f"{result.error_deg[:, camera].mean():.2f}")
         table.add_row(*row)

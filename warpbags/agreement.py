@@ -69,14 +69,20 @@ class PoseAgreement:
         """The index of the run that disagrees least with the others: the one to keep if one is to be kept."""
         return int(np.argmin(self.run_disagreement_deg()))
 
-    def to_json(self) -> dict:
-        per_camera = {
-            "rotation_deg_median": np.median(self.rotation_deg, axis=0).tolist(),
-            "rotation_deg_max": self.rotation_deg.max(axis=0).tolist(),
-            "centre_percent_of_orbit_max": self.centre_percent.max(axis=0).tolist(),
+    def per_camera(self) -> dict[str, np.ndarray]:
+        """[C] summaries over the pairs: the median and largest rotation disagreement, the largest centre distance
+        (% of the orbit) and, where the runs saved intrinsics, the largest pixel distance."""
+        summary = {
+            "rotation_deg_median": np.median(self.rotation_deg, axis=0),
+            "rotation_deg_max": self.rotation_deg.max(axis=0),
+            "centre_percent_of_orbit_max": self.centre_percent.max(axis=0),
         }
         if self.pixels is not None:
-            per_camera["pixels_max"] = self.pixels.max(axis=0).tolist()
+            summary["pixels_max"] = self.pixels.max(axis=0)
+        return summary
+
+    def to_json(self) -> dict:
+        per_camera = {name: values.tolist() for name, values in self.per_camera().items()}
         return {
             "runs": [str(path) for path in self.runs],
             "image_names": self.image_names,

@@ -114,6 +114,10 @@ class CameraOptimizerSettings:
                    translation_scale=translation_scale)
 
 
+# The running sums of `CameraOptimizer.accumulate_average`: rotations [C, 3, 3], centres [C, 3], estimates [].
+AVERAGE_BUFFERS = ("average_rotation_sums", "average_center_sums", "average_count")
+
+
 class CameraOptimizer(torch.nn.Module):
     """Per-camera pose corrections of C cameras, their gauge, preconditioner and Adam optimizer.
 
@@ -152,9 +156,8 @@ class CameraOptimizer(torch.nn.Module):
         # Sums of the estimates averaged into the final poses (`accumulate_average`), in float64: a checkpoint keeps
         # them, and so does the state a searched round restarts from.
         sums = dict(dtype=torch.float64, device=viewmats_init.device)
-        self.register_buffer("average_rotation_sums", torch.zeros(cams, 3, 3, **sums))
-        self.register_buffer("average_center_sums", torch.zeros(cams, 3, **sums))
-        self.register_buffer("average_count", torch.zeros((), **sums))
+        for name, shape in zip(AVERAGE_BUFFERS, ((cams, 3, 3), (cams, 3), ())):
+            self.register_buffer(name, torch.zeros(shape, **sums))
         # Rotation and translation latents: two Adam groups, each created once (resume loads into them).
         self.rotations = torch.nn.Parameter(torch.zeros(cams, 3, **options))
         self.translations = torch.nn.Parameter(torch.zeros(cams, 3, **options))
@@ -242,8 +245,8 @@ class CameraOptimizer(torch.nn.Module):
         mean[held] = self.viewmats_init[held]  # a gauge camera keeps its given pose to the bit
         self.reset_to(mean)
         with torch.no_grad():
-            for buffer in (self.average_rotation_sums, self.average_center_sums, self.average_count):
-                buffer.zero_()
+            for name in AVERAGE_BUFFERS:
+                getattr(self, name).zero_()
 
     def turn_about_object(self, camera: int, rotation: torch.Tensor) -> None:
         """Turn camera `camera` about the object centre by [3] axis-angle `rotation` in its own frame (z: about the
@@ -332,7 +335,7 @@ class CameraOptimizer(torch.nn.Module):
 
     def load_state(self, state: dict) -> None:
         module = dict(state["module"])
-        for name in ("average_rotation_sums", "average_center_sums", "average_count"):  # none before they existed
+        for name in AVERAGE_BUFFERS:  # a checkpoint of a warpbags before the average has none
             module.setdefault(name, torch.zeros_like(getattr(self, name)))
         self.load_state_dict(module)
         self.optimizer.load_state_dict(state["optimizer"])
