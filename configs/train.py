@@ -12,6 +12,8 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
+import types
 import typing
 from dataclasses import dataclass, field
 from typing import Any, Literal
@@ -20,6 +22,12 @@ from warpbags.errors import WarpbagsError
 
 BACKGROUNDS = {"white": (1.0, 1.0, 1.0), "black": (0.0, 0.0, 0.0)}  # `TrainConfig.background`'s colours
 ALIGNMENTS = ("procrustes", "pairwise")  # how estimated cameras are mapped onto reference ones (warpbags.alignment)
+ORBIT_RADIUS = 4.0  # warpbags.data.scene.ORBIT_RADIUS: scenes are normalized so that the cameras orbit at this radius
+MAX_HULL_RESOLUTION = 256  # the carving's first pass holds (1.5 x this)^3 voxel centres: 57 million, ~3 GB, at 256
+# The float fields that have a `warpbags train` option (cli/train_options.py's TRAIN_OPTIONS), by the name `--set`
+# gives them: `TrainConfig.validate` names the option where a value is not finite, the others as `--set` spells them.
+FLOAT_OPTIONS = {"rot_noise_deg": "--rot-noise-deg", "trans_noise": "--trans-noise", "blur_sigma_px": "--blur-px",
+                 "camera.round_anchor": "--round-anchor"}
 
 
 @dataclass(frozen=True)
@@ -425,8 +433,15 @@ class TrainConfig:
         """Check value ranges; returns self.
 
         Raises:
-            WarpbagsError: the first out-of-range value, named as its CLI option.
+            WarpbagsError: the first out-of-range value, named as its CLI option; a float that is not finite (NaN,
+                inf) anywhere in the config, nested groups and lists included, before any range.
         """
+        non_finite = _non_finite(self)
+        if non_finite is not None:
+            name, value = non_finite
+            if isinstance(value, tuple):
+                raise WarpbagsError(f"{name} must be finite numbers, got {list(value)}")
+            raise WarpbagsError(f"{FLOAT_OPTIONS.get(name, name)} must be a finite number, got {value}")
         checks = [
             (self.views >= 2, f"--views must be >= 2, got {self.views}"),  # a visual hull needs two
             (self.iters >= 1, f"--iters must be >= 1, got {self.iters}"),
@@ -464,20 +479,39 @@ class TrainConfig:
             (self.rot_noise_deg >= 0, f"--rot-noise-deg must be >= 0, got {self.rot_noise_deg}"),
             (self.rot_noise_deg <= 180, f"--rot-noise-deg must be <= 180, got {self.rot_noise_deg}"),
             (self.trans_noise >= 0, f"--trans-noise must be >= 0, got {self.trans_noise}"),
+            (self.trans_noise <= ORBIT_RADIUS,
+             f"--trans-noise must be <= {ORBIT_RADIUS:g} (a std in normalized scene units, where the cameras orbit at "
+             f"radius {ORBIT_RADIUS:g}), got {self.trans_noise}"),
+            (-2**63 <= self.seed < 2**63, f"--seed must be in [-2^63, 2^63) (a torch generator seed), got {self.seed}"),
+            (-2**63 <= self.noise_seed < 2**63,
+             f"--noise-seed must be in [-2^63, 2^63) (a torch generator seed), got {self.noise_seed}"),
+            (self.depth_until >= 0, f"depth_until must be >= 0, got {self.depth_until}"),
             (self.resolution in (None, 1, 2, 4, 8), f"--resolution must be 1, 2, 4 or 8, got {self.resolution}"),
-            (self.max_image_size >= 0, f"--max-image-size must be >= 0, got {self.max_image_size}"),
+            (self.max_image_size == 0 or self.max_image_size >= 16,
+             f"--max-image-size must be 0 (off) or >= 16 (smaller images leave too few pixels to fit), got "
+             f"{self.max_image_size}"),
             (self.pyramid_levels >= 1, f"pyramid_levels must be >= 1, got {self.pyramid_levels}"),
-            (self.views_per_step >= 0, f"views_per_step must be >= 0, got {self.views_per_step}"),
+            (0 <= self.views_per_step <= self.views,
+             f"views_per_step must be in [0, views = {self.views}] (0 = all), got {self.views_per_step}"),
             (self.background in BACKGROUNDS, f"background must be white or black, got {self.background!r}"),
             (0 <= self.sh_degree <= 3, f"sh_degree must be 0-3, got {self.sh_degree}"),
+            (self.sh_degree_every >= 1, f"sh_degree_every must be >= 1, got {self.sh_degree_every}"),
             (self.init in ("hull", "sfm", "random"), f"--init must be hull, sfm or random, got {self.init!r}"),
             (self.init_points >= 1, f"init_points must be >= 1, got {self.init_points}"),
+            (2 <= self.hull_resolution <= MAX_HULL_RESOLUTION,
+             f"hull_resolution must be in [2, {MAX_HULL_RESOLUTION}] (its first pass carves (1.5 x this)^3 voxels), "
+             f"got {self.hull_resolution}"),
+            (self.hull_dilation_px >= 0, f"hull_dilation_px must be >= 0, got {self.hull_dilation_px}"),
+            (self.hull_missed_views >= 0, f"hull_missed_views must be >= 0, got {self.hull_missed_views}"),
             (self.checkpoint_every >= 1, f"checkpoint_every must be >= 1, got {self.checkpoint_every}"),
             (self.blur_sigma_px >= 0, f"--blur-px must be >= 0, got {self.blur_sigma_px}"),
             (self.blur_until >= 0, f"--blur-until must be >= 0, got {self.blur_until}"),
+            (0 <= self.lambda_dssim <= 1, f"lambda_dssim must be in [0, 1], got {self.lambda_dssim}"),
+            (self.lambda_mask >= 0, f"lambda_mask must be >= 0, got {self.lambda_mask}"),
             (0 <= self.lambda_depth < 1, f"lambda_depth must be in [0, 1), got {self.lambda_depth}"),
             (self.depth_loss in ("mad", "pearson"), f"--depth-loss must be mad or pearson, got {self.depth_loss!r}"),
             (self.pose_alignment in ALIGNMENTS, f"pose_alignment: {self.pose_alignment!r}"),
+            (self.render_threads >= 0, f"render_threads must be >= 0 (0: all cores), got {self.render_threads}"),
             (self.camera.parameterization in ("object", "camera"),
              f"camera.parameterization must be object or camera, got {self.camera.parameterization!r}"),
             (self.camera.precondition_reg > 0, f"camera.precondition_reg must be > 0, got {self.camera.precondition_reg}"),
@@ -488,6 +522,16 @@ class TrainConfig:
             *((getattr(self.lr, name) >= 0, f"lr.{name} must be >= 0, got {getattr(self.lr, name)}")
               for name in ("sh_dc", "sh_rest", "opacities", "scales", "quats", "pose_translation_scale")),
             (self.densify.every >= 1, f"densify.every must be >= 1, got {self.densify.every}"),
+            (self.densify.grad_threshold > 0,
+             f"densify.grad_threshold must be > 0, got {self.densify.grad_threshold}"),
+            (self.densify.percent_dense >= 0, f"densify.percent_dense must be >= 0, got {self.densify.percent_dense}"),
+            (0 <= self.densify.prune_opacity < 1,
+             f"densify.prune_opacity must be in [0, 1), got {self.densify.prune_opacity}"),
+            (self.densify.prune_scale > 0, f"densify.prune_scale must be > 0, got {self.densify.prune_scale}"),
+            (self.densify.max_gaussians >= 0,
+             f"densify.max_gaussians must be >= 0 (0: unlimited), got {self.densify.max_gaussians}"),
+            (self.densify.floater_std_ratio >= 0,
+             f"densify.floater_std_ratio must be >= 0, got {self.densify.floater_std_ratio}"),
             (min(self.densify.floater_every, self.densify.opacity_reset_every) >= 0,
              "densify.floater_every and densify.opacity_reset_every must be >= 0 (0: never)"),
             (min(self.lambda_mask_distance, self.lambda_chamfer) >= 0, "silhouette loss weights must be >= 0"),
@@ -610,23 +654,76 @@ def _is_window(value: Any) -> bool:
     return numbers and 0 <= value[0] < value[1] <= 1
 
 
-def _typed(value: Any, default: Any, name: str, any_length: bool = False) -> Any:
-    """`value` as the type of the field's `default` (ints pass for floats, lists for tuples). An empty tuple default,
-    or a field declared `tuple[T, ...]` (`any_length`), takes a list of any length (nested lists become tuples;
-    `TrainConfig.validate` checks the items)."""
-    if (default == () or any_length) and isinstance(value, (list, tuple)):
-        return tuple(tuple(item) if isinstance(item, list) else item for item in value)
-    if default is None or value is None:
+def _non_finite(config: Any, prefix: str = "") -> tuple[str, Any] | None:
+    """The first field of a config dataclass, its nested groups' included, that holds a float that is not finite
+    (itself or, for a tuple, any item at any depth), as (dotted name, value); None when there is none."""
+    for item in dataclasses.fields(config):
+        value = getattr(config, item.name)
+        if dataclasses.is_dataclass(value):
+            found = _non_finite(value, f"{prefix}{item.name}.")
+            if found is not None:
+                return found
+        elif not _finite(value):
+            return prefix + item.name, value
+    return None
+
+
+def _finite(value: Any) -> bool:
+    """False for a float that is NaN or infinite, or a tuple holding one at any depth; True for anything else."""
+    if isinstance(value, float):
+        return math.isfinite(value)
+    return all(_finite(item) for item in value) if isinstance(value, tuple) else True
+
+
+def _is_number(value: Any) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool)
+
+
+_KINDS = {int: "an integer", float: "a number", bool: "true or false", str: "a string"}
+
+
+def _is_kind(value: Any, kind: Any) -> bool:
+    """Whether `value` passes for a field of the plain type `kind` (ints for floats; a bool is no int)."""
+    if kind is float:
+        return _is_number(value)
+    if kind is int:
+        return isinstance(value, int) and not isinstance(value, bool)
+    return isinstance(value, kind) if isinstance(kind, type) else True
+
+
+def _typed(value: Any, default: Any, name: str, declared: Any) -> Any:
+    """`value` as the type of the field's `default` (ints pass for floats, lists for tuples), the field declared as
+    `declared`. An empty tuple default, or a field declared `tuple[T, ...]`, takes a list of any length (nested lists
+    become tuples; `TrainConfig.validate` checks the items, which must be numbers where T is float). A field that may be
+    None (`int | None`) takes None or a value of its other type, checked against the declaration: the default None
+    tells nothing."""
+    if (default == () or _any_length_tuple(declared)) and isinstance(value, (list, tuple)):
+        value = tuple(tuple(item) if isinstance(item, list) else item for item in value)
+        if typing.get_args(declared)[:1] == (float,) and not all(_is_number(item) for item in value):
+            raise WarpbagsError(f"{name} must be a list of numbers, got {list(value)}")
         return value
+    if default is None or value is None:
+        union = typing.get_origin(declared) in (typing.Union, types.UnionType)
+        kinds = [kind for kind in typing.get_args(declared) if kind is not type(None)] if union else [declared]
+        if value is None and union and type(None) in typing.get_args(declared):
+            return value
+        if value is not None and any(_is_kind(value, kind) for kind in kinds):
+            return value
+        if default is not None:
+            raise WarpbagsError(f"{name} must be like {default!r}, got {value!r}")
+        what = " or ".join(_KINDS.get(kind, getattr(kind, "__name__", str(kind))) for kind in kinds)
+        raise WarpbagsError(f"{name} must be {what} or null, got {value!r}")
     if isinstance(default, bool) or not isinstance(default, (int, float, tuple)):
         ok = isinstance(value, type(default))
     elif isinstance(default, float):
-        ok = isinstance(value, (int, float)) and not isinstance(value, bool)
+        ok = _is_number(value)
     elif isinstance(default, int):
         ok = isinstance(value, int) and not isinstance(value, bool)
     else:
         ok = isinstance(value, (list, tuple)) and len(value) == len(default)
         value = tuple(value) if ok else value
+        if ok and all(map(_is_number, default)):  # a pair of numbers takes numbers only
+            ok = all(map(_is_number, value))
     if not ok:
         raise WarpbagsError(f"{name} must be like {default!r}, got {value!r}")
     return value
@@ -651,7 +748,7 @@ def _replaced(base: Any, overrides: dict[str, Any], prefix: str = "") -> Any:
                 raise WarpbagsError(f"{prefix}{key} must be a group of fields, got {value!r}")
             changes[key] = _replaced(current, value, f"{prefix}{key}.")
         else:
-            changes[key] = _typed(value, current, prefix + key, any_length=_any_length_tuple(fields[key]))
+            changes[key] = _typed(value, current, prefix + key, fields[key])
     return dataclasses.replace(base, **changes)
 
 

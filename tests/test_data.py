@@ -787,12 +787,23 @@ def test_synthetic_lighting_changes_the_images_and_nothing_else(tmp_path, settin
         assert np.abs(images[0] - images[1])[~background].mean() > 3  # levels of 255
 
 
-@pytest.mark.parametrize("flags, message", [(["--gain-jitter", "-1"], "gain jitter must be >= 0"),
-                                            (["--object", "teapot"], "unknown synthetic object 'teapot'")])
+@pytest.mark.parametrize("flags, message", [
+    (["--gain-jitter", "-1"], "gain jitter must be >= 0"),
+    (["--object", "teapot"], "unknown synthetic object 'teapot'"),
+    # NaN passes `>= 0` and wrote garbage images; a huge image ended in numpy's ArrayMemoryError, a negative seed in
+    # numpy's ValueError
+    (["--gain-jitter", "nan"], "gain_jitter must be a finite number, got nan"),
+    (["--light-jitter-deg", "nan"], "light_jitter_deg must be a finite number, got nan"),
+    (["--light-jitter-deg", "inf"], "light_jitter_deg must be a finite number, got inf"),
+    (["--size", "100000000"], "at most 1000 views and 2048 pixels a side"),
+    (["--views", "100000000"], "at most 1000 views and 2048 pixels a side"),
+    (["--seed", "-1"], "seed must be >= 0, got -1"),
+])
 def test_synth_refuses_a_bad_setting_and_writes_nothing(tmp_path, flags, message):
     result = CliRunner().invoke(app, ["synth", str(tmp_path / "bad"), "--views", "4", *flags])
-    assert result.exit_code != 0 and message in result.output
-    assert not (tmp_path / "bad").exists()
+    lines = [line for line in result.output.splitlines() if line.strip()]
+    assert result.exit_code == 2 and len(lines) == 1 and message in lines[0], result.output
+    assert not (tmp_path / "bad").exists() and list(tmp_path.iterdir()) == []  # no staging folder left either
 
 
 def test_synth_writes_the_tankard_as_its_own_scene(tmp_path):

@@ -123,3 +123,127 @@ def test_parse_settings_refuses_a_field_of_a_group_set_to_a_value():
     assert parse_settings(["repair.iters=1", "views=6"]) == {"repair": {"iters": 1}, "views": 6}
     with pytest.raises(WarpbagsError, match="--set 'repair.iters=1': repair was set to 3, not a group of fields"):
         parse_settings(["repair=3", "repair.iters=1"])
+
+
+def _float_fields(config, prefix=""):
+    """(dotted name, value) of every float field of a config dataclass and its groups, tuples of floats included."""
+    for item in dataclasses.fields(config):
+        value = getattr(config, item.name)
+        if dataclasses.is_dataclass(value):
+            yield from _float_fields(value, f"{prefix}{item.name}.")
+        elif isinstance(value, float) or (isinstance(value, tuple) and value and isinstance(value[0], float)):
+            yield prefix + item.name, value
+
+
+def _override(path, value):
+    """load_preset's keyword overrides setting the field at dotted `path`."""
+    group, _, name = path.rpartition(".")
+    return {group: {name: value}} if group else {name: value}
+
+
+def test_every_float_field_must_be_finite():
+    """NaN and inf pass `>= 0`-style checks (inf) or fail them with a misleading message (NaN): `--trans-noise inf`
+    reached a LinAlgError in the preconditioner, `--set lambda_dssim=NaN` diverged at iteration 0. Every float field
+    of the whole tree, a list's items too, is refused by one check that names it (its option where it has one)."""
+    import pytest
+    from warpbags.configs.train import FLOAT_OPTIONS, load_preset
+    from warpbags.errors import WarpbagsError
+
+    found = dict(_float_fields(quick()))
+    assert {"trans_noise", "lr.sh_dc", "camera.hypothesis_angles", "densify.grad_threshold",
+            "repair.noise_dropout"} <= set(found)  # the walk reaches every group
+    for path, value in found.items():
+        for bad in (float("nan"), float("inf"), float("-inf")):
+            if isinstance(value, tuple):
+                given, shown = [value[0], bad], rf"\[{value[0]}, {bad}\]"
+                name = path
+            else:
+                given, shown, name = bad, str(bad), FLOAT_OPTIONS.get(path, path)
+            with pytest.raises(WarpbagsError, match=rf"^{name} must be (a )?finite numbers?, got {shown}$"):
+                load_preset("quick", **_override(path, given))
+    with pytest.raises(WarpbagsError, match=r"^pose_round_windows must be finite numbers, got \[\(0.1, nan\)\]$"):
+        load_preset("quick", pose_round_windows=[[0.1, float("nan")]])
+
+
+def test_non_finite_values_are_named_by_their_train_option():
+    """FLOAT_OPTIONS, the float fields' `warpbags train` options as validate names them, are TRAIN_OPTIONS's."""
+    from warpbags.cli.train_options import TRAIN_OPTIONS, field_type
+    from warpbags.configs.train import FLOAT_OPTIONS, ORBIT_RADIUS
+    from warpbags.data.scene import ORBIT_RADIUS as SCENE_ORBIT_RADIUS
+
+    options = {option.path: option.flag for option in TRAIN_OPTIONS
+               if option.sets is None and field_type(option.path) is float}
+    assert FLOAT_OPTIONS == options
+    assert ORBIT_RADIUS == SCENE_ORBIT_RADIUS  # --trans-noise's bound
+
+
+def test_range_checks_that_training_needed():
+    """Each value refused here crashed or silently misbehaved later: a segfault in the renderer (render_threads -1),
+    a ZeroDivisionError in carving (hull_resolution 0), a diverging run (max_image_size 1, --trans-noise 1e30), an
+    OverflowError in the torch generator (a seed past 64 bits), a TypeError (lr.pose null)."""
+    import pytest
+    from warpbags.configs.train import load_preset
+    from warpbags.errors import WarpbagsError
+
+    for overrides, message in [
+            ({"trans_noise": 1e30}, r"--trans-noise must be <= 4 \(a std in normalized scene units, where the "
+                                    r"cameras orbit at radius 4\), got 1e\+30"),
+            ({"render_threads": -1}, "render_threads must be >= 0"),
+            ({"hull_resolution": 0}, r"hull_resolution must be in \[2, 256\]"),
+            ({"hull_resolution": 1000}, r"hull_resolution must be in \[2, 256\]"),
+            ({"hull_missed_views": -1}, "hull_missed_views must be >= 0"),
+            ({"hull_dilation_px": -1}, "hull_dilation_px must be >= 0"),
+            ({"sh_degree_every": 0}, "sh_degree_every must be >= 1"),
+            ({"views_per_step": 5}, r"views_per_step must be in \[0, views = 4\] \(0 = all\), got 5"),
+            ({"views_per_step": -1}, r"views_per_step must be in \[0, views = 4\]"),
+            ({"lambda_dssim": 1.5}, r"lambda_dssim must be in \[0, 1\], got 1.5"),
+            ({"lambda_dssim": -0.1}, r"lambda_dssim must be in \[0, 1\]"),
+            ({"lambda_mask": -1}, "lambda_mask must be >= 0"),
+            ({"max_image_size": 1}, r"--max-image-size must be 0 \(off\) or >= 16"),
+            ({"max_image_size": -1}, r"--max-image-size must be 0 \(off\) or >= 16"),
+            ({"depth_until": -1}, "depth_until must be >= 0"),
+            ({"seed": 2**70}, r"--seed must be in \[-2\^63, 2\^63\)"),
+            ({"noise_seed": -2**64}, r"--noise-seed must be in \[-2\^63, 2\^63\)"),
+            ({"densify": {"max_gaussians": -1}}, "densify.max_gaussians must be >= 0"),
+            ({"densify": {"grad_threshold": 0}}, "densify.grad_threshold must be > 0"),
+            ({"densify": {"percent_dense": -0.01}}, "densify.percent_dense must be >= 0"),
+            ({"densify": {"prune_opacity": 1}}, r"densify.prune_opacity must be in \[0, 1\)"),
+            ({"densify": {"prune_scale": 0}}, "densify.prune_scale must be > 0"),
+            ({"densify": {"floater_std_ratio": -1}}, "densify.floater_std_ratio must be >= 0")]:
+        with pytest.raises(WarpbagsError, match=message):
+            load_preset("quick", **overrides)
+    # the limits themselves pass
+    for overrides in [{"trans_noise": 4}, {"render_threads": 2}, {"hull_resolution": 2}, {"hull_missed_views": 0},
+                      {"sh_degree_every": 1}, {"views_per_step": 4}, {"lambda_dssim": 1}, {"lambda_mask": 0},
+                      {"max_image_size": 0}, {"max_image_size": 16}, {"seed": -1}, {"noise_seed": 2**63 - 1},
+                      {"densify": {"max_gaussians": 0, "prune_opacity": 0, "floater_std_ratio": 0}}]:
+        load_preset("quick", **overrides)
+
+
+def test_a_field_that_may_be_null_is_typed_by_its_declaration():
+    """`resolution: int | None` and `camera.lbfgs_from_round` have the default None, which tells no type: 2.0 and true
+    passed (2.0 == 2 and True == 1 pass `resolution in (None, 1, 2, 4, 8)`) and were saved so. A field that may not be
+    null refuses null (it reached validate's comparisons as a TypeError), and a list of numbers refuses text."""
+    import pytest
+    from warpbags.configs.train import load_preset
+    from warpbags.errors import WarpbagsError
+
+    for overrides, message in [({"resolution": 2.0}, "resolution must be an integer or null, got 2.0"),
+                               ({"resolution": True}, "resolution must be an integer or null, got True"),
+                               ({"resolution": "2"}, "resolution must be an integer or null, got '2'"),
+                               ({"camera": {"lbfgs_from_round": 1.0}},
+                                "camera.lbfgs_from_round must be an integer or null, got 1.0"),
+                               ({"camera": {"lbfgs_from_round": False}},
+                                "camera.lbfgs_from_round must be an integer or null, got False"),
+                               ({"lr": {"pose": None}}, "lr.pose must be like 0.01, got None"),
+                               ({"camera": {"hypothesis_angles": ["a"]}},
+                                r"camera.hypothesis_angles must be a list of numbers, got \['a'\]"),
+                               ({"repair": {"noise_clamp_std": ["a", 1]}},
+                                r"repair.noise_clamp_std must be like \(0.6, 0.8\), got \('a', 1\)")]:
+        with pytest.raises(WarpbagsError, match=f"^{message}$"):
+            load_preset("quick", **overrides)
+    assert load_preset("quick", resolution=2).resolution == 2
+    assert load_preset("quick", camera={"lbfgs_from_round": 0}).camera.lbfgs_from_round == 0
+    assert load_preset("quick", camera={"lbfgs_from_round": None}).camera.lbfgs_from_round is None
+    saved = load_preset("quick", resolution=4).to_dict()
+    assert TrainConfig.from_dict(saved).resolution == 4 and TrainConfig.from_dict(quick().to_dict()) == quick()

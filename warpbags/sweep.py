@@ -79,6 +79,7 @@ def run_sweep(spec: SweepSpec, data_root: Path | None = None, log: Log = print,
     """Train and evaluate every combination not done yet (with `executor`, default `LocalExecutor`); write
     sweep.json, sweep.csv and the plots; returns one row per run."""
     checked_device_name(spec.device)  # whether CUDA is there is each run's machine's business
+    _check_iters(spec)
     writable_folder(spec.out, "to hold the sweep")
     scene = open_scene(spec.scene, root=data_root)
     for run in sweep_runs(spec):  # every run's settings checked before the first one trains
@@ -93,6 +94,23 @@ def run_sweep(spec: SweepSpec, data_root: Path | None = None, log: Log = print,
     _write_tables(rows, spec.out)
     plot_sweep(rows, spec.out)
     return rows
+
+
+def _check_iters(spec: SweepSpec) -> None:
+    """Iterations given for every run against the preset's rounds, which a sweep does not set: in the terms of the
+    sweep's options (`TrainConfig.validate` would name --rounds, which `warpbags sweep` does not have).
+
+    Raises:
+        WarpbagsError: `iters` in the overrides, without `rounds`, below the preset's rounds; or an unknown preset.
+    """
+    overrides = dict(spec.overrides)
+    iters = overrides.get("iters")
+    if "rounds" in overrides or not isinstance(iters, int) or isinstance(iters, bool):
+        return  # the preset's own iterations fit its rounds; a value of the wrong type is load_preset's to name
+    rounds = load_preset(spec.preset).rounds
+    if iters < rounds:
+        raise WarpbagsError(f"--iters must be >= {rounds}: the {spec.preset} preset trains in {rounds} "
+                            f"round{'s' if rounds != 1 else ''} of at least one iteration each, got {iters}")
 
 
 def sweep_runs(spec: SweepSpec) -> list[SweepRun]:

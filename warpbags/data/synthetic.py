@@ -22,9 +22,10 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 import os
 import shutil
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 
 import cv2
@@ -39,6 +40,8 @@ from warpbags.files import writable_folder
 from warpbags.lie import so3_exp
 
 GENERATOR_VERSION = 3  # bump whenever the geometry or rendering changes: cache folders are keyed on it
+MAX_SIZE = 2048  # pixels a side: a view is rendered at once, about 1 GB of memory per million pixels (supersample 2)
+MAX_VIEWS = 1000
 BACKGROUND = 1.0  # white
 LIGHT_DIRECTION = np.array([0.4, -0.3, 0.87]) / np.linalg.norm([0.4, -0.3, 0.87])
 LIGHT_IN_CAMERA = np.array([-0.7, -0.4, -0.6]) / np.linalg.norm([-0.7, -0.4, -0.6])
@@ -422,13 +425,29 @@ def generate_synthetic_scene(out_dir: str | Path, options: SyntheticOptions = Sy
     """Render the synthetic scene and write it to `out_dir` (MipNeRF360 layout). Returns `out_dir`.
 
     Written to a temporary sibling folder first and renamed, so an interrupted run leaves no partial scene.
+
+    Raises:
+        WarpbagsError: an option out of range or not finite, or an `out_dir` that cannot take the scene; before
+            anything is written.
     """
     out_dir = Path(out_dir)
+    for field in fields(options):  # first: NaN passes every range check below
+        value = getattr(options, field.name)
+        if isinstance(value, float) and not math.isfinite(value):
+            raise WarpbagsError(f"synthetic scene {field.name} must be a finite number, got {value}")
     if options.views < 4 or options.width < 8 or options.height < 8:
         raise WarpbagsError(
             f"synthetic scene needs at least 4 views and 8x8 pixels, "
             f"got {options.views} views of {options.width}x{options.height}"
         )
+    if options.views > MAX_VIEWS or max(options.width, options.height) > MAX_SIZE:
+        raise WarpbagsError(
+            f"synthetic scene takes at most {MAX_VIEWS} views and {MAX_SIZE} pixels a side (a view is rendered at "
+            f"once, about 1 GB of memory per million pixels), got {options.views} views of "
+            f"{options.width}x{options.height}"
+        )
+    if options.seed < 0:
+        raise WarpbagsError(f"synthetic scene seed must be >= 0, got {options.seed}")
     if options.object not in OBJECTS:
         raise WarpbagsError(f"unknown synthetic object {options.object!r}: choose one of {', '.join(OBJECTS)}")
     if options.light_jitter_deg < 0 or options.gain_jitter < 0:
