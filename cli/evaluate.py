@@ -80,7 +80,8 @@ def agree(
                                           "one --noise-seed)."),
     procrustes: bool = typer.Option(True, "--procrustes/--pairwise",
                                     help="Align each pair of runs by sim(3) Procrustes or SPARF's pairwise alignment."),
-    json_path: Optional[Path] = typer.Option(None, "--json", help="Also write the comparison to this JSON file."),
+    json_path: Optional[Path] = typer.Option(None, "--json", help="Also write the comparison to this JSON file "
+                                             "(outside the run folders: agree never changes a run)."),
 ) -> None:
     """How far runs of one capture agree on each camera's pose, with no reference poses needed: where runs that
     differ only in their seed end d degrees apart, the views do not determine that camera, and the runs' errors
@@ -89,6 +90,11 @@ def agree(
         if json_path.is_dir():
             raise WarpbagsError(f"--json {json_path} is a folder: name the file to write")
         writable_folder(json_path.parent, "to write --json into")
+        target = json_path.resolve()
+        for run_dir in run_dirs:  # agree reads runs and never changes one (config.json, eval.json, ...)
+            if run_dir.resolve() in target.parents:
+                raise WarpbagsError(f"--json {json_path} is inside the run folder {run_dir}: write it elsewhere, "
+                                    "agree never changes a run")
     runs = [load_run(path) for path in run_dirs]
     result = pose_agreement(runs, "procrustes" if procrustes else "pairwise")
 

@@ -17,7 +17,10 @@ stdout = Console(highlight=False)
 
 def export(
     run_dir: Optional[Path] = typer.Argument(None, help="Run folder (default: the newest under runs/)."),
-    out: Optional[Path] = typer.Option(None, "--out", help="Output folder (default: RUN_DIR/export)."),
+    out: Optional[Path] = typer.Option(
+        None, "--out", help="Output folder (default: RUN_DIR/export): a new or empty folder, or an earlier export, "
+        "whose gaussians.ply, poses_final.npy and sparse/0/ are replaced; never the run folder, its scene folder or "
+        "a folder that holds other files."),
     colmap: bool = typer.Option(True, "--colmap/--no-colmap",
                                 help="Also write sparse/0/, a COLMAP text model of the training cameras: the input's "
                                      "calibration, read again from the scene folder, with the final poses."),

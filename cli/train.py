@@ -16,6 +16,7 @@ from warpbags.configs.scenes import SCENES
 from warpbags.configs.train import DEFAULT_PRESET
 from warpbags.errors import WarpbagsError
 from warpbags.files import writable_folder
+from warpbags.run_folder import RunFolder
 from warpbags.trainer import default_run_dir, saved_run_config, saved_run_scene, start_or_resume, training_scene
 
 stdout = Console(highlight=False)
@@ -49,6 +50,8 @@ def train(
         raise WarpbagsError("give the scene to train: a preset name or a scene folder (`warpbags train --help`)")
     if out is not None:  # before the scene is read (a minute for a folder of photographs)
         writable_folder(out, "to train into")
+        if not resume:  # a new run starts in a new or empty folder (start_or_resume checks it again)
+            RunFolder(out).require_new()
     # A resumed run goes on with the config it was started with; options given again must agree with it.
     config = (resumed_config(saved_run_config(out), preset, config_options, settings or []) if resume else
               train_config(preset or DEFAULT_PRESET, config_options, settings or []))
@@ -72,8 +75,12 @@ def train(
         else:
             last = _train_with_log_lines(trainer, log_every)
     except KeyboardInterrupt:
-        stdout.print(f"[yellow]stopped at iteration {trainer.iteration}; checkpoint saved, continue with "
-                     f"--resume --out {out}[/]")
+        if trainer.latest_checkpoint() is None:  # a new run removed what it had written (Trainer.train)
+            stdout.print(f"[yellow]stopped at iteration {trainer.iteration}, before the first checkpoint: nothing "
+                         "was kept[/]")
+        else:
+            stdout.print(f"[yellow]stopped at iteration {trainer.iteration}; checkpoint saved, continue with "
+                         f"--resume --out {out}[/]")
         raise
     final = trainer.pose_error()
     poses = (f"pose error {initial['rot_err_deg']:.3f} -> {final['rot_err_deg']:.3f} deg, {initial['trans_err']:.4f} -> "

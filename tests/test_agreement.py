@@ -176,3 +176,17 @@ def test_agree_bad_input_is_one_line(two_runs, tmp_path, arguments, message):
     result = runner.invoke(app, ["agree", *(names.get(argument, argument) for argument in arguments)])
     lines = [line for line in result.output.splitlines() if line.strip()]
     assert result.exit_code == 2 and len(lines) == 1 and message in " ".join(result.output.split()), result.output
+
+
+@pytest.mark.parametrize("inside", ["config.json", "sub/agreement.json", "../a/eval.json"])
+def test_agree_never_writes_into_a_run_it_compares(two_runs, inside):
+    """--json naming a file in one of the run folders (its config.json above all) is refused before anything is
+    read or written."""
+    before = {path: path.read_bytes() for run in two_runs for path in run.iterdir() if path.is_file()}
+    target = f"{two_runs[1]}/{inside}"
+    result = runner.invoke(app, ["agree", str(two_runs[0]), str(two_runs[1]), "--json", target])
+    lines = [line for line in result.output.splitlines() if line.strip()]
+    assert result.exit_code == 2 and len(lines) == 1, result.output
+    assert "is inside the run folder" in " ".join(result.output.split())
+    assert {path: path.read_bytes() for run in two_runs for path in run.iterdir() if path.is_file()} == before
+    assert not (two_runs[1] / "sub").exists()

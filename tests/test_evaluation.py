@@ -449,6 +449,10 @@ def test_sweep_runs_every_combination_once_and_skips_finished_runs(finished_run,
     info = json.loads((finished_run / "config.json").read_text())
     spec = SweepSpec(scene=info["scene_root"], out=tmp_path / "sweep", rot_noises=(0, 5), views=(4,), seeds=(0,),
                      refine_iters=2, overrides=(("iters", 4),))
+    killed = spec.out / "bags-4v-rot0-seed0"  # a run killed before its first checkpoint: trained again from scratch
+    killed.mkdir(parents=True)
+    (killed / "config.json").write_text("{}")
+    (killed / "log.jsonl").write_text('{"iter": 1, "lo')
     messages = []
     rows = run_sweep(spec, log=messages.append)
     assert len(rows) == 4 and {r["method"] for r in rows} == {"bags", "baseline"}
@@ -590,3 +594,187 @@ def test_comparison_file_names_never_collide():
     assert comparison_file_names(["images/r_0.png", "images/r_10.png"]) == ["r_0.png", "r_10.png"]
     assert comparison_file_names(["a/x.png", "b/x.png", "y.jpg"]) == ["000_x.png", "001_x.png", "002_y.png"]
     assert comparison_file_names(["x.jpg", "x.png"]) == ["000_x.png", "001_x.png"]
+
+
+# ------------------------------------------------------------------------------------------------ damaged runs
+def _copy_of(finished_run, folder):
+    """The finished run without its evaluation, renders, exports and checkpoints."""
+    shutil.copytree(finished_run, folder, ignore=shutil.ignore_patterns(
+        "eval*", "report.md", "curves.png", "turntable*", "export", "checkpoints"))
+    return folder
+
+
+def _lines(result) -> list[str]:
+    return [line for line in result.output.splitlines() if line.strip()]
+
+
+def test_a_ply_of_no_gaussians_is_one_line_and_no_command_writes_anything(finished_run, tmp_path):
+    run = _copy_of(finished_run, tmp_path / "run")
+    header = (run / "gaussians.ply").read_bytes().split(b"end_header\n")[0]
+    (run / "gaussians.ply").write_bytes(re.sub(rb"element vertex \d+", b"element vertex 0", header) + b"end_header\n")
+    with pytest.raises(WarpbagsError, match=re.escape(f"{run / 'gaussians.ply'}: the PLY holds no Gaussians")):
+        read_ply(run / "gaussians.ply")
+    before = sorted(path.name for path in run.iterdir())
+    for command in (["eval", str(run)], ["render", str(run), "--frames", "2"],
+                    ["export", str(run), "--out", str(tmp_path / "export")]):
+        result = runner.invoke(app, command)
+        assert result.exit_code == 2 and len(_lines(result)) == 1, result.output
+        assert "gaussians.ply: the PLY holds no Gaussians" in result.output
+    assert sorted(path.name for path in run.iterdir()) == before and not (tmp_path / "export").exists()
+
+
+def test_a_log_cut_short_is_named_by_line_and_eval_writes_nothing(finished_run, tmp_path):
+    from warpbags.run_folder import RunFolder
+
+    run = _copy_of(finished_run, tmp_path / "run")
+    text = (run / "log.jsonl").read_text()
+    count = len(text.splitlines())
+    (run / "log.jsonl").write_text(text[:-20])  # the last record cut short, as a crash leaves it
+    with pytest.raises(WarpbagsError, match=re.escape(f"{run / 'log.jsonl'}:{count}: not a log record")):
+        RunFolder(run).read_log()
+    result = runner.invoke(app, ["eval", str(run), "--refine-iters", "0"])
+    assert result.exit_code == 2 and len(_lines(result)) == 1, result.output
+    assert f"log.jsonl:{count}: not a log record" in result.output
+    for output in ("eval", "eval.json", "report.md", "curves.png"):
+        assert not (run / output).exists(), output
+
+
+def _zero_poses(poses):
+    return np.zeros_like(poses)
+
+
+def _mirrored(poses):
+    poses = poses.copy()
+    poses[1, 0, :3] *= -1  # camera 1's rotation part a reflection (determinant -1)
+    return poses
+
+
+def _not_finite(poses):
+    poses = poses.copy()
+    poses[2, 0, 3] = np.nan
+    return poses
+
+
+@pytest.mark.parametrize("name, damage, message", [
+    ("intrinsics", lambda K: np.zeros((4, 2)), "intrinsics.npy: expected [C,3,3] intrinsics, got an array of shape "
+                                               "[4, 2]"),
+    ("poses_final", lambda P: P[:, :3, :3], "poses_final.npy: expected [C,4,4] world-to-camera poses, got an array of "
+                                            "shape [4, 3, 3]"),
+    ("poses_final", lambda P: np.zeros(16), "poses_final.npy: expected [C,4,4] world-to-camera poses, got an array of "
+                                            "shape [16]"),
+    ("poses_final", _zero_poses, "poses_final.npy: camera 0 is not a world-to-camera pose"),
+    ("poses_init", _mirrored, "poses_init.npy: camera 1 is not a world-to-camera pose (its 3x3 part has determinant -1"),
+    ("poses_start", _not_finite, "poses_start.npy: camera 2 holds a value that is not finite"),
+    ("poses_true", lambda P: P[0], "poses_true.npy: expected [C,4,4] world-to-camera poses, got an array of shape "
+                                   "[4, 4]"),
+    ("poses_true", lambda P: P[:3], "poses_true.npy holds 3 cameras, the run's poses 4 (poses_final.npy)"),
+])
+def test_malformed_camera_files_are_named_by_every_command_that_reads_them(finished_run, tmp_path, name, damage,
+                                                                           message):
+    """Every reader of a run's camera files (load_run: eval, agree, render, export; the viewer) checks them in one
+    place: [C,4,4] rigid poses and [C,3,3] intrinsics, finite, one C, the offending file named."""
+    from warpbags.viewer.content import load_viewer_content
+
+    run = _copy_of(finished_run, tmp_path / "run")
+    np.save(run / f"{name}.npy", damage(np.load(finished_run / f"{name}.npy")))
+    with pytest.raises(WarpbagsError, match="^" + re.escape(f"{run / name}")):
+        load_run(run)
+    with pytest.raises(WarpbagsError, match=re.escape(message)):
+        load_viewer_content(run, log=lambda line: None)
+    result = runner.invoke(app, ["agree", str(finished_run), str(run)])  # all-zero poses were a 180 deg table
+    assert result.exit_code == 2 and len(_lines(result)) == 1, result.output
+    assert message in " ".join(result.output.split())
+
+
+def test_a_malformed_saved_config_names_config_json(finished_run, tmp_path):
+    run, info = _run_on_scene(_copy_of(finished_run, tmp_path / "source"), tmp_path,
+                              json.loads((finished_run / "config.json").read_text())["scene_root"],
+                              normalization={"scale": "x"})
+    for command in (["eval", str(run), "--refine-iters", "0"], ["export", str(run), "--out", str(tmp_path / "e")]):
+        result = runner.invoke(app, command)
+        assert result.exit_code == 2 and len(_lines(result)) == 1, result.output
+        assert f"{run / 'config.json'}: normalization must be" in " ".join(result.output.split())
+    assert not (tmp_path / "e").exists() and not (run / "eval.json").exists()
+    (run / "config.json").write_text(json.dumps({**info, "config": {**info["config"], "iters": "abc"}}))
+    with pytest.raises(WarpbagsError, match="^" + re.escape(f"{run / 'config.json'}: iters must be like 5000, got "
+                                                            "'abc'")):
+        load_run(run)
+
+
+def test_export_refuses_the_run_its_scene_and_other_folders_and_checks_its_targets_first(finished_run, tmp_path):
+    scene = tmp_path / "scene"
+    shutil.copytree(json.loads((finished_run / "config.json").read_text())["scene_root"], scene)
+    run, _ = _run_on_scene(_copy_of(finished_run, tmp_path / "source"), tmp_path, scene)
+
+    def contents(folder):
+        return {path.relative_to(folder): path.read_bytes() for path in sorted(folder.rglob("*")) if path.is_file()}
+
+    kept = {folder: contents(folder) for folder in (run, scene)}
+    (tmp_path / "notes").mkdir()
+    (tmp_path / "notes" / "todo.txt").write_text("mine")
+    for out, message in [(run, "is the run folder"), (scene, "is the run's scene folder"),
+                         (tmp_path, "is a folder that holds the run folder"),
+                         (tmp_path / "notes", "is not empty and not an earlier export (it holds todo.txt)")]:
+        result = runner.invoke(app, ["export", str(run), "--out", str(out)])
+        assert result.exit_code == 2 and len(_lines(result)) == 1, result.output
+        assert message in " ".join(result.output.split())
+    assert {folder: contents(folder) for folder in (run, scene)} == kept
+    assert (tmp_path / "notes" / "todo.txt").read_text() == "mine"
+    # an earlier export is replaced
+    export = tmp_path / "export"
+    assert runner.invoke(app, ["export", str(run), "--out", str(export)]).exit_code == 0
+    result = runner.invoke(app, ["export", str(run), "--out", str(export)])
+    assert result.exit_code == 0, result.output
+    # entries of the wrong kind: refused before anything is written
+    for name, make, message in [("gaussians.ply", Path.mkdir, "gaussians.ply is a folder, where an export writes a "
+                                 "file"),
+                                ("sparse", Path.touch, "sparse is a file, where an export writes a folder")]:
+        wrong = tmp_path / f"wrong-{name}"
+        wrong.mkdir()
+        make(wrong / name)
+        result = runner.invoke(app, ["export", str(run), "--out", str(wrong)])
+        assert result.exit_code == 2 and len(_lines(result)) == 1, result.output
+        assert message in " ".join(result.output.split())
+        assert [path.name for path in wrong.iterdir()] == [name]
+
+
+@pytest.mark.parametrize("command, make, message", [
+    (["eval", "--refine-iters", "0"], lambda run: (run / "eval").write_text(""), "eval is a file, not a folder"),
+    (["eval", "--refine-iters", "0"], lambda run: (run / "eval.json").mkdir(), "eval.json is a folder, not a file"),
+    (["eval", "--refine-iters", "0"], lambda run: (run / "report.md").mkdir(), "report.md is a folder, not a file"),
+    (["render", "--frames", "2"], lambda run: (run / "turntable").write_text(""), "turntable is a file, not a folder"),
+    (["render", "--frames", "2"], lambda run: (run / "turntable.mp4").mkdir(), "turntable.mp4 is a folder, not a file"),
+])
+def test_outputs_of_the_wrong_kind_are_one_line_before_anything_is_written(finished_run, tmp_path, command, make,
+                                                                          message):
+    run = _copy_of(finished_run, tmp_path / "run")
+    make(run)
+    before = sorted(path.name for path in run.iterdir())
+    result = runner.invoke(app, [command[0], str(run), *command[1:]])
+    assert result.exit_code == 2 and len(_lines(result)) == 1, result.output
+    assert message in " ".join(result.output.split())
+    assert sorted(path.name for path in run.iterdir()) == before
+
+
+def test_a_scene_without_a_test_split_is_one_error_and_no_warning(finished_run, tmp_path, caplog):
+    """Without sparse_test.txt every 8th view not trained on is held out: where all of those are training views
+    eval says so in one line, without the loader's warning about the missing file before it; where some remain,
+    the warning stays and the views are evaluated."""
+    from warpbags.evaluation import held_out_views
+
+    scene = tmp_path / "scene"
+    shutil.copytree(json.loads((finished_run / "config.json").read_text())["scene_root"], scene)
+    (scene / "sparse_test.txt").unlink()
+    for size, views in ((4, "0 4 12 14"), (6, "0 2 4 6 12 14"), (9, "0 2 3 4 5 6 12 13 14")):  # no view 8
+        (scene / f"sparse_{size}.txt").write_text(views.replace(" ", "\n") + "\n")
+    run, _ = _run_on_scene(_copy_of(finished_run, tmp_path / "source"), tmp_path, scene)
+    with caplog.at_level("WARNING", logger="warpbags.data"):
+        assert len(held_out_views(load_run(run)).image_names) == 1
+    assert "sparse_test.txt missing, test views [8]" in caplog.text
+    caplog.clear()
+    (scene / "sparse_2.txt").write_text("0\n8\n")  # view 8, the one every-8th view left, becomes a training view
+    with caplog.at_level("WARNING", logger="warpbags.data"):
+        result = runner.invoke(app, ["eval", str(run), "--refine-iters", "0"])
+    assert result.exit_code == 2 and len(_lines(result)) == 1, result.output
+    assert "has no test split" in result.output and "every 8th view" in " ".join(result.output.split())
+    assert "sparse_test.txt missing" not in caplog.text and not (run / "eval.json").exists()

@@ -5,6 +5,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+import re
 import shutil
 import signal
 import types
@@ -398,6 +399,39 @@ def test_ctrl_c_stops_one_call_of_train_not_the_next(scene_dir, tmp_path):
     assert trainer.iteration == 6
 
 
+def test_a_new_run_that_fails_before_its_first_checkpoint_leaves_nothing_behind(scene_dir, tmp_path):
+    """A run of `start_or_resume` that cannot be resumed (no checkpoint yet) removes what it wrote when it fails,
+    whatever the failure, and the folder if it made it; from its first checkpoint on it is kept for --resume."""
+    config = tiny_config(iters=6, checkpoint_every=3)
+    scene = training_scene(load_scene(scene_dir, name="tiny"), config)
+    made = tmp_path / "made" / "run"
+    trainer = start_or_resume(scene, config, made, log=lambda message: None)
+    assert (made / "config.json").is_file() and (made / "poses_true.npy").is_file()
+    with torch.no_grad():
+        trainer.params["means"][0, 0] = float("nan")
+    with pytest.raises(WarpbagsError, match="diverged at iteration 0: .*no checkpoint was written yet"):
+        trainer.train()
+    assert not made.parent.exists()  # with the folder it made to hold it
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    trainer = start_or_resume(scene, config, empty, log=lambda message: None)
+
+    def interrupt(record):  # an interrupt the SIGINT handler did not turn into a checkpoint (another thread's)
+        raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        trainer.train(callback=interrupt)
+    assert empty.is_dir() and list(empty.iterdir()) == []  # the folder it found is left, empty
+    trainer = start_or_resume(scene, config, empty, log=lambda message: None)
+    trainer.train(stop_at=3)
+    with torch.no_grad():
+        trainer.params["means"][0, 0] = float("nan")
+    with pytest.raises(WarpbagsError, match="diverged at iteration 3: .*checkpoint_000003"):
+        trainer.train()
+    assert len((empty / "log.jsonl").read_text().splitlines()) == 3 and (empty / "config.json").is_file()
+    assert start_or_resume(scene, config, empty, resume=True, log=lambda message: None).iteration == 3
+
+
 def test_resuming_a_finished_run_trains_nothing(scene_dir, tmp_path):
     finished = make_trainer(scene_dir, tmp_path, iters=4)
     finished.write_run_files()
@@ -622,6 +656,29 @@ def test_cli_out_that_is_a_file_is_one_line_before_training(scene_dir, tmp_path,
     lines = [line for line in result.output.splitlines() if line.strip()]
     assert result.exit_code == 2 and len(lines) == 1, result.output
     assert "a-file is a file, not a folder to train into" in " ".join(result.output.split())
+
+
+def test_cli_new_run_into_a_folder_that_is_not_empty_is_one_line_before_training(scene_dir, tmp_path, monkeypatch):
+    """A new run overwrites nothing and appends to no other log: a folder that holds anything (the scene itself, what
+    a failed run of an older warpbags left) is refused before the scene is read, naming what it holds; the Python
+    entry point refuses it too."""
+    def not_reached(*args, **kwargs):
+        raise AssertionError("the scene was read")
+
+    monkeypatch.setattr("warpbags.cli.train.training_scene", not_reached)
+    before = sorted(path.name for path in scene_dir.iterdir())
+    result = runner.invoke(app, ["train", str(scene_dir), "--out", str(scene_dir)])
+    lines = [line for line in result.output.splitlines() if line.strip()]
+    message = " ".join(result.output.split())
+    assert result.exit_code == 2 and len(lines) == 1, result.output
+    assert f"{scene_dir} is not empty (" in message and "sparse_4.txt" in message and "another --out" in message
+    assert sorted(path.name for path in scene_dir.iterdir()) == before
+    left = tmp_path / "left"
+    left.mkdir()
+    (left / "log.jsonl").write_text('{"iter": 1}\n')
+    with pytest.raises(WarpbagsError, match=re.escape(f"{left} is not empty (log.jsonl) and holds no run to --resume")):
+        start_or_resume(None, tiny_config(), left)
+    assert (left / "log.jsonl").read_text() == '{"iter": 1}\n'
 
 
 def test_cli_unknown_scene_one_line(tmp_path):

@@ -18,7 +18,10 @@ overfit with 4-9 cameras; both are reported and labelled.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
+import logging
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -28,33 +31,80 @@ from skimage.metrics import peak_signal_noise_ratio, structural_similarity
 from warpbags.alignment import align_viewmats, alignment_for, centre_floor_errors, pose_errors, reprojection_errors
 from warpbags.camera_optimizer import CameraOptimizer, CameraOptimizerSettings
 from warpbags.configs.train import ALIGNMENTS
-from warpbags.data import ORBIT_RADIUS, Scene, SceneNormalization, load_scene
+from warpbags.data import ORBIT_RADIUS, Scene, load_scene
+from warpbags.data.splits import TEST_EVERY
 from warpbags.devices import torch_device
 from warpbags.errors import WarpbagsError, one_line
-from warpbags.files import atomic_output, finite_json
+from warpbags.files import atomic_output, finite_json, writable_file, writable_folder
 from warpbags.gaussians import object_points, opacity_weighted_center, render_gaussians, sh_degree_of
 from warpbags.losses import load_lpips, photometric_loss
-from warpbags.report import write_image_grid, write_run_report
-from warpbags.run_folder import TrainingRun, load_run, require_info
+from warpbags.report import REPORT_FILES, write_image_grid, write_run_report
+from warpbags.run_folder import RunFolder, TrainingRun, load_run, require_info, run_normalization
 from warpbags.threads import torch_threads
+
+
+@contextlib.contextmanager
+def _held_back_warnings(logger_name: str) -> Iterator[list[logging.LogRecord]]:
+    """Hold back what `logger_name` logs in the block: passed on when the block ends normally, dropped when it
+    raises (the error says what went wrong in one line; a warning that led to it would be a second line)."""
+    logger = logging.getLogger(logger_name)
+    held: list[logging.LogRecord] = []
+
+    class Holder(logging.Handler):
+        def emit(self, record: logging.LogRecord) -> None:
+            held.append(record)
+
+    holder, propagate = Holder(), logger.propagate
+    logger.addHandler(holder)
+    logger.propagate = False
+    try:
+        yield held
+    finally:
+        logger.removeHandler(holder)
+        logger.propagate = propagate
+    for record in held:
+        logger.handle(record)
 
 
 def held_out_views(run: TrainingRun) -> Scene:
     """The run's scene restricted to its test split, in the run's normalized frame and training resolution.
+
+    The scene's notes on splits it lacks (`warpbags.data.splits`) are logged only when the views are returned: a
+    missing test split is this function's error alone.
 
     Raises:
         WarpbagsError: the scene folder is gone, has no test split, or no longer matches the run's frame.
     """
     require_info(run, "scene_root", "resolution", "normalization")
     info, config = run.info, run.config
-    scene = load_scene(info["scene_root"], resolution=info["resolution"], name=info["scene"])
-    stored = SceneNormalization.from_dict(info["normalization"])
-    if not np.allclose(scene.normalization.matrix(), stored.matrix(), atol=1e-5):
-        raise WarpbagsError(f"{info['scene_root']} no longer matches the run's normalization: was the scene changed?")
-    test = scene.splits.get("test")
-    if not test:
-        raise WarpbagsError(f"{info['scene_root']} has no test split (sparse_test.txt)")
+    stored = run_normalization(run)
+    with _held_back_warnings("warpbags.data"):
+        scene = load_scene(info["scene_root"], resolution=info["resolution"], name=info["scene"])
+        if not np.allclose(scene.normalization.matrix(), stored.matrix(), atol=1e-5):
+            raise WarpbagsError(f"{info['scene_root']} no longer matches the run's normalization: was the scene "
+                                "changed?")
+        test = scene.splits.get("test")
+        if not test:
+            raise WarpbagsError(f"{info['scene_root']} has no test split (sparse_test.txt)"
+                                + (f": without the file, every {TEST_EVERY}th view is held out, and all of those "
+                                   "are training views" if scene.split_sources.get("test") == f"every {TEST_EVERY}th"
+                                   else ""))
     return scene.subset(test).downscaled(config.max_image_size)
+
+
+def _check_outputs(run: TrainingRun, comparisons: list[str]) -> None:
+    """Check, before anything is computed or written, that every output of `evaluate_run` can be written: eval/
+    (and its comparison PNGs), eval.json and the report's files.
+
+    Raises:
+        WarpbagsError: one of them is of the wrong kind (eval a file, eval.json a folder) or cannot be written.
+    """
+    purpose = "to write the evaluation to"
+    folder = writable_folder(run.path / "eval", "for the evaluation's comparison pictures")
+    for name in comparisons + [path.name for path in folder.glob("*.png")]:  # written, or removed as stale
+        writable_file(folder / name, purpose)
+    for name in ("eval.json", *REPORT_FILES):
+        writable_file(run.path / name, purpose)
 
 
 def test_cameras_in_model_frame(run: TrainingRun, test: Scene, alignment: str) -> torch.Tensor:
@@ -239,6 +289,10 @@ def evaluate_run(path: str | Path, *, alignment: str = "procrustes", refine_iter
     on = torch_device(device)
     run = load_run(path)
     test = held_out_views(run)
+    # everything read and every output checked before the first file is written: a bad log line or an eval.json that
+    # is a folder is one line, not a traceback after half the outputs
+    records = RunFolder(run.path).read_log()
+    _check_outputs(run, comparison_file_names(test.image_names))
     if alignment_for(len(run.poses_final), alignment) != alignment:  # as the trainer's pose errors do
         log(f"{len(run.poses_final)} training cameras: pairwise alignment (Procrustes needs at least 3)")
         alignment = "pairwise"
@@ -291,6 +345,6 @@ def evaluate_run(path: str | Path, *, alignment: str = "procrustes", refine_iter
         _save_comparison(out / file_name, target, image)
     with atomic_output(run.path / "eval.json") as temporary:
         temporary.write_text(finite_json(result))
-    write_run_report(run.path, result, alignment_for(len(run.poses_final), run.config.pose_alignment))
+    write_run_report(run.path, result, alignment_for(len(run.poses_final), run.config.pose_alignment), records)
     return result
 

@@ -17,15 +17,14 @@ import numpy as np
 import torch
 
 from warpbags.camera_paths import turntable_viewmats
-from warpbags.data import SceneNormalization
 from warpbags.data.colmap import write_model
 from warpbags.data.images import image_size, resolution_path
 from warpbags.data.layouts import read_layout_cameras, scaled_intrinsics
 from warpbags.errors import WarpbagsError
-from warpbags.files import atomic_output, writable_folder
+from warpbags.files import atomic_output, writable_file, writable_folder
 from warpbags.gaussians import render_gaussians, sh_degree_of, to_source_frame, write_ply
 from warpbags.kernels.sh import SH_C0
-from warpbags.run_folder import TrainingRun, load_run, require_info
+from warpbags.run_folder import TrainingRun, load_run, require_info, run_normalization
 from warpbags.threads import torch_threads
 
 
@@ -80,6 +79,63 @@ def training_calibration(run: TrainingRun) -> Calibration:
                        Ks, sizes, cameras.distortions[picked])
 
 
+# What an export writes into its folder: a folder holding only these (sparse/ only 0/ and the 0.partial/ of a write
+# cut short, each of text files) is an earlier export, which an export may replace; any other non-empty folder
+# is refused. The atomic writes' temporaries are named too, so that one left by a killed export does not block.
+EXPORT_FILES = ("gaussians.ply", "poses_final.npy", "gaussians.tmp.ply", "poses_final.tmp.npy")
+EXPORT_MODEL_FOLDERS = ("0", "0.partial")
+
+
+def check_export_folder(out: Path, run: TrainingRun) -> None:
+    """Check, before anything is written, that `out` may receive an export of `run`: a new or empty folder, or an
+    earlier export (gaussians.ply, and nothing but `EXPORT_FILES` and a sparse/ of text models), and neither the run
+    folder nor its scene folder, nor a folder that holds either.
+
+    Raises:
+        WarpbagsError: it may not, or `out` is a file or cannot be written; the offending path named.
+    """
+    writable_folder(out, "to export into")
+    resolved = out.resolve()
+    protected = [("the run folder", run.path)]
+    if run.info.get("scene_root"):
+        protected.append(("the run's scene folder", Path(run.info["scene_root"])))
+    for what, folder in protected:
+        folder = folder.resolve()
+        if resolved == folder or resolved in folder.parents:
+            where = what if resolved == folder else f"a folder that holds {what} {folder}"
+            raise WarpbagsError(f"--out {out} is {where}: an export would replace its files; choose a new folder")
+    if not out.is_dir():
+        return
+    entries = sorted(out.iterdir())
+    refusal = "export into a new or empty folder, or one that an earlier export wrote"
+    for entry in entries:
+        if entry.is_symlink():
+            raise WarpbagsError(f"{entry} is a link, which an export does not write: {refusal}")
+        if entry.name in EXPORT_FILES and not entry.is_file():
+            raise WarpbagsError(f"{entry} is a folder, where an export writes a file: {refusal}")
+        if entry.name == "sparse" and not entry.is_dir():
+            raise WarpbagsError(f"{entry} is a file, where an export writes a folder (sparse/0/): {refusal}")
+        if entry.name == "sparse" and not _export_models(entry):
+            raise WarpbagsError(f"{entry} holds more than the COLMAP text model sparse/0/ an export writes: {refusal}")
+    foreign = [entry.name for entry in entries if entry.name not in (*EXPORT_FILES, "sparse")]
+    if foreign:
+        shown = ", ".join(foreign[:4]) + (f" and {len(foreign) - 4} more" if len(foreign) > 4 else "")
+        raise WarpbagsError(f"--out {out} is not empty and not an earlier export (it holds {shown}): {refusal}")
+    if entries and not (out / "gaussians.ply").is_file():
+        raise WarpbagsError(f"--out {out} is not empty and not an earlier export (no gaussians.ply): {refusal}")
+
+
+def _export_models(sparse: Path) -> bool:
+    """Whether `sparse` holds only what an export writes there: 0/ (and a 0.partial/ left by a failed write), each
+    a COLMAP text model (plain *.txt files)."""
+    for model in sparse.iterdir():
+        if model.name not in EXPORT_MODEL_FOLDERS or model.is_symlink() or not model.is_dir():
+            return False
+        if not all(file.is_file() and not file.is_symlink() and file.suffix == ".txt" for file in model.iterdir()):
+            return False
+    return True
+
+
 def export_run(path: str | Path, out: str | Path | None = None, colmap: bool = True) -> tuple[Path, Path | None]:
     """Write the run's Gaussians and final poses in the input scene's own frame (not the normalized one).
 
@@ -87,21 +143,22 @@ def export_run(path: str | Path, out: str | Path | None = None, colmap: bool = T
     axes, the training views in `config.json`'s image order) and, with `colmap`, `<out>/sparse/0/` (a COLMAP text
     model: the training views with the input's calibration, for the image files the scene folder holds, and their
     final poses, one point per Gaussian at its centre in its base colour), which COLMAP-reading trainers take as
-    they are with the scene's image folder. Default `out`: `<run>/export`.
+    they are with the scene's image folder. Default `out`: `<run>/export`. `out` must be a new or empty folder or
+    an earlier export (`check_export_folder`), never the run folder or its scene folder: an export replaces the
+    files of an earlier one and nothing else.
 
     Raises:
-        WarpbagsError: the run is unfinished or unreadable; with `colmap`, its scene folder is gone or changed.
-            Nothing is written then.
+        WarpbagsError: the run is unfinished or unreadable; `out` may not receive the export; with `colmap`, its
+            scene folder is gone or changed. Nothing is written then.
 
     Returns:
         The output folder, and with `colmap` the scene's image folder the model's image names are relative to.
     """
     run = load_run(path)
-    require_info(run, "normalization")
+    normalization = run_normalization(run)
     out = Path(out) if out is not None else run.path / "export"
-    writable_folder(out, "to export into")
+    check_export_folder(out, run)
     calibration = training_calibration(run) if colmap else None
-    normalization = SceneNormalization.from_dict(run.info["normalization"])
     out.mkdir(parents=True, exist_ok=True)
     gaussians = to_source_frame(run.params, normalization)
     write_ply(out / "gaussians.ply", gaussians)
@@ -133,10 +190,15 @@ def render_turntable(path: str | Path, frames: int = 36, video: bool = True) -> 
     width, height = run.info["width"], run.info["height"]
     if run.intrinsics is None:
         raise WarpbagsError(f"{run.path / 'intrinsics.npy'} is missing: written by an older warpbags")
+    out = writable_folder(run.path / "turntable", "for the turntable frames")
+    names = [f"frame_{index:03d}.png" for index in range(frames)]
+    for name in names + [path.name for path in out.glob("frame_*.png")]:  # written, or removed as stale
+        writable_file(out / name, "to write a turntable frame to")
+    if video:
+        writable_file(run.path / "turntable.mp4", "to write the turntable video to")
     camera_0 = run.intrinsics[0].float()
     viewmats = turntable_viewmats(run.poses_final, frames).float()
     Ks = camera_0.expand(frames, 3, 3).contiguous()
-    out = run.path / "turntable"
     out.mkdir(exist_ok=True)
     for stale in out.glob("frame_*.png"):  # an earlier render of more frames must not leave its tail behind
         stale.unlink()
@@ -145,8 +207,8 @@ def render_turntable(path: str | Path, frames: int = 36, video: bool = True) -> 
         images, _, _ = render_gaussians(run.params, viewmats, Ks, width, height, sh_degree=sh_degree_of(run.params),
                                         backgrounds=backgrounds)
     pixels = (images.clamp(0, 1).numpy() * 255 + 0.5).astype(np.uint8)
-    for index, image in enumerate(pixels):
-        frame = out / f"frame_{index:03d}.png"
+    for name, image in zip(names, pixels):
+        frame = out / name
         if not cv2.imwrite(str(frame), cv2.cvtColor(image, cv2.COLOR_RGB2BGR)):
             raise WarpbagsError(f"could not write {frame}")
     if video:

@@ -47,6 +47,21 @@ def writable_folder(path: str | Path, purpose: str) -> Path:
     return path
 
 
+def writable_file(path: str | Path, purpose: str) -> Path:
+    """`path` as a file that can be written or replaced (it is missing or a file, and its folder exists or can be
+    made): the sibling of `writable_folder` for the files a command writes, checked before it writes any of them.
+
+    Raises:
+        WarpbagsError: `path` is a folder, or its folder cannot be had (`writable_folder`); `purpose` says what the
+            file was for ("to write the evaluation to").
+    """
+    path = Path(path)
+    if path.is_dir():
+        raise WarpbagsError(f"{path} is a folder, not a file {purpose}")
+    writable_folder(path.parent, purpose)
+    return path
+
+
 def finite_json(value, indent: int | None = 2) -> str:
     """`value` as strict JSON: a float that is not finite (the PSNR of an exact render, a metric that failed) is
     written as null. Python's json writes NaN and Infinity, which other JSON readers reject, and calls a `default`

@@ -123,13 +123,15 @@ def read_ply(path: str | Path) -> dict[str, torch.Tensor]:
     (3DGS's channel-major order).
 
     Raises:
-        WarpbagsError: not a binary little-endian PLY with the 3DGS properties.
+        WarpbagsError: not a binary little-endian PLY with the 3DGS properties, or one of no Gaussians.
     """
     path = Path(path)
     try:
         table = _read_vertex_table(path)
     except (OSError, UnicodeDecodeError, ValueError, IndexError, TypeError) as error:
         raise WarpbagsError(f"{path}: unreadable PLY ({error})") from None
+    if len(table) == 0:  # a valid header of no vertices: nothing to render, export or align
+        raise WarpbagsError(f"{path}: the PLY holds no Gaussians (element vertex 0)")
     names = table.dtype.names
     missing = [name for name in _REQUIRED_PROPERTIES if name not in names]
     rest_count = sum(name.startswith("f_rest_") for name in names)

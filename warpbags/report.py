@@ -68,11 +68,16 @@ def write_image_grid(path: Path, rows: list[list]) -> None:
             raise WarpbagsError(f"could not write {path}")
 
 
-def write_run_report(run_dir: Path, result: dict, training_alignment: str) -> Path:
+# What `write_run_report` writes into the run folder (curves.png with a log, the strip with turntable frames).
+REPORT_FILES = ("report.md", "curves.png", "turntable_strip.png")
+
+
+def write_run_report(run_dir: Path, result: dict, training_alignment: str, records: list[dict] | None = None) -> Path:
     """report.md: the metrics table, training curves (whose pose errors training logged after
-    `training_alignment`), held-out comparisons and (if rendered) a turntable strip."""
+    `training_alignment`), held-out comparisons and (if rendered) a turntable strip. `records`: the run's log
+    (`RunFolder.read_log`), read here when not given (a caller that writes other files first reads it before)."""
     run_dir = Path(run_dir)
-    records = RunFolder(run_dir).read_log()
+    records = RunFolder(run_dir).read_log() if records is None else records
     lines = [f"# {result['scene']}: {result['views']} views", "", f"Run folder: `{run_dir}`", ""]
     lines += ["## Camera poses (training views)", "",
               "| alignment | stage | rotation mean (deg) | rotation median (deg) | centre floor (deg) | translation mean "

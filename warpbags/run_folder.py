@@ -36,7 +36,7 @@ import numpy as np
 import torch
 
 from warpbags.configs.train import TrainConfig
-from warpbags.data.scene import Scene
+from warpbags.data.scene import Scene, SceneNormalization
 from warpbags.errors import WarpbagsError, one_line
 from warpbags.files import atomic_output
 from warpbags.gaussians import read_ply, write_ply
@@ -47,6 +47,12 @@ CHECKPOINTS_KEPT = 3
 CHECKPOINT_KEYS = ("iteration", "config", "params", "optimizer", "strategy", "cameras", "generator", "viewmats_init",
                    "viewmats_start")
 LOG_FILE = "log.jsonl"
+SETUP_FILES = ("config.json", "poses_true.npy", "poses_init.npy", "poses_start.npy", "intrinsics.npy")
+POSE_ARRAYS = ("poses_final", "poses_true", "poses_init", "poses_start")
+CAMERA_ARRAYS = (*POSE_ARRAYS, "intrinsics")  # `RunFolder.read_cameras`
+# How far a pose file's 3x3 part may be from a rotation (|R R^T - I|, |det R - 1|) and its last row from [0, 0, 0, 1]:
+# loose, since the files are float32 (rotations orthonormal to ~1e-6); a damaged or foreign file is off by far more.
+POSE_TOLERANCE = 1e-2
 
 
 class RunFolder:
@@ -85,21 +91,27 @@ class RunFolder:
         """
         path = self.path / "config.json"
         try:
-            return json.loads(path.read_text())
-        except (OSError, json.JSONDecodeError) as error:
+            info = json.loads(path.read_text())
+        except (OSError, UnicodeDecodeError, json.JSONDecodeError) as error:
             raise WarpbagsError(f"{path}: unreadable ({error})") from None
+        if not isinstance(info, dict):
+            raise WarpbagsError(f"{path}: unreadable (not a JSON object)")
+        return info
 
     def saved_config(self, info: dict | None = None) -> TrainConfig:
         """The TrainConfig in config.json (or in `info`, config.json already read).
 
         Raises:
-            WarpbagsError: no config.json, or one that cannot be read.
+            WarpbagsError: no config.json, or one that cannot be read or holds a value of the wrong type (named
+                with the file).
         """
         info = self.read_info() if info is None else info
         try:
             return TrainConfig.from_dict(info["config"])
-        except (KeyError, TypeError) as error:
+        except (KeyError, TypeError, AttributeError) as error:
             raise WarpbagsError(f"{self.path / 'config.json'}: unreadable ({error})") from None
+        except WarpbagsError as error:  # a field of the wrong type ("iters must be like 5000, got 'abc'")
+            raise WarpbagsError(f"{self.path / 'config.json'}: {error}") from None
 
     def trained_on(self, scene: Scene, info: dict | None = None) -> bool:
         """Whether the run here trained on `scene`'s folder (config.json's, or `info`'s, scene_root)."""
@@ -107,18 +119,37 @@ class RunFolder:
         return info.get("scene_root") == _root_of(scene)
 
     def read_array(self, name: str) -> np.ndarray | None:
-        """`name`.npy ([C,4,4] poses, or [C,3,3] intrinsics) as float64, None when the run has none.
+        """`name`.npy as float64, checked (`checked_cameras`): [C,4,4] world-to-camera poses (`POSE_ARRAYS`) or
+        [C,3,3] intrinsics; None when the run has none. `read_cameras` also checks that they agree on C.
 
         Raises:
-            WarpbagsError: the file exists but cannot be read.
+            WarpbagsError: the file exists but cannot be read or is not what its name says, named.
         """
         path = self.path / f"{name}.npy"
         if not path.is_file():
             return None
         try:
-            return np.load(path).astype(np.float64)
-        except (OSError, ValueError) as error:
+            array = np.load(path).astype(np.float64)
+        except (OSError, ValueError, TypeError) as error:
             raise WarpbagsError(f"{path}: unreadable ({error})") from None
+        return checked_cameras(path, array, intrinsics=name == "intrinsics")
+
+    def read_cameras(self) -> dict[str, np.ndarray | None]:
+        """Every camera file of the run (`CAMERA_ARRAYS`: the poses and intrinsics.npy) by name, each checked
+        (`read_array`; None for a missing one) and all checked to hold the same cameras: what every reader of a run's
+        cameras (`load_run`, the viewer) reads them through.
+
+        Raises:
+            WarpbagsError: one cannot be read, is malformed, or holds another number of cameras than poses_final.npy
+                (the first present one of `CAMERA_ARRAYS`), named.
+        """
+        arrays = {name: self.read_array(name) for name in CAMERA_ARRAYS}
+        present = [name for name in CAMERA_ARRAYS if arrays[name] is not None]
+        for name in present[1:]:
+            if len(arrays[name]) != len(arrays[present[0]]):
+                raise WarpbagsError(f"{self.path / f'{name}.npy'} holds {len(arrays[name])} cameras, the run's poses "
+                                    f"{len(arrays[present[0]])} ({present[0]}.npy)")
+        return arrays
 
     def write_results(self, params: dict[str, torch.Tensor], viewmats: torch.Tensor) -> None:
         """gaussians.ply and poses_final.npy ([C,4,4] world-to-camera)."""
@@ -139,9 +170,31 @@ class RunFolder:
             yield write
 
     def read_log(self) -> list[dict]:
-        """The per-iteration records of log.jsonl ([] without one)."""
+        """The per-iteration records of log.jsonl ([] without one).
+
+        Raises:
+            WarpbagsError: the file cannot be read, or a line is not a record (a line cut short by a crash), named
+                with its line number.
+        """
         path = self.path / LOG_FILE
-        return [json.loads(line) for line in path.read_text().splitlines() if line.strip()] if path.is_file() else []
+        if not path.is_file():
+            return []
+        try:
+            lines = path.read_text().splitlines()
+        except (OSError, UnicodeDecodeError) as error:
+            raise WarpbagsError(f"{path}: unreadable ({error})") from None
+        records = []
+        for number, line in enumerate(lines, start=1):
+            if not line.strip():
+                continue
+            try:
+                record = json.loads(line)
+            except json.JSONDecodeError as error:
+                raise WarpbagsError(f"{path}:{number}: not a log record ({error.msg}; cut short by a crash?)") from None
+            if not isinstance(record, dict) or "iter" not in record:
+                raise WarpbagsError(f"{path}:{number}: not a log record (no \"iter\")")
+            records.append(record)
+        return records
 
     def record_poses(self, iteration: int, viewmats: torch.Tensor) -> None:
         """Append [C,4,4] `viewmats` to the pose history when `iteration` is a multiple of RECORD_EVERY."""
@@ -165,6 +218,44 @@ class RunFolder:
                 temporary.write_text("".join(line + "\n" for line in kept))
         if (self.path / HISTORY_FILE).exists():
             record_poses(self.path, iteration, viewmats)  # records at or after `iteration` are replaced
+
+    # ----------------------------------------------------------------------------------------------- a new run
+    def require_new(self) -> None:
+        """Check that a new run may start here: the folder is missing or empty, so that it overwrites nothing and
+        appends to no other run's log (and a failed start can remove what it wrote, `remove_unfinished`).
+
+        Raises:
+            WarpbagsError: the folder holds anything; a run with a checkpoint is named as one (--resume continues it).
+        """
+        if not self.path.is_dir():
+            return
+        entries = sorted(entry.name for entry in self.path.iterdir())
+        if not entries:
+            return
+        if self.has_checkpoint():
+            raise WarpbagsError(f"{self.path} already holds a run; pass --resume to continue it or choose another "
+                                "--out")
+        shown = ", ".join(entries[:6]) + (f" and {len(entries) - 6} more" if len(entries) > 6 else "")
+        raise WarpbagsError(f"{self.path} is not empty ({shown}) and holds no run to --resume: a new run needs a new "
+                            "or empty folder, choose another --out")
+
+    def missing_folders(self) -> list[Path]:
+        """The run folder and those of its parents that do not exist yet (deepest first): what writing it makes."""
+        return [folder for folder in (self.path, *self.path.parents) if not folder.exists()]
+
+    def remove_unfinished(self, made_folders: list[Path]) -> None:
+        """Remove what a new run writes before its first checkpoint (its setup files, log, pose history, an
+        unfinished coarse/ and an empty checkpoints/), then those of `made_folders` (`missing_folders` before the
+        run started) that are empty. Only for a run that started in a new or empty folder (`require_new`) and has no
+        checkpoint: it cannot be resumed, and a half-written run folder must not stay."""
+        for folder in (self.path / "coarse", self.path):
+            for name in (*SETUP_FILES, "gaussians.ply", "poses_final.npy", LOG_FILE, HISTORY_FILE):
+                (folder / name).unlink(missing_ok=True)
+        for folder in (self.path / "coarse", self.checkpoints, *made_folders):
+            try:
+                folder.rmdir()
+            except OSError:  # missing, or not empty: left as it is
+                pass
 
     # ----------------------------------------------------------------------------------------------- checkpoints
     def has_checkpoint(self) -> bool:
@@ -205,6 +296,35 @@ class RunFolder:
         return state
 
 
+def checked_cameras(path: Path, array: np.ndarray, intrinsics: bool = False) -> np.ndarray:
+    """`array`, read from `path`, checked to be [C,4,4] world-to-camera poses (finite, a rotation and a translation
+    over the row [0, 0, 0, 1], within POSE_TOLERANCE) or, with `intrinsics`, [C,3,3] finite intrinsics, C >= 1.
+
+    Raises:
+        WarpbagsError: it is not, naming `path` and the first camera that is not.
+    """
+    side, what = (3, "intrinsics") if intrinsics else (4, "world-to-camera poses")
+    if array.ndim != 3 or array.shape[1:] != (side, side) or len(array) == 0:
+        raise WarpbagsError(f"{path}: expected [C,{side},{side}] {what}, got an array of shape {list(array.shape)}")
+    finite = np.isfinite(array).all(axis=(1, 2))
+    if not finite.all():
+        raise WarpbagsError(f"{path}: camera {int(np.argmin(finite))} holds a value that is not finite")
+    if intrinsics:
+        return array
+    rotations = array[:, :3, :3]
+    orthogonality = np.abs(rotations @ rotations.transpose(0, 2, 1) - np.eye(3)).max(axis=(1, 2))
+    determinants = np.linalg.det(rotations)
+    last_rows = np.abs(array[:, 3] - np.array([0.0, 0.0, 0.0, 1.0])).max(axis=1)
+    bad = np.flatnonzero((orthogonality > POSE_TOLERANCE) | (np.abs(determinants - 1) > POSE_TOLERANCE)
+                         | (last_rows > POSE_TOLERANCE))
+    if len(bad):
+        camera = int(bad[0])
+        raise WarpbagsError(f"{path}: camera {camera} is not a world-to-camera pose (its 3x3 part has determinant "
+                            f"{determinants[camera]:.3g} and is {orthogonality[camera]:.2g} from orthonormal; last "
+                            f"row {array[camera, 3].tolist()})")
+    return array
+
+
 def _root_of(scene: Scene) -> str:
     """A scene's folder as a run records it: absolute, links resolved."""
     return str(Path(scene.root).resolve())
@@ -231,6 +351,19 @@ def require_info(run: TrainingRun, *keys: str) -> None:
             raise WarpbagsError(f"{run.path / 'config.json'} has no {key!r}: written by an older warpbags")
 
 
+def run_normalization(run: TrainingRun) -> SceneNormalization:
+    """The run's scene normalization, as its config.json stores it.
+
+    Raises:
+        WarpbagsError: config.json has none (an older warpbags) or a malformed one, named.
+    """
+    require_info(run, "normalization")
+    try:
+        return SceneNormalization.from_dict(run.info["normalization"])
+    except WarpbagsError as error:
+        raise WarpbagsError(f"{run.path / 'config.json'}: {error}") from None
+
+
 def latest_run(root: str | Path = "runs") -> Path:
     """The most recently modified run folder under `root` that holds a config.json.
 
@@ -247,7 +380,7 @@ def load_run(path: str | Path) -> TrainingRun:
     """Read a finished run folder.
 
     Raises:
-        WarpbagsError: a missing or unreadable file, named.
+        WarpbagsError: a missing, unreadable or malformed file (`RunFolder.read_cameras`, `read_ply`), named.
     """
     path = Path(path)
     if not (path / "config.json").is_file():
@@ -258,10 +391,8 @@ def load_run(path: str | Path) -> TrainingRun:
     for name in ("gaussians.ply", "poses_true.npy", "poses_init.npy", "poses_final.npy"):
         if not (path / name).is_file():
             raise WarpbagsError(f"{path / name} is missing: the run has not finished (continue it with --resume)")
-    poses = {name: torch.from_numpy(folder.read_array(name)) for name in ("poses_true", "poses_init", "poses_final")}
-    intrinsics = folder.read_array("intrinsics")
-    if intrinsics is not None and len(intrinsics) != len(poses["poses_final"]):
-        raise WarpbagsError(f"{path / 'intrinsics.npy'} holds {len(intrinsics)} cameras, the run's poses "
-                            f"{len(poses['poses_final'])}")
+    arrays = folder.read_cameras()  # all of them checked, poses_start.npy too: [C,4,4] poses, [C,3,3] intrinsics
+    poses = {name: torch.from_numpy(arrays[name]) for name in ("poses_true", "poses_init", "poses_final")}
+    intrinsics = arrays["intrinsics"]
     return TrainingRun(path, info, config, read_ply(path / "gaussians.ply"), **poses,
                        intrinsics=None if intrinsics is None else torch.from_numpy(intrinsics))

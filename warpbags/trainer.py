@@ -115,6 +115,9 @@ class Trainer:
         self.repair_stage: RepairStage | None = None  # built when the repair stage first uses pseudo views
         self._repair_state: dict | None = None  # its checkpointed state, applied when it is built
         self._stop_requested = False
+        # Set by `start_or_resume` for a new run (the folders it makes: `RunFolder.missing_folders`): until the first
+        # checkpoint, a failure removes what the run wrote (`RunFolder.remove_unfinished`). None: the caller's folder.
+        self.new_run_folders: list[Path] | None = None
 
     def _training_views(self, level: int | None = None) -> TrainingViews:
         """The training views at pyramid level `level` (0 = the full training resolution, k = 1/2^k of it; None:
@@ -322,6 +325,12 @@ class Trainer:
         """gaussians.ply and poses_final.npy into `folder` (default: the run folder)."""
         (self.run_folder if folder is None else RunFolder(folder)).write_results(self.params, self.current_viewmats())
 
+    def remove_if_unfinished(self) -> None:
+        """For a new run of `start_or_resume` without a checkpoint yet: remove the files it wrote (and the folders
+        made for it), since it can neither be resumed nor evaluated. Anything else: nothing."""
+        if self.new_run_folders is not None and not self.run_folder.has_checkpoint():
+            self.run_folder.remove_unfinished(self.new_run_folders)
+
     # ----------------------------------------------------------------------------------------------- loop
     def _request_stop(self, signum, frame) -> None:
         self._stop_requested = True
@@ -427,7 +436,9 @@ class Trainer:
         WarpbagsError. `callback(record)` is called after each iteration. The round searched for view hypotheses
         (`camera.hypotheses_round`) trains as a whole: a `stop_at` inside it stops at its start, Ctrl-C goes back to
         its start, only its end is checkpointed, and its iterations are logged (and passed to `callback`) after the
-        search, the trainer then at the round's end.
+        search, the trainer then at the round's end. A new run of `start_or_resume` that fails (any exception,
+        KeyboardInterrupt included) before its first checkpoint is written removes the files it wrote, and the
+        folders made for it: nothing half-written stays.
         """
         total = self.config.total_iters
         stop_at = total if stop_at is None else min(stop_at, total)
@@ -458,6 +469,9 @@ class Trainer:
                         continue
                     record = self._finish_iteration(self.train_step(), self.current_viewmats(), write_log, callback,
                                                     stop_at)
+        except BaseException:
+            self.remove_if_unfinished()
+            raise
         finally:
             if previous_handler is not None:
                 signal.signal(signal.SIGINT, previous_handler)
@@ -527,9 +541,13 @@ def start_or_resume(scene: Scene, config: TrainConfig, out_dir: str | Path, devi
     """A Trainer for `out_dir`: fresh (run files written) or, with `resume`, continued from its last checkpoint
     (with the config saved in the run folder).
 
+    A fresh run needs a new or empty `out_dir` (`RunFolder.require_new`); until its first checkpoint, a failure of
+    `Trainer.train` (or of writing its first files here) removes what it wrote, and the folders made for `out_dir`.
+
     Raises:
         WarpbagsError: `resume` without a checkpoint in `out_dir` or with another scene folder than the run's, or a
-            fresh run into a folder that has one, or an `out_dir` that is a file or cannot be written.
+            fresh run into a folder that is not empty (one with a run named as such), or an `out_dir` that is a file
+            or cannot be written.
     """
     run_folder = RunFolder(writable_folder(out_dir, "to train into"))
     if resume:
@@ -538,11 +556,17 @@ def start_or_resume(scene: Scene, config: TrainConfig, out_dir: str | Path, devi
         if not run_folder.trained_on(scene, info):
             raise WarpbagsError(f"--resume: {out_dir} holds a run of the scene in {info.get('scene_root')}, not of "
                                 f"{Path(scene.root).resolve()}")
-    elif run_folder.has_checkpoint():
-        raise WarpbagsError(f"{out_dir} already holds a run; pass --resume to continue it or choose another --out")
+    else:
+        run_folder.require_new()
+    made_folders = run_folder.missing_folders()
     trainer = Trainer(scene, config, out_dir, device=device, log=log, resuming=resume)
     if resume:
         trainer.resume()
-    else:
+        return trainer
+    trainer.new_run_folders = made_folders
+    try:
         trainer.write_run_files()
+    except BaseException:
+        trainer.remove_if_unfinished()
+        raise
     return trainer

@@ -57,7 +57,19 @@ class SceneNormalization:
 
     @staticmethod
     def from_dict(values: dict) -> SceneNormalization:
-        return SceneNormalization(tuple(float(v) for v in values["center"]), float(values["scale"]))
+        """What `to_dict` wrote.
+
+        Raises:
+            WarpbagsError: `values` is not {"center": [x, y, z], "scale": s} with finite numbers and s > 0 (the
+                caller names the file it came from).
+        """
+        try:
+            center, scale = tuple(float(v) for v in values["center"]), float(values["scale"])
+        except (KeyError, TypeError, ValueError):
+            center, scale = (), float("nan")
+        if len(center) != 3 or not np.isfinite(center).all() or not np.isfinite(scale) or scale <= 0:
+            raise WarpbagsError(f'normalization must be {{"center": [x, y, z], "scale": s > 0}}, got {values!r}')
+        return SceneNormalization(center, scale)
 
     def matrix(self) -> np.ndarray:
         """[4,4] float64 homogeneous source-to-normalized transform."""

@@ -20,7 +20,7 @@ from warpbags.camera_paths import mean_up_axis
 from warpbags.configs.train import BACKGROUNDS
 from warpbags.errors import WarpbagsError
 from warpbags.gaussians import opacity_weighted_center, read_ply, sh_degree_of
-from warpbags.pose_history import read_pose_history
+from warpbags.pose_history import HISTORY_FILE, read_pose_history
 from warpbags.run_folder import RunFolder
 
 THUMBNAIL_SIDE = 160  # px: the longer side of the pictures shown on the frustums (they travel to every browser)
@@ -116,15 +116,15 @@ def _read_run_info(path: Path) -> dict | None:
 
 def _training_cameras(path: Path, info: dict, log: Callable[[str], None]) -> TrainingCameras | None:
     """The run's cameras, or None (logged) when it lacks the files to draw them."""
-    folder = RunFolder(path)
-    Ks, final = folder.read_array("intrinsics"), folder.read_array("poses_final")
+    arrays = RunFolder(path).read_cameras()  # every camera file checked as eval and agree check them
+    Ks, final, start = arrays["intrinsics"], arrays["poses_final"], arrays["poses_start"]
     if Ks is None or final is None or "width" not in info:
         log(f"{path}: no intrinsics.npy, poses_final.npy or image size: showing the Gaussians without cameras")
         return None
-    start = folder.read_array("poses_start")
     iterations, frames = _pose_frames(path, info, start, final)
-    return TrainingCameras(Ks, info["width"], info["height"], start, _aligned_reference(path, final, log),
-                           iterations, frames, _thumbnails(info, log))
+    reference = _aligned_reference(final, arrays["poses_true"], log)
+    return TrainingCameras(Ks, info["width"], info["height"], start, reference, iterations, frames,
+                           _thumbnails(info, log))
 
 
 def _pose_frames(path: Path, info: dict, start: np.ndarray | None, final: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -134,6 +134,9 @@ def _pose_frames(path: Path, info: dict, start: np.ndarray | None, final: np.nda
     if start is not None:
         iterations, frames = [0], [start]
     history = read_pose_history(path)
+    if history is not None and history.viewmats.shape[1] != len(final):
+        raise WarpbagsError(f"{path / HISTORY_FILE} holds {history.viewmats.shape[1]} cameras, the run's poses "
+                            f"{len(final)} (poses_final.npy)")
     if history is not None:
         recorded = (history.iterations > 0) & (history.iterations < total)
         iterations += history.iterations[recorded].tolist()
@@ -141,9 +144,9 @@ def _pose_frames(path: Path, info: dict, start: np.ndarray | None, final: np.nda
     return np.array(iterations + [total]), np.stack(frames + [final])
 
 
-def _aligned_reference(path: Path, final: np.ndarray, log: Callable[[str], None]) -> np.ndarray | None:
-    """poses_true.npy mapped into the model's frame, as `warpbags eval` maps the test cameras; None without it."""
-    true = RunFolder(path).read_array("poses_true")
+def _aligned_reference(final: np.ndarray, true: np.ndarray | None, log: Callable[[str], None]) -> np.ndarray | None:
+    """`true` (poses_true.npy) mapped into the model's frame, as `warpbags eval` maps the test cameras; None
+    without it."""
     if true is None:
         return None
     final_t, true_t = torch.from_numpy(final), torch.from_numpy(true)
