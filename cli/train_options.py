@@ -276,7 +276,7 @@ def resumed_config(saved: TrainConfig, preset: str | None, given: dict[str, Any]
         raise WarpbagsError(f"--resume: the run was trained with --preset {saved.preset}, not {preset}; drop --preset "
                             "or start a new run")
     overrides = config_overrides(given, settings)
-    asked = load_preset(saved.preset, **overrides)
+    asked = saved.replaced(**overrides)  # checked against the run's own config (views_per_step <= views, ...)
     for path, _ in _flattened(overrides):
         if field_value(asked, path) != field_value(saved, path):
             raise WarpbagsError(f"--resume: the run was trained with {path}={_text(field_value(saved, path))}, not "

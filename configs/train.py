@@ -553,6 +553,15 @@ class TrainConfig:
     def to_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)
 
+    def replaced(self, **overrides: Any) -> TrainConfig:
+        """This config with fields replaced (the groups lr, camera, densify and repair may be given as partial
+        dicts), type-checked and validated as a whole.
+
+        Raises:
+            WarpbagsError: an unknown field, a value of the wrong type, or an out-of-range value.
+        """
+        return _replaced(self, overrides).validate()
+
     @staticmethod
     def from_dict(values: dict[str, Any]) -> TrainConfig:
         """The config `to_dict` wrote (e.g. a run's config.json); fields it lacks keep their defaults.
@@ -788,5 +797,4 @@ def load_preset(name: str, **overrides: Any) -> TrainConfig:
     """
     if name not in PRESETS:
         raise WarpbagsError(f"--preset must be one of {', '.join(PRESETS)}, got {name!r}")
-    overrides = {key: value for key, value in overrides.items() if value is not None}
-    return _replaced(PRESETS[name](), overrides).validate()
+    return PRESETS[name]().replaced(**{key: value for key, value in overrides.items() if value is not None})

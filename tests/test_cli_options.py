@@ -16,8 +16,8 @@ from typer.testing import CliRunner
 from warpbags.cli import train as train_command
 from warpbags.cli.common import parse_numbers
 from warpbags.cli.main import COMMAND_GROUPS, app
-from warpbags.cli.train_options import TRAIN_OPTIONS, field_descriptions, field_type, field_value
-from warpbags.configs.train import PRESETS, TrainConfig, quick
+from warpbags.cli.train_options import TRAIN_OPTIONS, field_descriptions, field_type, field_value, resumed_config
+from warpbags.configs.train import PRESETS, TrainConfig, load_preset, quick
 from warpbags.errors import WarpbagsError
 
 runner = CliRunner()
@@ -180,3 +180,9 @@ def test_parse_numbers_names_the_option_and_the_bad_text(text, kind, message):
     with pytest.raises(WarpbagsError) as error:
         parse_numbers(text, "--opt", kind)
     assert str(error.value) == message
+
+
+def test_a_resumed_run_checks_options_given_again_against_its_own_config():
+    """`views_per_step <= views` holds for the run (9 views), not for its preset's default (4)."""
+    saved = load_preset("paper", views=9, views_per_step=6)
+    assert resumed_config(saved, None, {}, ["views_per_step=6"]) is saved

@@ -307,6 +307,18 @@ def test_transforms_json_matches_exact_poses(synthetic_dir, tmp_path):
     assert scene.masks is not None
 
 
+def test_a_pose_that_is_not_a_rotation_is_refused_at_load(synthetic_dir, tmp_path):
+    """A transform_matrix with a scale (some exporters fold one in) would train as a wrong camera, and every reader
+    of the run would refuse its poses afterwards: the loader names it."""
+    folder = _strip_to_images(synthetic_dir, tmp_path / "scaled")
+    opengl = np.linalg.inv(dome_viewmats(SYNTHETIC)) @ np.diag([1.0, -1.0, -1.0, 1.0])
+    opengl[3, :3, :3] *= 1.5
+    frames = [{"file_path": f"images/view_{i:03d}", "transform_matrix": opengl[i].tolist()} for i in range(12)]
+    (folder / "transforms.json").write_text(json.dumps({"camera_angle_x": math.radians(SYNTHETIC.fov_deg),
+                                                        "frames": frames}))
+    _expect_error(folder, r"transforms\*\.json: the pose of images/view_003.png is not a rotation", normalize=False)
+
+
 def test_blender_test_views_are_never_chosen_for_training(synthetic_dir, tmp_path):
     """With transforms_train.json / transforms_test.json, the 4/6/9-view splits and any other view count are chosen
     among the train views: the test views (here the first six names, where farthest-point sampling starts) stay

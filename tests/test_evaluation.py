@@ -306,6 +306,11 @@ def test_export_without_its_scene_folder_writes_nothing_unless_told_to_skip_the_
     result = runner.invoke(app, ["export", str(run), "--out", str(tmp_path / "export"), "--no-colmap"])
     assert result.exit_code == 0, result.output
     assert sorted(path.name for path in (tmp_path / "export").iterdir()) == ["gaussians.ply", "poses_final.npy"]
+    (tmp_path / "export" / "sparse" / "0").mkdir(parents=True)  # an earlier export's model, of other poses
+    (tmp_path / "export" / "sparse" / "0" / "images.txt").write_text("")
+    result = runner.invoke(app, ["export", str(run), "--out", str(tmp_path / "export"), "--no-colmap"])
+    assert result.exit_code == 0, result.output
+    assert sorted(path.name for path in (tmp_path / "export").iterdir()) == ["gaussians.ply", "poses_final.npy"]
 
 
 def test_turntable_frames_and_video(finished_run):
@@ -449,10 +454,6 @@ def test_sweep_runs_every_combination_once_and_skips_finished_runs(finished_run,
     info = json.loads((finished_run / "config.json").read_text())
     spec = SweepSpec(scene=info["scene_root"], out=tmp_path / "sweep", rot_noises=(0, 5), views=(4,), seeds=(0,),
                      refine_iters=2, overrides=(("iters", 4),))
-    killed = spec.out / "bags-4v-rot0-seed0"  # a run killed before its first checkpoint: trained again from scratch
-    killed.mkdir(parents=True)
-    (killed / "config.json").write_text("{}")
-    (killed / "log.jsonl").write_text('{"iter": 1, "lo')
     messages = []
     rows = run_sweep(spec, log=messages.append)
     assert len(rows) == 4 and {r["method"] for r in rows} == {"bags", "baseline"}
@@ -467,6 +468,26 @@ def test_sweep_runs_every_combination_once_and_skips_finished_runs(finished_run,
     messages.clear()
     again = run_sweep(spec, log=messages.append)
     assert messages == [f"skip {r['run']} (done)" for r in rows] and again == rows
+    # a run killed (SIGKILL) before its first checkpoint: its setup files, a log line cut short and an atomic write's
+    # temporary stay; the next sweep trains it again, and leaves a folder holding anything else alone
+    killed = spec.out / "bags-4v-rot0-seed0"
+    kept = ("config.json", "poses_true.npy", "poses_init.npy", "poses_start.npy", "intrinsics.npy")
+    for entry in killed.iterdir():
+        if entry.name not in kept:
+            shutil.rmtree(entry) if entry.is_dir() else entry.unlink()
+    (killed / "log.jsonl").write_text('{"iter": 1, "lo')
+    (killed / "poses_history.tmp.npz").write_bytes(b"cut")
+    (killed / "checkpoints").mkdir()
+    messages.clear()
+    assert len(run_sweep(spec, log=messages.append)) == 4
+    assert sum(m == "train bags-4v-rot0-seed0" for m in messages) == 1 and (killed / "eval.json").is_file()
+    other = spec.out / "bags-4v-rot5-seed0"
+    for name in ("eval.json", "gaussians.ply"):  # no checkpoints and no eval.json, but results: not a killed start
+        (other / name).unlink()
+    shutil.rmtree(other / "checkpoints")
+    with pytest.raises(WarpbagsError, match="not empty"):
+        run_sweep(spec, log=messages.append)
+    assert (other / "poses_final.npy").is_file()
 
 
 def test_a_sweep_run_keeps_every_stage_to_its_threads(finished_run, tmp_path, monkeypatch):

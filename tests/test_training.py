@@ -676,7 +676,7 @@ def test_cli_new_run_into_a_folder_that_is_not_empty_is_one_line_before_training
     left = tmp_path / "left"
     left.mkdir()
     (left / "log.jsonl").write_text('{"iter": 1}\n')
-    with pytest.raises(WarpbagsError, match=re.escape(f"{left} is not empty (log.jsonl) and holds no run to --resume")):
+    with pytest.raises(WarpbagsError, match=re.escape(f"{left} holds a run stopped before its first checkpoint")):
         start_or_resume(None, tiny_config(), left)
     assert (left / "log.jsonl").read_text() == '{"iter": 1}\n'
 
@@ -909,3 +909,24 @@ def test_continue_from_takes_the_other_models_extent_for_its_densification_too()
     model = GaussianModel(config, views, params(), 1.0, torch.Generator())
     model.continue_from(GaussianModel(config, views, params(), 3.0, torch.Generator()))
     assert model.scene_extent == model.strategy.scene_extent == 3.0
+
+
+def test_a_checkpoint_write_cut_short_is_not_the_latest_checkpoint(tmp_path):
+    """A SIGKILL during `atomic_output` leaves checkpoint_N.tmp.pt, which sorts after checkpoint_N.pt: resuming from
+    it would fail, and a new run would take the folder for a run to --resume."""
+    from warpbags.run_folder import RunFolder
+
+    folder = RunFolder(tmp_path / "run")
+    folder.checkpoints.mkdir(parents=True)
+    assert not folder.has_checkpoint()
+    (folder.checkpoints / "checkpoint_000500.tmp.pt").write_bytes(b"cut")
+    assert not folder.has_checkpoint() and folder.holds_unfinished_start() is False  # a file it does not know
+    (folder.checkpoints / "checkpoint_000500.tmp.pt").unlink()
+    (folder.path / "config.json").write_text("{}")
+    (folder.path / "config.tmp.json").write_text("{")
+    assert folder.holds_unfinished_start()
+    with pytest.raises(WarpbagsError, match="stopped before its first checkpoint"):
+        folder.require_new()
+    (folder.checkpoints / "checkpoint_000100.pt").write_bytes(b"")
+    (folder.checkpoints / "checkpoint_000200.tmp.pt").write_bytes(b"cut")
+    assert folder.latest_checkpoint().name == "checkpoint_000100.pt" and not folder.holds_unfinished_start()

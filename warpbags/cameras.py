@@ -11,8 +11,30 @@ import torch
 
 from warpbags.lie import rotation_between
 
-__all__ = ["camera_centers", "mean_viewmats", "moved_keeping_target", "pixel_directions", "project_points",
-           "viewmats_from_centers"]
+__all__ = ["camera_centers", "improper_viewmats", "mean_viewmats", "moved_keeping_target", "pixel_directions",
+           "project_points", "viewmats_from_centers"]
+
+# How far a world-to-camera matrix read from a file may be from a rotation and a translation over [0, 0, 0, 1]
+# (|R R^T - I|, |det R - 1|, the last row): loose, for float32 files (orthonormal to ~1e-6); a scaled, sheared,
+# mirrored or damaged matrix is off by far more.
+POSE_TOLERANCE = 1e-2
+
+
+def improper_viewmats(viewmats: torch.Tensor, tolerance: float = POSE_TOLERANCE) -> torch.Tensor:
+    """Indices of the ``[C, 4, 4]`` matrices that are not world-to-camera poses: not finite, or not a rotation
+    (det +1) and a translation over the row ``[0, 0, 0, 1]`` within `tolerance`. The renderer takes them as such,
+    so a scaled or mirrored one would be rendered as a wrong camera, not refused."""
+    viewmats = viewmats.double()
+    finite = torch.isfinite(viewmats).all(dim=-1).all(dim=-1)
+    safe = torch.where(finite[:, None, None], viewmats, torch.eye(4, dtype=viewmats.dtype, device=viewmats.device))
+    rotations = safe[:, :3, :3]
+    identity = torch.eye(3, dtype=viewmats.dtype, device=viewmats.device)
+    orthogonality = (rotations @ rotations.transpose(-1, -2) - identity).abs().amax(dim=(-1, -2))
+    determinant = torch.linalg.det(rotations)
+    last_row = (safe[:, 3] - torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=viewmats.dtype, device=viewmats.device)).abs()
+    proper = finite & (orthogonality <= tolerance) & ((determinant - 1).abs() <= tolerance) & (
+        last_row.amax(dim=-1) <= tolerance)
+    return torch.nonzero(~proper).flatten()
 
 
 def camera_centers(viewmats: torch.Tensor) -> torch.Tensor:

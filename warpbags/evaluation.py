@@ -62,8 +62,9 @@ def _held_back_warnings(logger_name: str) -> Iterator[list[logging.LogRecord]]:
     finally:
         logger.removeHandler(holder)
         logger.propagate = propagate
-    for record in held:
-        logger.handle(record)
+    if propagate and logger.parent is not None:  # on to where they would have gone (the logger's own handlers,
+        for record in held:                       # which still took them in the block, are not given them twice)
+            logger.parent.handle(record)
 
 
 def held_out_views(run: TrainingRun) -> Scene:

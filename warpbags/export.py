@@ -175,6 +175,7 @@ def export_run(path: str | Path, out: str | Path | None = None, colmap: bool = T
         shutil.rmtree(model, ignore_errors=True)
         staging.rename(model)
         return out, Path(run.info["scene_root"]) / calibration.image_folder
+    shutil.rmtree(out / "sparse", ignore_errors=True)  # an earlier export's model, which these poses no longer match
     return out, None
 
 

@@ -35,6 +35,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from warpbags.cameras import improper_viewmats
 from warpbags.configs.train import TrainConfig
 from warpbags.data.scene import Scene, SceneNormalization
 from warpbags.errors import WarpbagsError, one_line
@@ -50,9 +51,6 @@ LOG_FILE = "log.jsonl"
 SETUP_FILES = ("config.json", "poses_true.npy", "poses_init.npy", "poses_start.npy", "intrinsics.npy")
 POSE_ARRAYS = ("poses_final", "poses_true", "poses_init", "poses_start")
 CAMERA_ARRAYS = (*POSE_ARRAYS, "intrinsics")  # `RunFolder.read_cameras`
-# How far a pose file's 3x3 part may be from a rotation (|R R^T - I|, |det R - 1|) and its last row from [0, 0, 0, 1]:
-# loose, since the files are float32 (rotations orthonormal to ~1e-6); a damaged or foreign file is off by far more.
-POSE_TOLERANCE = 1e-2
 
 
 class RunFolder:
@@ -235,6 +233,9 @@ class RunFolder:
         if self.has_checkpoint():
             raise WarpbagsError(f"{self.path} already holds a run; pass --resume to continue it or choose another "
                                 "--out")
+        if self.holds_unfinished_start():
+            raise WarpbagsError(f"{self.path} holds a run stopped before its first checkpoint (nothing to --resume): "
+                                "remove the folder or choose another --out")
         shown = ", ".join(entries[:6]) + (f" and {len(entries) - 6} more" if len(entries) > 6 else "")
         raise WarpbagsError(f"{self.path} is not empty ({shown}) and holds no run to --resume: a new run needs a new "
                             "or empty folder, choose another --out")
@@ -243,6 +244,20 @@ class RunFolder:
         """The run folder and those of its parents that do not exist yet (deepest first): what writing it makes."""
         return [folder for folder in (self.path, *self.path.parents) if not folder.exists()]
 
+    def holds_unfinished_start(self) -> bool:
+        """Whether the folder holds nothing but what a new run writes before its first checkpoint (its setup files,
+        log and pose history, their atomic writes' temporaries, an empty checkpoints/): a run killed there (SIGKILL,
+        power), which can be neither resumed nor evaluated, and which `remove_unfinished` may clear."""
+        if not self.path.is_dir() or self.has_checkpoint():
+            return False
+        names = {*SETUP_FILES, LOG_FILE, HISTORY_FILE}
+        names |= {f"{Path(name).stem}.tmp{Path(name).suffix}" for name in names}
+        entries = list(self.path.iterdir())
+        return bool(entries) and all(
+            (entry.name in names and entry.is_file() and not entry.is_symlink())
+            or (entry == self.checkpoints and entry.is_dir() and not any(entry.glob("checkpoint_*.pt")))
+            for entry in entries)
+
     def remove_unfinished(self, made_folders: list[Path]) -> None:
         """Remove what a new run writes before its first checkpoint (its setup files, log, pose history, an
         unfinished coarse/ and an empty checkpoints/), then those of `made_folders` (`missing_folders` before the
@@ -250,7 +265,8 @@ class RunFolder:
         checkpoint: it cannot be resumed, and a half-written run folder must not stay."""
         for folder in (self.path / "coarse", self.path):
             for name in (*SETUP_FILES, "gaussians.ply", "poses_final.npy", LOG_FILE, HISTORY_FILE):
-                (folder / name).unlink(missing_ok=True)
+                for written in (name, f"{Path(name).stem}.tmp{Path(name).suffix}"):  # and a write cut short
+                    (folder / written).unlink(missing_ok=True)
         for folder in (self.path / "coarse", self.checkpoints, *made_folders):
             try:
                 folder.rmdir()
@@ -262,7 +278,8 @@ class RunFolder:
         return self.latest_checkpoint() is not None
 
     def latest_checkpoint(self) -> Path | None:
-        found = sorted(self.checkpoints.glob("checkpoint_*.pt"))
+        found = sorted(path for path in self.checkpoints.glob("checkpoint_*.pt")
+                       if ".tmp" not in path.name)  # not a write cut short (atomic_output's checkpoint_N.tmp.pt)
         return found[-1] if found else None
 
     def save_checkpoint(self, state: dict) -> Path:
@@ -298,7 +315,7 @@ class RunFolder:
 
 def checked_cameras(path: Path, array: np.ndarray, intrinsics: bool = False) -> np.ndarray:
     """`array`, read from `path`, checked to be [C,4,4] world-to-camera poses (finite, a rotation and a translation
-    over the row [0, 0, 0, 1], within POSE_TOLERANCE) or, with `intrinsics`, [C,3,3] finite intrinsics, C >= 1.
+    over the row [0, 0, 0, 1]: `cameras.improper_viewmats`) or, with `intrinsics`, [C,3,3] finite intrinsics, C >= 1.
 
     Raises:
         WarpbagsError: it is not, naming `path` and the first camera that is not.
@@ -309,19 +326,11 @@ def checked_cameras(path: Path, array: np.ndarray, intrinsics: bool = False) -> 
     finite = np.isfinite(array).all(axis=(1, 2))
     if not finite.all():
         raise WarpbagsError(f"{path}: camera {int(np.argmin(finite))} holds a value that is not finite")
-    if intrinsics:
-        return array
-    rotations = array[:, :3, :3]
-    orthogonality = np.abs(rotations @ rotations.transpose(0, 2, 1) - np.eye(3)).max(axis=(1, 2))
-    determinants = np.linalg.det(rotations)
-    last_rows = np.abs(array[:, 3] - np.array([0.0, 0.0, 0.0, 1.0])).max(axis=1)
-    bad = np.flatnonzero((orthogonality > POSE_TOLERANCE) | (np.abs(determinants - 1) > POSE_TOLERANCE)
-                         | (last_rows > POSE_TOLERANCE))
-    if len(bad):
-        camera = int(bad[0])
+    improper = [] if intrinsics else improper_viewmats(torch.from_numpy(array)).tolist()
+    if improper:
+        camera = improper[0]
         raise WarpbagsError(f"{path}: camera {camera} is not a world-to-camera pose (its 3x3 part has determinant "
-                            f"{determinants[camera]:.3g} and is {orthogonality[camera]:.2g} from orthonormal; last "
-                            f"row {array[camera, 3].tolist()})")
+                            f"{np.linalg.det(array[camera, :3, :3]):.3g}, last row {array[camera, 3].tolist()})")
     return array
 
 

@@ -151,7 +151,7 @@ def run_combination(spec: SweepSpec, run: SweepRun, scene: Scene, render_threads
         config = combination_config(spec, run, render_threads)
         folder = RunFolder(run_dir)
         resume = folder.has_checkpoint()
-        if not resume:  # a run killed (SIGKILL, power) before its first checkpoint left its setup files: start again
+        if folder.holds_unfinished_start():  # a run killed (SIGKILL, power) before its first checkpoint: again
             folder.remove_unfinished([])
         with limited_host_threads(render_threads):
             trainer = start_or_resume(training_scene(scene, config), config, run_dir, device=spec.device,
@@ -335,8 +335,8 @@ def _check_earlier_run(run_dir: Path, config: TrainConfig, scene: Scene) -> None
     `config`: a resumed sweep skips finished runs and continues the others with their saved config, so its table
     would mix settings. The render threads may differ (a machine's, not the run's)."""
     folder = RunFolder(run_dir)
-    if not (run_dir / "config.json").is_file() or not (folder.has_checkpoint() or _is_done(run_dir)):
-        return  # nothing to continue there: a run killed before its first checkpoint is trained again
+    if not (run_dir / "config.json").is_file():
+        return
     info = folder.read_info()
     if not folder.trained_on(scene, info):
         raise WarpbagsError(f"{run_dir} holds a run of the scene in {info.get('scene_root')}: choose another --out")

@@ -14,7 +14,9 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+import torch
 
+from warpbags.cameras import improper_viewmats
 from warpbags.data.colmap import read_model
 from warpbags.data.images import IMAGE_EXTENSIONS, first_existing_image_dir, image_size
 from warpbags.errors import WarpbagsError
@@ -56,14 +58,28 @@ def read_layout_cameras(root: Path) -> LayoutCameras:
     """
     if (root / "sparse" / "0").is_dir() or any((root / "sparse" / name).is_file() for name in ("cameras.bin",
                                                                                              "cameras.txt")):
-        return colmap_cameras(root)
+        return _proper(colmap_cameras(root), root / "sparse")
     if (root / "poses_bounds.npy").is_file():
-        return llff_cameras(root)
+        return _proper(llff_cameras(root), root / "poses_bounds.npy")
     if (root / "transforms.json").is_file() or (root / "transforms_train.json").is_file():
-        return transforms_cameras(root)
+        return _proper(transforms_cameras(root), root / "transforms*.json")
     raise WarpbagsError(
         f"no cameras in {root}: expected sparse/0/cameras.bin (COLMAP), poses_bounds.npy (LLFF) or transforms.json"
     )
+
+
+def _proper(cameras: LayoutCameras, source: Path) -> LayoutCameras:
+    """`cameras`, whose poses must each be a rotation and a translation (`improper_viewmats`): a scaled or sheared
+    matrix would train as a wrong camera, and every reader of the run would refuse its poses afterwards.
+
+    Raises:
+        WarpbagsError: one is not, named by its image and `source`, the file it came from.
+    """
+    improper = improper_viewmats(torch.from_numpy(cameras.viewmats)).tolist()
+    if improper:
+        raise WarpbagsError(f"{source}: the pose of {cameras.image_names[improper[0]]} is not a rotation and a "
+                            "translation (scaled, sheared, mirrored or not finite)")
+    return cameras
 
 
 def colmap_cameras(root: Path) -> LayoutCameras:
