@@ -21,7 +21,7 @@ from warpbags.data.colmap import write_model
 from warpbags.data.images import image_size, resolution_path
 from warpbags.data.layouts import read_layout_cameras, scaled_intrinsics
 from warpbags.errors import WarpbagsError
-from warpbags.files import atomic_output, writable_file, writable_folder
+from warpbags.files import atomic_output, temporary_name, writable_file, writable_folder
 from warpbags.gaussians import render_gaussians, sh_degree_of, to_source_frame, write_ply
 from warpbags.kernels.sh import SH_C0
 from warpbags.run_folder import TrainingRun, load_run, require_info, run_normalization
@@ -82,7 +82,8 @@ def training_calibration(run: TrainingRun) -> Calibration:
 # What an export writes into its folder: a folder holding only these (sparse/ only 0/ and the 0.partial/ of a write
 # cut short, each of text files) is an earlier export, which an export may replace; any other non-empty folder
 # is refused. The atomic writes' temporaries are named too, so that one left by a killed export does not block.
-EXPORT_FILES = ("gaussians.ply", "poses_final.npy", "gaussians.tmp.ply", "poses_final.tmp.npy")
+EXPORT_FILES = tuple(name for written in ("gaussians.ply", "poses_final.npy")
+                     for name in (written, temporary_name(written)))
 EXPORT_MODEL_FOLDERS = ("0", "0.partial")
 
 

@@ -13,13 +13,25 @@ from pathlib import Path
 from warpbags.errors import WarpbagsError
 
 
+def temporary_name(name: str) -> str:
+    """The name of `atomic_output`'s temporary for a file named `name` (`poses.npy` -> `poses.tmp.npy`): what a
+    write cut short by a kill leaves behind."""
+    path = Path(name)
+    return f"{path.stem}.tmp{path.suffix}"
+
+
+def is_temporary(path: str | Path) -> bool:
+    """Whether `path` is named as an `atomic_output` temporary."""
+    return Path(path).stem.endswith(".tmp")
+
+
 @contextmanager
 def atomic_output(path: str | Path) -> Iterator[Path]:
-    """Yield a temporary sibling of `path` to write; it replaces `path` when the block succeeds and is removed
-    when it fails. The temporary keeps the suffix (`name.tmp.npy`), so writers that choose a format by extension
-    (numpy, OpenCV's video writer) still work."""
+    """Yield a temporary sibling of `path` to write (`temporary_name`); it replaces `path` when the block succeeds and
+    is removed when it fails. The temporary keeps the suffix (`name.tmp.npy`), so writers that choose a format by
+    extension (numpy, OpenCV's video writer) still work."""
     path = Path(path)
-    temporary = path.with_name(f"{path.stem}.tmp{path.suffix}")
+    temporary = path.with_name(temporary_name(path.name))
     try:
         yield temporary
         os.replace(temporary, path)

@@ -39,7 +39,7 @@ from warpbags.cameras import improper_viewmats
 from warpbags.configs.train import TrainConfig
 from warpbags.data.scene import Scene, SceneNormalization
 from warpbags.errors import WarpbagsError, one_line
-from warpbags.files import atomic_output
+from warpbags.files import atomic_output, is_temporary, temporary_name
 from warpbags.gaussians import read_ply, write_ply
 from warpbags.pose_history import HISTORY_FILE, RECORD_EVERY, record_poses
 
@@ -251,7 +251,7 @@ class RunFolder:
         if not self.path.is_dir() or self.has_checkpoint():
             return False
         names = {*SETUP_FILES, LOG_FILE, HISTORY_FILE}
-        names |= {f"{Path(name).stem}.tmp{Path(name).suffix}" for name in names}
+        names |= {temporary_name(name) for name in names}
         entries = list(self.path.iterdir())
         return bool(entries) and all(
             (entry.name in names and entry.is_file() and not entry.is_symlink())
@@ -265,7 +265,7 @@ class RunFolder:
         checkpoint: it cannot be resumed, and a half-written run folder must not stay."""
         for folder in (self.path / "coarse", self.path):
             for name in (*SETUP_FILES, "gaussians.ply", "poses_final.npy", LOG_FILE, HISTORY_FILE):
-                for written in (name, f"{Path(name).stem}.tmp{Path(name).suffix}"):  # and a write cut short
+                for written in (name, temporary_name(name)):  # and a write cut short
                     (folder / written).unlink(missing_ok=True)
         for folder in (self.path / "coarse", self.checkpoints, *made_folders):
             try:
@@ -279,7 +279,7 @@ class RunFolder:
 
     def latest_checkpoint(self) -> Path | None:
         found = sorted(path for path in self.checkpoints.glob("checkpoint_*.pt")
-                       if ".tmp" not in path.name)  # not a write cut short (atomic_output's checkpoint_N.tmp.pt)
+                       if not is_temporary(path))  # not a write cut short (checkpoint_N.tmp.pt)
         return found[-1] if found else None
 
     def save_checkpoint(self, state: dict) -> Path:
