@@ -660,6 +660,25 @@ def test_a_log_cut_short_is_named_by_line_and_eval_writes_nothing(finished_run, 
         assert not (run / output).exists(), output
 
 
+@pytest.mark.parametrize("change, message", [
+    (lambda record: record.pop("loss"), 'no number "loss"'),
+    (lambda record: record.update(rot_err_deg="3"), 'no number "rot_err_deg"'),
+    (lambda record: record.update(iter=-1), 'no iteration count "iter"'),
+])
+def test_a_log_record_without_what_the_report_plots_is_named_by_line(finished_run, tmp_path, change, message):
+    run = _copy_of(finished_run, tmp_path / "run")
+    lines = (run / "log.jsonl").read_text().splitlines()
+    record = json.loads(lines[1])
+    change(record)
+    lines[1] = json.dumps(record)
+    (run / "log.jsonl").write_text("\n".join(lines) + "\n")
+    result = runner.invoke(app, ["eval", str(run), "--refine-iters", "0"])
+    assert result.exit_code == 2 and len(_lines(result)) == 1, result.output
+    assert f"log.jsonl:2: not a log record ({message})" in result.output
+    for output in ("eval", "eval.json", "report.md", "curves.png"):
+        assert not (run / output).exists(), output
+
+
 def _zero_poses(poses):
     return np.zeros_like(poses)
 

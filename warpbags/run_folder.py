@@ -48,6 +48,8 @@ CHECKPOINTS_KEPT = 3
 CHECKPOINT_KEYS = ("iteration", "config", "params", "optimizer", "strategy", "cameras", "generator", "viewmats_init",
                    "viewmats_start")
 LOG_FILE = "log.jsonl"
+# The fields of every log record that the reports and plots read (the trainer's `_record` writes more).
+LOG_NUMBERS = ("loss", "rot_err_deg", "trans_err")
 SETUP_FILES = ("config.json", "poses_true.npy", "poses_init.npy", "poses_start.npy", "intrinsics.npy")
 POSE_ARRAYS = ("poses_final", "poses_true", "poses_init", "poses_start")
 CAMERA_ARRAYS = (*POSE_ARRAYS, "intrinsics")  # `RunFolder.read_cameras`
@@ -171,8 +173,8 @@ class RunFolder:
         """The per-iteration records of log.jsonl ([] without one).
 
         Raises:
-            WarpbagsError: the file cannot be read, or a line is not a record (a line cut short by a crash), named
-                with its line number.
+            WarpbagsError: the file cannot be read, or a line is not a record (a line cut short by a crash, or
+                without an iteration count or one of `LOG_NUMBERS`), named with its line number.
         """
         path = self.path / LOG_FILE
         if not path.is_file():
@@ -189,8 +191,11 @@ class RunFolder:
                 record = json.loads(line)
             except json.JSONDecodeError as error:
                 raise WarpbagsError(f"{path}:{number}: not a log record ({error.msg}; cut short by a crash?)") from None
-            if not isinstance(record, dict) or "iter" not in record:
-                raise WarpbagsError(f"{path}:{number}: not a log record (no \"iter\")")
+            if not isinstance(record, dict) or not _is_count(record.get("iter")):
+                raise WarpbagsError(f"{path}:{number}: not a log record (no iteration count \"iter\")")
+            missing = [name for name in LOG_NUMBERS if not _is_number(record.get(name))]
+            if missing:
+                raise WarpbagsError(f"{path}:{number}: not a log record (no number \"{missing[0]}\")")
             records.append(record)
         return records
 
@@ -332,6 +337,14 @@ def checked_cameras(path: Path, array: np.ndarray, intrinsics: bool = False) -> 
         raise WarpbagsError(f"{path}: camera {camera} is not a world-to-camera pose (its 3x3 part has determinant "
                             f"{np.linalg.det(array[camera, :3, :3]):.3g}, last row {array[camera, 3].tolist()})")
     return array
+
+
+def _is_count(value) -> bool:
+    return isinstance(value, int) and not isinstance(value, bool) and value >= 0
+
+
+def _is_number(value) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool)
 
 
 def _root_of(scene: Scene) -> str:
