@@ -329,6 +329,22 @@ def test_turntable_frames_and_video(finished_run):
     assert len(list((finished_run / "turntable").glob("frame_*.png"))) == 3
 
 
+def test_a_damaged_turntable_frame_is_left_out_of_the_report_by_name(finished_run, tmp_path):
+    import cv2
+
+    run = _copy_of(finished_run, tmp_path / "run")
+    assert runner.invoke(app, ["render", str(run), "--frames", "6", "--no-video"]).exit_code == 0
+    (run / "turntable" / "frame_000.png").write_bytes(b"not a png")
+    result = runner.invoke(app, ["eval", str(run), "--refine-iters", "0"])
+    assert result.exit_code == 0, result.output
+    report = (run / "report.md").read_text()
+    assert "Not readable as images, left out: `turntable/frame_000.png`" in report
+    assert "![turntable](turntable_strip.png)" in report
+    strip = cv2.imread(str(run / "turntable_strip.png"))
+    frame = cv2.imread(str(run / "turntable" / "frame_001.png"))
+    assert strip.shape[1] == 5 * round(frame.shape[1] * 128 / frame.shape[0])  # the five readable frames
+
+
 def test_turntable_is_rendered_on_the_runs_background_and_names_what_it_lacks(finished_run, tmp_path):
     import cv2
 

@@ -48,14 +48,22 @@ def plot_training_curves(records: list[dict], path: Path, alignment: str) -> Non
     plt.close(figure)
 
 
-def image_strip(paths: list[Path], out: Path, height: int = 128) -> None:
-    """Images side by side, each scaled to `height` pixels."""
-    images = []
+def image_strip(paths: list[Path], out: Path, height: int = 128) -> list[Path]:
+    """The images of `paths` side by side, each scaled to `height` pixels, written to `out` (atomically; nothing
+    when none can be read). Returns the paths that could not be read as images, which the strip leaves out."""
+    images, unreadable = [], []
     for path in paths:
-        image = cv2.imread(str(path))
-        images.append(cv2.resize(image, (round(image.shape[1] * height / image.shape[0]), height),
+        image = cv2.imread(str(path)) if path.is_file() else None
+        if image is None or image.size == 0:
+            unreadable.append(path)
+            continue
+        images.append(cv2.resize(image, (max(1, round(image.shape[1] * height / image.shape[0])), height),
                                  interpolation=cv2.INTER_AREA))
-    cv2.imwrite(str(out), np.concatenate(images, axis=1))
+    if images:
+        with atomic_output(out) as temporary:
+            if not cv2.imwrite(str(temporary), np.concatenate(images, axis=1)):
+                raise WarpbagsError(f"could not write {out}")
+    return unreadable
 
 
 def write_image_grid(path: Path, rows: list[list]) -> None:
@@ -123,8 +131,13 @@ def write_run_report(run_dir: Path, result: dict, training_alignment: str, recor
     frames = sorted((run_dir / "turntable").glob("frame_*.png"))
     if frames:
         picks = frames[:: max(1, len(frames) // 6)][:6]
-        image_strip(picks, run_dir / "turntable_strip.png")
-        lines += ["", "## Novel views (turntable)", "", "![turntable](turntable_strip.png)"]
+        unreadable = image_strip(picks, run_dir / "turntable_strip.png")
+        lines += ["", "## Novel views (turntable)", ""]
+        if len(unreadable) < len(picks):
+            lines += ["![turntable](turntable_strip.png)"]
+        if unreadable:  # a frame damaged after `warpbags render` wrote it: the report goes on without it
+            lines += ["", "Not readable as images, left out: " + ", ".join(f"`turntable/{path.name}`"
+                                                                        for path in unreadable)]
     path = run_dir / "report.md"
     with atomic_output(path) as temporary:
         temporary.write_text("\n".join(lines) + "\n")
