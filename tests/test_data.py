@@ -132,6 +132,22 @@ def test_training_on_an_llff_scene_does_not_load_pycolmap():
     assert result.stdout.strip().splitlines()[-1] == "False"
 
 
+def test_a_process_that_read_a_colmap_model_ends_quietly_on_sigterm(tmp_path):
+    """pycolmap's import installs glog's SIGTERM handler, which printed a native stack dump when `kill` stopped
+    `warpbags view` or a training run; reading a model keeps the handler SIGTERM had (Python's default here)."""
+    options = SyntheticOptions(views=3, width=40, height=30)
+    viewmats = dome_viewmats(options)
+    write_model(tmp_path, ["a.jpg", "b.jpg", "c.jpg"], viewmats, np.tile(intrinsics(options), (3, 1, 1)), 40, 30)
+    code = ("import os, signal, time\n"
+            "from pathlib import Path\n"
+            "from warpbags.data.colmap import read_model\n"
+            f"read_model(Path({str(tmp_path)!r}))\n"
+            "os.kill(os.getpid(), signal.SIGTERM)\n"
+            "time.sleep(60)\n")
+    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert result.returncode == -15 and "stack trace" not in result.stderr, result.stderr[-2000:]
+
+
 def test_maryrose_poses_agree_with_masks(maryrose):
     """The object centre (the origin after normalization) projects inside every view's mask: the LLFF
     down/right/back -> OpenCV conversion is right (any other axis order misses the masks by far)."""

@@ -5,6 +5,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+import os
 import re
 import shutil
 import signal
@@ -397,6 +398,24 @@ def test_ctrl_c_stops_one_call_of_train_not_the_next(scene_dir, tmp_path):
     assert trainer.iteration == 1 and trainer.latest_checkpoint().name == "checkpoint_000001.pt"
     trainer.train()
     assert trainer.iteration == 6
+
+
+def test_sigterm_stops_training_with_a_checkpoint_as_ctrl_c_does(scene_dir, tmp_path):
+    """A job scheduler's or `kill`'s SIGTERM: the iteration finishes, a checkpoint is saved, KeyboardInterrupt; the
+    handler the process had is back afterwards."""
+    unhandled = []
+    previous = signal.signal(signal.SIGTERM, lambda signum, frame: unhandled.append(signum))  # not the trainer's
+    try:
+        trainer = make_trainer(scene_dir, tmp_path, iters=6, checkpoint_every=100)
+        trainer.write_run_files()
+        with pytest.raises(KeyboardInterrupt):
+            trainer.train(callback=lambda record: os.kill(os.getpid(), signal.SIGTERM))
+        assert trainer.iteration == 1 and trainer.latest_checkpoint().name == "checkpoint_000001.pt"
+        assert unhandled == []
+        os.kill(os.getpid(), signal.SIGTERM)  # after train(): the process's own handler again
+        assert unhandled == [signal.SIGTERM]
+    finally:
+        signal.signal(signal.SIGTERM, previous)
 
 
 def test_a_new_run_that_fails_before_its_first_checkpoint_leaves_nothing_behind(scene_dir, tmp_path):

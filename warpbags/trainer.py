@@ -49,6 +49,8 @@ from warpbags.schedule import Schedule, StepSettings
 from warpbags.silhouette import SilhouetteTargets
 from warpbags.threads import torch_threads
 
+# What stops training with a checkpoint: Ctrl-C, and the SIGTERM a job scheduler or `kill` sends before it kills.
+STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
 
 class Trainer:
     """Gaussians + pose corrections from the training views of one scene.
@@ -431,9 +433,9 @@ class Trainer:
 
         Logs every iteration and records the poses every `warpbags.pose_history.RECORD_EVERY` iterations.
         Checkpoints every `checkpoint_every` iterations, at the end of the coarse stage and at the end. With a
-        repair stage, the coarse result is also written to coarse/ as a run folder of its own. Ctrl-C (SIGINT)
-        finishes the current iteration, saves a checkpoint and raises KeyboardInterrupt. Divergence raises
-        WarpbagsError. `callback(record)` is called after each iteration. The round searched for view hypotheses
+        repair stage, the coarse result is also written to coarse/ as a run folder of its own. Ctrl-C (SIGINT) or
+        SIGTERM (`STOP_SIGNALS`) finishes the current iteration, saves a checkpoint and raises KeyboardInterrupt.
+        Divergence raises WarpbagsError. `callback(record)` is called after each iteration. The round searched for view hypotheses
         (`camera.hypotheses_round`) trains as a whole: a `stop_at` inside it stops at its start, Ctrl-C goes back to
         its start, only its end is checkpointed, and its iterations are logged (and passed to `callback`) after the
         search, the trainer then at the round's end. A new run of `start_or_resume` that fails (any exception,
@@ -443,9 +445,10 @@ class Trainer:
         total = self.config.total_iters
         stop_at = total if stop_at is None else min(stop_at, total)
         self._stop_requested = False  # a Ctrl-C that stopped an earlier call is not this one's
-        previous_handler = None
+        previous_handlers = {}
         try:
-            previous_handler = signal.signal(signal.SIGINT, self._request_stop)
+            for stop_signal in STOP_SIGNALS:
+                previous_handlers[stop_signal] = signal.signal(stop_signal, self._request_stop)
         except ValueError:  # not the main thread: Ctrl-C is handled by the caller
             pass
         record: dict = {}
@@ -473,8 +476,8 @@ class Trainer:
             self.remove_if_unfinished()
             raise
         finally:
-            if previous_handler is not None:
-                signal.signal(signal.SIGINT, previous_handler)
+            for stop_signal, handler in previous_handlers.items():
+                signal.signal(stop_signal, handler)
         if self.iteration >= total:
             self.write_results()
         return record

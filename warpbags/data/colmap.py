@@ -1,12 +1,15 @@
 """COLMAP sparse models through pycolmap: read cameras/poses/points, write a model (the synthetic scene, exports).
 
 COLMAP already uses OpenCV camera axes, world-to-camera poses and pixel centres at (x+0.5, y+0.5), so its
-poses and principal points are used as they are. pycolmap is imported where a model is read or written: it adds
-about 57 MiB to a process's resident memory, and scenes in other layouts (maryrose's LLFF) never need it.
+poses and principal points are used as they are. pycolmap is imported where a model is read or written
+(`_pycolmap`): it adds about 57 MiB to a process's resident memory, and scenes in other layouts (maryrose's LLFF)
+never need it.
 """
 
 from __future__ import annotations
 
+import signal
+import threading
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -17,6 +20,18 @@ from warpbags.errors import WarpbagsError
 
 if TYPE_CHECKING:
     import pycolmap
+
+def _pycolmap():
+    """pycolmap, imported on first use. Its import installs glog's failure handler for SIGTERM too, which prints a
+    native stack dump when `kill` or a job scheduler stops the process; SIGTERM gets back the handler it had before
+    (Python's default, or the trainer's stop with a checkpoint)."""
+    previous = signal.getsignal(signal.SIGTERM)
+    import pycolmap  # noqa: PLC0415
+
+    if previous is not None and threading.current_thread() is threading.main_thread():
+        signal.signal(signal.SIGTERM, previous)
+    return pycolmap
+
 
 SUPPORTED_MODELS = ("PINHOLE", "SIMPLE_PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV")
 
@@ -103,7 +118,7 @@ def read_model(model_dir: Path) -> ColmapModel:
     Raises:
         WarpbagsError: a file is missing or unreadable, or a camera model is unsupported.
     """
-    import pycolmap
+    pycolmap = _pycolmap()
 
     extension = find_model_files(model_dir)
     reconstruction = pycolmap.Reconstruction()
@@ -163,7 +178,7 @@ def write_model(
         binary: .bin files (default) or .txt.
         distortions: [C,4] OpenCV (k1, k2, p1, p2) per image; None = none.
     """
-    import pycolmap
+    pycolmap = _pycolmap()
 
     count = len(image_names)
     widths, heights = np.broadcast_to(width, (count,)), np.broadcast_to(height, (count,))
