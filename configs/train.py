@@ -24,6 +24,8 @@ BACKGROUNDS = {"white": (1.0, 1.0, 1.0), "black": (0.0, 0.0, 0.0)}  # `TrainConf
 ALIGNMENTS = ("procrustes", "pairwise")  # how estimated cameras are mapped onto reference ones (warpbags.alignment)
 ORBIT_RADIUS = 4.0  # warpbags.data.scene.ORBIT_RADIUS: scenes are normalized so that the cameras orbit at this radius
 MAX_HULL_RESOLUTION = 256  # the carving's first pass holds (1.5 x this)^3 voxel centres: 57 million, ~3 GB, at 256
+# Host threads beyond a few per core only cost their start-up in every CPU render: 100000 took 17.5 s an iteration.
+MAX_RENDER_THREADS = 1024
 # The float fields that have a `warpbags train` option (cli/train_options.py's TRAIN_OPTIONS), by the name `--set`
 # gives them: `TrainConfig.validate` names the option where a value is not finite, the others as `--set` spells them.
 FLOAT_OPTIONS = {"rot_noise_deg": "--rot-noise-deg", "trans_noise": "--trans-noise", "blur_sigma_px": "--blur-px",
@@ -357,7 +359,8 @@ class TrainConfig:
         depth_loss: "mad" (GaussianObject's median/MAD-normalized disparity L1) or "pearson" (1 - correlation).
         checkpoint_every: checkpoint interval in iterations.
         pose_alignment: alignment used for the logged pose error ("procrustes", "pairwise").
-        render_threads: host threads for CPU rendering (0 = the renderer's default: all cores).
+        render_threads: host threads for CPU rendering (0 = the renderer's default: all cores; at most
+            `MAX_RENDER_THREADS`).
         repair: the repair stage that follows the `iters` coarse iterations (`repair.iters` = 0: none).
     """
 
@@ -511,7 +514,8 @@ class TrainConfig:
             (0 <= self.lambda_depth < 1, f"lambda_depth must be in [0, 1), got {self.lambda_depth}"),
             (self.depth_loss in ("mad", "pearson"), f"--depth-loss must be mad or pearson, got {self.depth_loss!r}"),
             (self.pose_alignment in ALIGNMENTS, f"pose_alignment: {self.pose_alignment!r}"),
-            (self.render_threads >= 0, f"render_threads must be >= 0 (0: all cores), got {self.render_threads}"),
+            (0 <= self.render_threads <= MAX_RENDER_THREADS, f"render_threads must be in [0, {MAX_RENDER_THREADS}] "
+             f"(0: all cores), got {self.render_threads}"),
             (self.camera.parameterization in ("object", "camera"),
              f"camera.parameterization must be object or camera, got {self.camera.parameterization!r}"),
             (self.camera.precondition_reg > 0, f"camera.precondition_reg must be > 0, got {self.camera.precondition_reg}"),

@@ -188,7 +188,8 @@ def test_range_checks_that_training_needed():
     for overrides, message in [
             ({"trans_noise": 1e30}, r"--trans-noise must be <= 4 \(a std in normalized scene units, where the "
                                     r"cameras orbit at radius 4\), got 1e\+30"),
-            ({"render_threads": -1}, "render_threads must be >= 0"),
+            ({"render_threads": -1}, r"render_threads must be in \[0, 1024\]"),
+            ({"render_threads": 100000}, r"render_threads must be in \[0, 1024\] \(0: all cores\), got 100000"),
             ({"hull_resolution": 0}, r"hull_resolution must be in \[2, 256\]"),
             ({"hull_resolution": 1000}, r"hull_resolution must be in \[2, 256\]"),
             ({"hull_missed_views": -1}, "hull_missed_views must be >= 0"),
@@ -213,7 +214,7 @@ def test_range_checks_that_training_needed():
         with pytest.raises(WarpbagsError, match=message):
             load_preset("quick", **overrides)
     # the limits themselves pass
-    for overrides in [{"trans_noise": 4}, {"render_threads": 2}, {"hull_resolution": 2}, {"hull_missed_views": 0},
+    for overrides in [{"trans_noise": 4}, {"render_threads": 1024}, {"hull_resolution": 2}, {"hull_missed_views": 0},
                       {"sh_degree_every": 1}, {"views_per_step": 4}, {"lambda_dssim": 1}, {"lambda_mask": 0},
                       {"max_image_size": 0}, {"max_image_size": 16}, {"seed": -1}, {"noise_seed": 2**63 - 1},
                       {"densify": {"max_gaussians": 0, "prune_opacity": 0, "floater_std_ratio": 0}}]:
