@@ -168,13 +168,13 @@ def sampson_distances(F: torch.Tensor, pixels_a: torch.Tensor, pixels_b: torch.T
     return algebraic.abs() / gradient.clamp_min(torch.finfo(F.dtype).tiny).sqrt()
 
 
-def epipolar_loss(viewmats: torch.Tensor, Ks: torch.Tensor, matches: ViewMatches, scale_px: float = 1.0
-                  ) -> torch.Tensor:
-    """Mean Cauchy loss log(1 + (d / scale_px)^2) of the matches' Sampson distances d under the poses [C, 4, 4] and
-    intrinsics [C, 3, 3] (at `matches.size`). The Cauchy loss counts a wrong match at most logarithmically."""
+def epipolar_loss(viewmats: torch.Tensor, Ks: torch.Tensor, matches: ViewMatches) -> torch.Tensor:
+    """Mean Cauchy loss log(1 + d^2) of the matches' Sampson distances d in pixels (a scale of 1 px) under the poses
+    [C, 4, 4] and intrinsics [C, 3, 3] (at `matches.size`). The Cauchy loss counts a wrong match at most
+    logarithmically."""
     if len(matches) == 0:
         return viewmats.sum() * 0.0
     a, b = matches.views_a.to(viewmats.device), matches.views_b.to(viewmats.device)
     F = fundamental_matrices(viewmats[a], viewmats[b], Ks[a].to(viewmats), Ks[b].to(viewmats))
     distances = sampson_distances(F, matches.pixels_a.to(viewmats), matches.pixels_b.to(viewmats))
-    return torch.log1p((distances / scale_px) ** 2).mean()
+    return torch.log1p(distances ** 2).mean()

@@ -902,9 +902,9 @@ def _row_passes(kernel, before: list, after: list, rows: int, runs: int, device:
     ranges = _first_alone_then_equal(rows, 2 * workers)
     launcher = _launcher(device)  # every launch names its device and stream: no process-wide default
 
-    def work(_, first, stop):
+    def work(_, first, stop):  # positional arguments (split around the first row), otherwise as `_Launcher.launch`
         wp.launch(kernel, dim=(runs, stop - first), inputs=[*before, first, *after],
-                  device=launcher.device, stream=launcher.stream)
+                  device=launcher.device, stream=launcher.stream, record_tape=False)
 
     _run_ranges(work, ranges, workers)
 
