@@ -22,7 +22,8 @@ Procrustes alignment. Variants:
                   coherence solve of the starting poses), no-silhouette (mask distance and
                   chamfer terms), no-precondition, camera-param (se(3) about the camera centre, no preconditioner),
                   poses-whole-round and poses-first-half (the pose window of each round, instead of from a quarter
-                  of the round to its end), no-hypotheses (no turns of the worst-fit camera tried in round 2)
+                  of the round to its end), no-hypotheses (no turns of the worst-fit camera tried in round 2),
+                  no-average (the last pose estimate instead of the mean of the last round's)
 --depth: the depth maps training sees. `true`: the scene's own (a synthetic scene's are exact, which no capture
 has); `monocular`: those degraded once per scene as a monocular network's would be (relative, smooth shape errors of
 20% of the object's relief, soft edges: `warpbags.data.noise.monocular_like_depths`); `none`: no depth maps, as a
@@ -70,11 +71,13 @@ VARIANTS = {
     "frozen-orbit": dict(camera={"orbit_from_round": 99}),
     # no search over turns of the worst-fit camera (`camera.hypotheses_round`)
     "no-hypotheses": dict(camera={"hypotheses_round": 0}),
+    # the last pose estimate kept instead of the mean of the last round's (`camera.average_share`)
+    "no-average": dict(camera={"average_share": 0.0}),
     # the feature matches' epipolar residual in the coherence solve and the rounds (`warpbags.correspondences`)
     "matches": dict(lambda_epipolar=0.01, camera={"coherence_epipolar": 1e-3}),
 }
 ABLATIONS = ["no-centroid-start", "no-coherence", "no-silhouette", "no-precondition", "camera-param", "poses-whole-round",
-             "poses-first-half", "no-hypotheses"]
+             "poses-first-half", "no-hypotheses", "no-average"]
 
 
 def run_once(scene, settings: dict, preset: str, root: Path, train: bool = True) -> dict:
