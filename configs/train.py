@@ -339,8 +339,10 @@ class TrainConfig:
         blur_sigma_px: coarse-to-fine (BARF's idea in image space): renders, targets, alphas and masks are blurred
             with a Gaussian of this sigma (pixels) at each round's start, shrinking linearly to none at
             `blur_until` iterations into the round; a wide blur widens the basin of the photometric pose gradient
-            (0 = off; measured 2.74 -> 2.60 deg on the 4-view synthetic scene at 10 deg, so off by default).
-        blur_until: iterations into each round at which the blur of `blur_sigma_px` has shrunk to none.
+            (0 = off; measured 2.74 -> 2.60 deg on the 4-view synthetic scene at 10 deg, so off by default). A
+            blur needs `blur_until` > 0.
+        blur_until: iterations into each round at which the blur of `blur_sigma_px` has shrunk to none (0: no blur,
+            and only with `blur_sigma_px` 0).
         lambda_dssim, lambda_mask, lambda_depth: loss weights (photometric weight is 1 - lambda_depth while
             the depth term is active).
         lambda_mask_distance: weight of mean(alpha * distance transform of the mask) (NeRS), a silhouette term
@@ -436,8 +438,9 @@ class TrainConfig:
         """Check value ranges; returns self.
 
         Raises:
-            WarpbagsError: the first out-of-range value, named as its CLI option; a float that is not finite (NaN,
-                inf) anywhere in the config, nested groups and lists included, before any range.
+            WarpbagsError: the first out-of-range value, named as its CLI option, or setting that would do nothing
+                (--blur-px without --blur-until); a float that is not finite (NaN, inf) anywhere in the config,
+                nested groups and lists included, before any range.
         """
         non_finite = _non_finite(self)
         if non_finite is not None:
@@ -509,6 +512,10 @@ class TrainConfig:
             (self.checkpoint_every >= 1, f"checkpoint_every must be >= 1, got {self.checkpoint_every}"),
             (self.blur_sigma_px >= 0, f"--blur-px must be >= 0, got {self.blur_sigma_px}"),
             (self.blur_until >= 0, f"--blur-until must be >= 0, got {self.blur_until}"),
+            # the blur shrinks to none over blur_until iterations: with 0 it is never applied
+            (self.blur_sigma_px == 0 or self.blur_until > 0,
+             f"--blur-px {self.blur_sigma_px:g} needs --blur-until > 0 (the iterations into each round over which the "
+             "blur shrinks to none), got --blur-until 0"),
             (0 <= self.lambda_dssim <= 1, f"lambda_dssim must be in [0, 1], got {self.lambda_dssim}"),
             (self.lambda_mask >= 0, f"lambda_mask must be >= 0, got {self.lambda_mask}"),
             (0 <= self.lambda_depth < 1, f"lambda_depth must be in [0, 1), got {self.lambda_depth}"),

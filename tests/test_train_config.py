@@ -180,7 +180,8 @@ def test_non_finite_values_are_named_by_their_train_option():
 def test_range_checks_that_training_needed():
     """Each value refused here crashed or silently misbehaved later: a segfault in the renderer (render_threads -1),
     a ZeroDivisionError in carving (hull_resolution 0), a diverging run (max_image_size 1, --trans-noise 1e30), an
-    OverflowError in the torch generator (a seed past 64 bits), a TypeError (lr.pose null)."""
+    OverflowError in the torch generator (a seed past 64 bits), a TypeError (lr.pose null), a blur that is never
+    applied (--blur-px with --blur-until 0, the presets' default)."""
     import pytest
     from warpbags.configs.train import load_preset
     from warpbags.errors import WarpbagsError
@@ -210,14 +211,16 @@ def test_range_checks_that_training_needed():
             ({"densify": {"percent_dense": -0.01}}, "densify.percent_dense must be >= 0"),
             ({"densify": {"prune_opacity": 1}}, r"densify.prune_opacity must be in \[0, 1\)"),
             ({"densify": {"prune_scale": 0}}, "densify.prune_scale must be > 0"),
-            ({"densify": {"floater_std_ratio": -1}}, "densify.floater_std_ratio must be >= 0")]:
+            ({"densify": {"floater_std_ratio": -1}}, "densify.floater_std_ratio must be >= 0"),
+            ({"blur_sigma_px": 4.0}, r"--blur-px 4 needs --blur-until > 0 .*got --blur-until 0")]:
         with pytest.raises(WarpbagsError, match=message):
             load_preset("quick", **overrides)
     # the limits themselves pass
     for overrides in [{"trans_noise": 4}, {"render_threads": 1024}, {"hull_resolution": 2}, {"hull_missed_views": 0},
                       {"sh_degree_every": 1}, {"views_per_step": 4}, {"lambda_dssim": 1}, {"lambda_mask": 0},
                       {"max_image_size": 0}, {"max_image_size": 16}, {"seed": -1}, {"noise_seed": 2**63 - 1},
-                      {"densify": {"max_gaussians": 0, "prune_opacity": 0, "floater_std_ratio": 0}}]:
+                      {"densify": {"max_gaussians": 0, "prune_opacity": 0, "floater_std_ratio": 0}},
+                      {"blur_sigma_px": 4.0, "blur_until": 1}, {"blur_sigma_px": 0.0, "blur_until": 0}]:
         load_preset("quick", **overrides)
 
 

@@ -311,6 +311,41 @@ def test_a_resumed_run_does_not_solve_its_starting_poses_again(scene_dir, tmp_pa
     torch.testing.assert_close(resumed.current_viewmats(), first.current_viewmats(), rtol=0, atol=0)
 
 
+def test_resuming_with_other_views_or_another_image_size_is_refused(scene_dir, tmp_path):
+    """The checkpoint's poses and Gaussians belong to the run's training views at its image size: the run's scene
+    folder with another split or at another size is refused, naming the run folder and what differs."""
+    config = tiny_config(iters=4, checkpoint_every=2, max_image_size=32)
+    scene = load_scene(scene_dir, name="tiny")
+    start_or_resume(training_scene(scene, config), config, tmp_path, log=lambda message: None).train(stop_at=2)
+    for other, difference in [(config.replaced(views=6), "the scene's views .* are not the run's"),
+                              (config.replaced(max_image_size=48), "the images are 48x48 px, the run's 32x32")]:
+        with pytest.raises(WarpbagsError, match=f"^--resume: {re.escape(str(tmp_path))} holds a run of other "
+                                                f"training views than the scene's \\(.*{difference}"):
+            start_or_resume(training_scene(scene, other), config, tmp_path, resume=True, log=lambda message: None)
+    assert start_or_resume(training_scene(scene, config), config, tmp_path, resume=True,
+                           log=lambda message: None).iteration == 2
+
+
+def test_cli_resume_of_a_folder_named_as_a_preset_is_refused_at_the_presets_resolution(scene_dir, tmp_path,
+                                                                                        monkeypatch):
+    """A run of a scene folder named kitchen (a preset's name) in the data root: `--resume` without the scene
+    reopens it as the preset, which reads it at the preset's 1/4 resolution. The images are then of another size
+    than the run's, and the resume is refused in one line instead of going on with them."""
+    data = tmp_path / "data"
+    shutil.copytree(scene_dir, data / "kitchen")
+    monkeypatch.setenv("WARPBAGS_DATA", str(data))
+    out = tmp_path / "run"
+    started = runner.invoke(app, ["train", str(data / "kitchen"), "--iters", "4", "--max-image-size", "32",
+                                  "--set", "init_points=300", "--set", "checkpoint_every=2", "--out", str(out)])
+    assert started.exit_code == 0, started.output
+    result = runner.invoke(app, ["train", "--resume", "--out", str(out)])
+    lines = [line for line in result.output.splitlines() if line.strip()]
+    message = " ".join(result.output.split())
+    assert result.exit_code == 2 and len(lines) == 1, result.output
+    assert f"{out} holds a run of other training views" in message and "the images are 24x24 px, the run's 32x32" \
+        in message, result.output
+
+
 def test_a_checkpoint_at_a_rounds_start_resumes_at_the_last_rounds_resolution(scene_dir, tmp_path):
     """With a pyramid over the rounds, the Gaussians saved at a round's start were trained at the round before's
     level: a resumed trainer holds them with those training views until the next step starts the round (which is
@@ -939,7 +974,10 @@ def test_a_checkpoint_write_cut_short_is_not_the_latest_checkpoint(tmp_path):
     folder.checkpoints.mkdir(parents=True)
     assert not folder.has_checkpoint()
     (folder.checkpoints / "checkpoint_000500.tmp.pt").write_bytes(b"cut")
-    assert not folder.has_checkpoint() and folder.holds_unfinished_start() is False  # a file it does not know
+    assert not folder.has_checkpoint()
+    (folder.checkpoints / "notes.txt").write_text("")
+    assert folder.holds_unfinished_start() is False  # a file it does not know
+    (folder.checkpoints / "notes.txt").unlink()
     (folder.checkpoints / "checkpoint_000500.tmp.pt").unlink()
     (folder.path / "config.json").write_text("{}")
     (folder.path / "config.tmp.json").write_text("{")
@@ -949,3 +987,44 @@ def test_a_checkpoint_write_cut_short_is_not_the_latest_checkpoint(tmp_path):
     (folder.checkpoints / "checkpoint_000100.pt").write_bytes(b"")
     (folder.checkpoints / "checkpoint_000200.tmp.pt").write_bytes(b"cut")
     assert folder.latest_checkpoint().name == "checkpoint_000100.pt" and not folder.holds_unfinished_start()
+
+
+def test_a_run_killed_while_writing_its_first_checkpoint_is_an_unfinished_start(tmp_path):
+    """A SIGKILL during the first checkpoint's write leaves the setup files, the log and checkpoint_N.tmp.pt: a run
+    stopped before its first checkpoint, which a new run names as such and `remove_unfinished` (a failed start, the
+    sweep) clears with the folders made for it."""
+    from warpbags.run_folder import RunFolder
+
+    folder = RunFolder(tmp_path / "made" / "run")
+    made = folder.missing_folders()
+    folder.checkpoints.mkdir(parents=True)
+    for name in ("config.json", "poses_true.npy", "log.jsonl"):
+        (folder.path / name).write_text("")
+    (folder.checkpoints / "checkpoint_000100.tmp.pt").write_bytes(b"cut")
+    assert folder.holds_unfinished_start()
+    with pytest.raises(WarpbagsError, match="stopped before its first checkpoint"):
+        folder.require_new()
+    folder.remove_unfinished(made)
+    assert not (tmp_path / "made").exists()
+
+
+def test_a_checkpoint_write_cut_short_is_not_kept_in_place_of_a_checkpoint(tmp_path):
+    """Saving keeps the newest `CHECKPOINTS_KEPT` checkpoints written in full; the temporary of an earlier write
+    cut short (it sorts after the checkpoints) is removed, not counted among them."""
+    from warpbags.run_folder import CHECKPOINT_KEYS, CHECKPOINTS_KEPT, RunFolder
+
+    folder = RunFolder(tmp_path)
+    folder.checkpoints.mkdir()
+    (folder.checkpoints / "checkpoint_000900.tmp.pt").write_bytes(b"cut")
+    for iteration in range(1, CHECKPOINTS_KEPT + 2):
+        folder.save_checkpoint({**dict.fromkeys(CHECKPOINT_KEYS), "iteration": iteration, "repair": None})
+    assert sorted(path.name for path in folder.checkpoints.iterdir()) == [
+        f"checkpoint_{iteration:06d}.pt" for iteration in range(2, CHECKPOINTS_KEPT + 2)]
+
+
+def test_cutting_back_a_log_that_is_not_text_is_one_line(tmp_path):
+    from warpbags.run_folder import LOG_FILE, RunFolder
+
+    (tmp_path / LOG_FILE).write_bytes(b'{"iter": 1}\n\xff\xfe\n')
+    with pytest.raises(WarpbagsError, match=f"^{re.escape(str(tmp_path / LOG_FILE))}: unreadable \\("):
+        RunFolder(tmp_path).truncate(1, torch.eye(4)[None])

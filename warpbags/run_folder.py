@@ -118,6 +118,30 @@ class RunFolder:
         info = self.read_info() if info is None else info
         return info.get("scene_root") == _root_of(scene)
 
+    def view_differences(self, scene: Scene, info: dict | None = None) -> list[str]:
+        """How `scene`'s training views differ from those the run here trained on (config.json's, or `info`'s,
+        image_names, width and height): one phrase each, [] when the views and their size are the same."""
+        info = self.read_info() if info is None else info
+        differences = []
+        saved_names = info.get("image_names")
+        if saved_names != scene.image_names:
+            if not isinstance(saved_names, list):
+                differences.append("config.json lists no training views")
+            else:
+                not_here = [name for name in saved_names if name not in scene.image_names]
+                not_saved = [name for name in scene.image_names if name not in saved_names]
+                if not_here:
+                    differences.append(f"the run's views {_listed(not_here)} are not among the scene's")
+                if not_saved:
+                    differences.append(f"the scene's views {_listed(not_saved)} are not the run's")
+                if not (not_here or not_saved):  # the cameras' order is that of their poses and checkpointed state
+                    differences.append("the views are the run's in another order")
+        saved_size = (info.get("width"), info.get("height"))
+        if saved_size != (scene.width, scene.height):
+            differences.append(f"the images are {scene.width}x{scene.height} px, the run's "
+                               f"{saved_size[0]}x{saved_size[1]}")
+        return differences
+
     def read_array(self, name: str) -> np.ndarray | None:
         """`name`.npy as float64, checked (`checked_cameras`): [C,4,4] world-to-camera poses (`POSE_ARRAYS`) or
         [C,3,3] intrinsics; None when the run has none. `read_cameras` also checks that they agree on C.
@@ -207,11 +231,19 @@ class RunFolder:
     def truncate(self, iteration: int, viewmats: torch.Tensor) -> None:
         """Drop what was logged after `iteration` (a resumed run replays those iterations): log.jsonl lines (and a
         line cut short by a crash) and pose-history records; the history then ends with [C,4,4] `viewmats`, the
-        poses at `iteration`."""
+        poses at `iteration`.
+
+        Raises:
+            WarpbagsError: log.jsonl cannot be read (not text), named.
+        """
         path = self.path / LOG_FILE
         if path.exists():
+            try:
+                lines = path.read_text().splitlines()
+            except (OSError, UnicodeDecodeError) as error:
+                raise WarpbagsError(f"{path}: unreadable ({error})") from None
             kept = []
-            for line in path.read_text().splitlines():
+            for line in lines:
                 try:
                     if json.loads(line)["iter"] <= iteration:
                         kept.append(line)
@@ -251,8 +283,9 @@ class RunFolder:
 
     def holds_unfinished_start(self) -> bool:
         """Whether the folder holds nothing but what a new run writes before its first checkpoint (its setup files,
-        log and pose history, their atomic writes' temporaries, an empty checkpoints/): a run killed there (SIGKILL,
-        power), which can be neither resumed nor evaluated, and which `remove_unfinished` may clear."""
+        log and pose history, their atomic writes' temporaries, a checkpoints/ that is empty or holds only the
+        temporary of a checkpoint write cut short): a run killed there (SIGKILL, power), which can be neither resumed
+        nor evaluated, and which `remove_unfinished` may clear."""
         if not self.path.is_dir() or self.has_checkpoint():
             return False
         names = {*SETUP_FILES, LOG_FILE, HISTORY_FILE}
@@ -260,18 +293,22 @@ class RunFolder:
         entries = list(self.path.iterdir())
         return bool(entries) and all(
             (entry.name in names and entry.is_file() and not entry.is_symlink())
-            or (entry == self.checkpoints and entry.is_dir() and not any(entry.glob("checkpoint_*.pt")))
+            or (entry == self.checkpoints and entry.is_dir()
+                and set(entry.iterdir()) <= set(self._cut_short_checkpoints()))
             for entry in entries)
 
     def remove_unfinished(self, made_folders: list[Path]) -> None:
         """Remove what a new run writes before its first checkpoint (its setup files, log, pose history, an
-        unfinished coarse/ and an empty checkpoints/), then those of `made_folders` (`missing_folders` before the
-        run started) that are empty. Only for a run that started in a new or empty folder (`require_new`) and has no
-        checkpoint: it cannot be resumed, and a half-written run folder must not stay."""
+        unfinished coarse/, and checkpoints/ with the temporary of a checkpoint write cut short), then those of
+        `made_folders` (`missing_folders` before the run started) that are empty. Only for a run that started in a
+        new or empty folder (`require_new`) and has no checkpoint: it cannot be resumed, and a half-written run folder
+        must not stay."""
         for folder in (self.path / "coarse", self.path):
             for name in (*SETUP_FILES, "gaussians.ply", "poses_final.npy", LOG_FILE, HISTORY_FILE):
                 for written in (name, temporary_name(name)):  # and a write cut short
                     (folder / written).unlink(missing_ok=True)
+        for cut_short in self._cut_short_checkpoints():
+            cut_short.unlink()
         for folder in (self.path / "coarse", self.checkpoints, *made_folders):
             try:
                 folder.rmdir()
@@ -283,13 +320,21 @@ class RunFolder:
         return self.latest_checkpoint() is not None
 
     def latest_checkpoint(self) -> Path | None:
-        found = sorted(path for path in self.checkpoints.glob("checkpoint_*.pt")
-                       if not is_temporary(path))  # not a write cut short (checkpoint_N.tmp.pt)
+        found = self._checkpoints()
         return found[-1] if found else None
+
+    def _checkpoints(self) -> list[Path]:
+        """The checkpoints written in full, oldest first."""
+        return sorted(path for path in self.checkpoints.glob("checkpoint_*.pt") if not is_temporary(path))
+
+    def _cut_short_checkpoints(self) -> list[Path]:
+        """The temporaries of checkpoint writes cut short by a kill (checkpoint_N.tmp.pt, `atomic_output`)."""
+        return [path for path in self.checkpoints.glob("checkpoint_*.pt") if is_temporary(path) and path.is_file()
+                and not path.is_symlink()]
 
     def save_checkpoint(self, state: dict) -> Path:
         """Write `state` (the keys of CHECKPOINT_KEYS and "repair") atomically as checkpoint_<iteration>.pt; keep
-        the newest CHECKPOINTS_KEPT."""
+        the newest CHECKPOINTS_KEPT, and remove the temporaries of earlier writes cut short."""
         missing = [key for key in CHECKPOINT_KEYS if key not in state]
         if missing:
             raise ValueError(f"checkpoint state lacks {missing}")
@@ -297,7 +342,7 @@ class RunFolder:
         path = self.checkpoints / f"checkpoint_{state['iteration']:06d}.pt"
         with atomic_output(path) as temporary:
             torch.save(state, temporary)
-        for old in sorted(self.checkpoints.glob("checkpoint_*.pt"))[:-CHECKPOINTS_KEPT]:
+        for old in (*self._checkpoints()[:-CHECKPOINTS_KEPT], *self._cut_short_checkpoints()):
             old.unlink()
         return path
 
@@ -345,6 +390,11 @@ def _is_count(value) -> bool:
 
 def _is_number(value) -> bool:
     return isinstance(value, (int, float)) and not isinstance(value, bool)
+
+
+def _listed(names: list[str]) -> str:
+    """The first names of `names` and how many more, for a one-line message."""
+    return ", ".join(names[:3]) + (f" and {len(names) - 3} more" if len(names) > 3 else "")
 
 
 def _root_of(scene: Scene) -> str:

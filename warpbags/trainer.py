@@ -548,9 +548,10 @@ def start_or_resume(scene: Scene, config: TrainConfig, out_dir: str | Path, devi
     `Trainer.train` (or of writing its first files here) removes what it wrote, and the folders made for `out_dir`.
 
     Raises:
-        WarpbagsError: `resume` without a checkpoint in `out_dir` or with another scene folder than the run's, or a
-            fresh run into a folder that is not empty (one with a run named as such), or an `out_dir` that is a file
-            or cannot be written.
+        WarpbagsError: `resume` without a checkpoint in `out_dir`, with another scene folder than the run's or with
+            other training views or another image size than the run's (`RunFolder.view_differences`), or a fresh
+            run into a folder that is not empty (one with a run named as such), or an `out_dir` that is a file or
+            cannot be written.
     """
     run_folder = RunFolder(writable_folder(out_dir, "to train into"))
     if resume:
@@ -559,6 +560,12 @@ def start_or_resume(scene: Scene, config: TrainConfig, out_dir: str | Path, devi
         if not run_folder.trained_on(scene, info):
             raise WarpbagsError(f"--resume: {out_dir} holds a run of the scene in {info.get('scene_root')}, not of "
                                 f"{Path(scene.root).resolve()}")
+        # The same folder opened another way (as a preset or a folder, at another --resolution, another split)
+        # gives other views or another size, which the checkpoint's poses and Gaussians do not fit.
+        differences = run_folder.view_differences(scene, info)
+        if differences:
+            raise WarpbagsError(f"--resume: {out_dir} holds a run of other training views than the scene's "
+                                f"({'; '.join(differences)})")
     else:
         run_folder.require_new()
     made_folders = run_folder.missing_folders()
