@@ -59,10 +59,14 @@ def sweep(
         table.add_column(column)
     for r in rows:
         table.add_row(r["method"], str(r["views"]), f"{r['rot_noise_deg']:g}", str(r["seed"]),
-                      f"{r['rot_err_initial']:.2f}", f"{r['rot_err_final']:.2f}", f"{r['psnr']:.2f}",
-                      f"{r['psnr_refined']:.2f}")
+                      *(_shown(r[key]) for key in ("rot_err_initial", "rot_err_final", "psnr", "psnr_refined")))
     stdout.print(table)
     stdout.print(f"wrote {spec.out / 'sweep.csv'}, {spec.out / 'sweep.json'} and plots in {spec.out}")
+
+
+def _shown(value: float | None) -> str:
+    """A metric of the table, or n/a where eval.json holds null (not finite: the PSNR of an exact render)."""
+    return "n/a" if value is None else f"{value:.2f}"
 
 
 def register(app: typer.Typer) -> None:

@@ -6,6 +6,7 @@ import dataclasses
 import functools
 import json
 import math
+import re
 import shutil
 import subprocess
 import sys
@@ -351,6 +352,32 @@ def test_blender_test_views_are_never_chosen_for_training(synthetic_dir, tmp_pat
         assert set(scene.train_views(views)) <= set(range(6, 12)), views
     (folder / "sparse_4.txt").write_text("0\n6\n7\n8\n")
     _expect_error(folder, r"split 4 of scene .* \(sparse_4.txt\) uses test views \[0\]", normalize=False)
+
+
+@pytest.mark.parametrize("fields, named", [
+    ({"fl_x": "wide"}, "fl_x is 'wide', not a finite number"),  # was float()'s ValueError
+    ({"fl_x": None}, "fl_x is None, not a finite number"),  # TypeError
+    ({"fl_x": True}, "fl_x is True, not a finite number"),  # a focal length of 1 px
+    ({"fl_x": 60, "fl_y": 0}, "fl_y is 0, not above 0"),
+    ({"fl_x": 60, "w": "sixty-four", "h": 64}, "w is 'sixty-four', not a finite number"),  # TypeError of width / 2
+    ({"fl_x": 60, "w": 64, "h": -64}, "h is -64, not above 0"),
+    ({"fl_x": 60, "cx": [32]}, "cx is [32], not a finite number"),  # TypeError of the K array
+    ({"fl_x": 60, "cy": "middle"}, "cy is 'middle', not a finite number"),
+    ({"camera_angle_x": 0}, "camera_angle_x is 0, not between 0 and 3.14159"),  # ZeroDivisionError
+    ({"camera_angle_y": "tall"}, "camera_angle_y is 'tall', not a finite number"),
+    ({"k1": "barrel"}, "k1 is 'barrel', not a finite number"),
+])
+def test_transforms_json_intrinsics_that_are_no_numbers_are_one_line(synthetic_dir, tmp_path, fields, named):
+    """A focal length, image size, principal point or distortion coefficient of a transforms.json frame that is no
+    number (or no usable one) was a ValueError, TypeError or ZeroDivisionError traceback: it is one line naming the
+    file, the frame and the field."""
+    folder = _strip_to_images(synthetic_dir, tmp_path / "intrinsics")
+    opengl = np.linalg.inv(dome_viewmats(SYNTHETIC)) @ np.diag([1.0, -1.0, -1.0, 1.0])
+    frames = [{"file_path": f"images/view_{i:03d}", "transform_matrix": opengl[i].tolist()} for i in range(12)]
+    frames[3].update(fields)
+    (folder / "transforms.json").write_text(json.dumps({"camera_angle_x": math.radians(SYNTHETIC.fov_deg),
+                                                        "frames": frames}))
+    _expect_error(folder, re.escape(f"{folder / 'transforms.json'}: frame images/view_003.png: {named}"))
 
 
 def test_frame_paths_outside_the_scene_folder_are_one_line(synthetic_dir, tmp_path):

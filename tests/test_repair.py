@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import json
+import re
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -19,7 +21,7 @@ from warpbags.gaussians import render_gaussians, sh_degree_of
 from warpbags.blur import gaussian_blur
 from warpbags.repair import RepairPairs, UNetRepairer, make_repairer
 from warpbags.repair.pairs import LEAVE_ONE_OUT, NOISE, NOISY_PARAMETERS, NoiseStatistics, perturbed_gaussians
-from warpbags.repair.stage import distance_weights
+from warpbags.repair.stage import RepairStage, distance_weights
 from warpbags.trainer import Trainer, training_scene
 
 TINY = SyntheticOptions(views=16, width=96, height=96)
@@ -184,6 +186,44 @@ def test_repair_stage_runs_end_to_end_and_writes_its_samples(scene_dir, tmp_path
         assert report["images"]["mean"]["psnr"] > blank_psnr.item() + 1.0  # better than a blank white render
     coarse_poses, final_poses = np.load(tmp_path / "coarse" / "poses_final.npy"), np.load(tmp_path / "poses_final.npy")
     assert not np.allclose(coarse_poses, final_poses)  # the poses kept optimizing through the repair stage
+
+
+def test_resumed_repair_stage_names_an_unreadable_saved_file(tmp_path):
+    """A resumed run reads repair/pairs.pt and repair/repairer.pt back with torch.load: a file cut short, of another
+    kind or of another layout was a RuntimeError, UnpicklingError or TypeError traceback. It is one line naming the
+    file, as an unreadable checkpoint is. The stage keeps the RepairConfig as `repair` (`config` was the name of the
+    TrainConfig its constructor takes)."""
+    config = tiny_config()
+    folder = tmp_path / "repair"
+    folder.mkdir()
+    pairs = RepairPairs(torch.zeros(2, 8, 8, 3), torch.ones(2, 8, 8, 3), [LEAVE_ONE_OUT, NOISE], [0, 1],
+                        NoiseStatistics({}, {}))
+    state = make_repairer(config.repair).state_dict()
+    coarse = SimpleNamespace(training_views=torch.zeros(0))  # a resumed stage reads only where it trains
+    messages = []
+
+    def resume() -> RepairStage:
+        return RepairStage(config, folder, coarse, torch.eye(4)[None], torch.Generator(), log=messages.append)
+
+    pairs.save(folder / "pairs.pt")
+    torch.save(state, folder / "repairer.pt")
+    stage = resume()
+    assert messages[0] == f"repair: loaded 2 pairs and the fitted repairer from {folder}"
+    assert stage.repair == config.repair and not hasattr(stage, "config")
+
+    saved = (folder / "repairer.pt").read_bytes()
+    (folder / "repairer.pt").write_bytes(saved[:len(saved) // 2])  # cut short
+    with pytest.raises(WarpbagsError, match=f"^{re.escape(str(folder / 'repairer.pt'))}: unreadable \\(") as error:
+        resume()
+    (folder / "repairer.pt").write_bytes(saved)
+    for content in (b"not a torch file", None):  # bytes of another kind; a torch file of another layout
+        if content is None:
+            torch.save({"images": torch.zeros(1)}, folder / "pairs.pt")
+        else:
+            (folder / "pairs.pt").write_bytes(content)
+        with pytest.raises(WarpbagsError, match=f"^{re.escape(str(folder / 'pairs.pt'))}: unreadable \\(") as error:
+            resume()
+        assert "\n" not in str(error.value)
 
 
 def test_repair_stage_resumes_to_the_same_result(scene_dir, tmp_path):

@@ -1,15 +1,41 @@
-"""`warpbags sweep`'s own checks: settings it refuses are named in the sweep's terms, before any folder is made."""
+"""`warpbags sweep`'s own checks: settings it refuses are named in the sweep's terms, before any folder is made; the
+eval.json of a finished run it reads is checked, and a metric held as null shows as n/a."""
 
 from __future__ import annotations
+
+import json
+import math
 
 import pytest
 from typer.testing import CliRunner
 
 from warpbags.cli.main import app
+from warpbags.data import SyntheticOptions, ensure_synthetic_scene
 from warpbags.errors import WarpbagsError
+from warpbags.files import finite_json
 from warpbags.sweep import SweepSpec, run_sweep
 
 runner = CliRunner()
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory):
+    return ensure_synthetic_scene(SyntheticOptions(views=16, width=64, height=64),
+                                  cache_dir=tmp_path_factory.mktemp("cache"))
+
+
+def evaluation(psnr: float = 20.0, rot_final: float = 1.0) -> dict:
+    """The parts of an eval.json (`evaluate_run`) that a sweep's row reads."""
+    poses = {stage: {"rotation_deg_mean": rotation, "translation_mean": 0.01}
+             for stage, rotation in (("initial", 5.0), ("final", rot_final))}
+    images = {"mean": {"psnr": psnr, "ssim": 0.9, "flip": 0.1, "lpips": None}, "per_view": []}
+    return {"alignment": "procrustes", "poses": {"procrustes": poses}, "images": images,
+            "images_after_test_pose_refinement": {"iters": 2, **images}}
+
+
+def write_evaluation(folder, report: dict) -> None:
+    folder.mkdir(parents=True)
+    (folder / "eval.json").write_text(finite_json(report))  # as evaluate_run writes it: NaN and infinity as null
 
 
 def test_iters_below_the_presets_rounds_names_iters_not_rounds(tmp_path, monkeypatch):
@@ -34,3 +60,50 @@ def test_iters_below_the_presets_rounds_names_iters_not_rounds(tmp_path, monkeyp
         with pytest.raises(WarpbagsError, match="the scene was read"):
             run_sweep(SweepSpec(scene="maryrose", out=out, overrides=overrides))
     assert not out.exists()
+
+
+def test_null_metrics_of_finished_runs_show_as_na_and_stay_out_of_the_plots(scene, tmp_path):
+    """A finished run's eval.json holds an infinite PSNR (an exact render) or a NaN rotation error as null: the
+    sweep's table printed `{None:.2f}` (a TypeError traceback) and its plot took np.mean of None. The table shows n/a
+    for them, sweep.json keeps null, and the plots average the other runs' values."""
+    out = tmp_path / "sweep"
+    write_evaluation(out / "baseline-4v-rot5-seed0", evaluation(psnr=math.inf))
+    write_evaluation(out / "bags-4v-rot5-seed0", evaluation(psnr=25.0, rot_final=math.nan))
+    result = runner.invoke(app, ["sweep", str(scene), "--rot-noises", "5", "--views", "4", "--out", str(out)])
+    assert result.exit_code == 0, result.output
+    assert "skip baseline-4v-rot5-seed0 (done)" in result.output and result.output.count("n/a") == 3, result.output
+    rows = json.loads((out / "sweep.json").read_text())
+    assert [(row["psnr"], row["psnr_refined"], row["rot_err_final"]) for row in rows] == [(None, None, 1.0),
+                                                                                          (25.0, 25.0, None)]
+    for name in ("psnr_vs_noise.png", "pose_error_vs_noise.png"):
+        assert (out / name).stat().st_size > 100, name
+
+
+@pytest.mark.parametrize("content, named", [
+    ("{\"alignment\": \"procrustes\", ", "unreadable (Expecting"),  # cut short
+    (json.dumps({key: value for key, value in evaluation().items() if key != "poses"}), "no poses (not an evaluation"),
+    (json.dumps({**evaluation(), "alignment": "pairwise"}), "no poses.pairwise (not an evaluation"),
+    (json.dumps({**evaluation(), "images": {"mean": {"psnr": "high", "ssim": 0.9}}}),
+     "images.mean.psnr is 'high', not a number"),
+    ("[1, 2]", "no alignment (not an evaluation"),
+])
+def test_unusable_eval_json_of_a_finished_run_is_one_line_before_anything_trains(scene, tmp_path, monkeypatch,
+                                                                                content, named):
+    """A malformed or incomplete eval.json (by hand, another tool, an older warpbags) was a JSONDecodeError or
+    KeyError traceback, and only after the runs before it had trained. It is one line naming the file, before any
+    run trains; the sweep writes no tables. (The sweep does not evaluate the run again over it: evaluate_run writes
+    eval.json atomically, so it is no file of a sweep cut short; the message says to remove it.)"""
+
+    def train(*args, **kwargs):
+        raise AssertionError("a run trained")
+
+    monkeypatch.setattr("warpbags.sweep.start_or_resume", train)
+    out = tmp_path / "sweep"
+    (out / "bags-4v-rot5-seed0").mkdir(parents=True)  # after baseline-4v-rot5-seed0, which is not done
+    (out / "bags-4v-rot5-seed0" / "eval.json").write_text(content)
+    result = runner.invoke(app, ["sweep", str(scene), "--rot-noises", "5", "--views", "4", "--out", str(out)])
+    lines = [line for line in result.output.splitlines() if line.strip()]
+    assert result.exit_code == 2 and len(lines) == 1, result.output
+    assert f"{out / 'bags-4v-rot5-seed0' / 'eval.json'}: {named}" in lines[0], lines[0]
+    assert lines[0].endswith("remove it and run the sweep again to evaluate the run anew"), lines[0]
+    assert sorted(path.name for path in out.iterdir()) == ["bags-4v-rot5-seed0"]

@@ -28,6 +28,7 @@ from warpbags.trainer import start_or_resume, training_scene
 from warpbags.viewer import Viewer, load_viewer_content
 from warpbags.viewer.render import (MIN_SCALE, ClientRenderer, camera_to_world, next_scale, pinhole_intrinsics,
                                     world_to_camera)
+from warpbags.viewer.server import FRUSTUM_LABELS
 
 runner = CliRunner()
 ITERS, RECORD_EVERY = 8, 2
@@ -193,6 +194,30 @@ def test_content_of_a_run(run_dir):
     np.testing.assert_array_equal(cameras.final, np.load(run_dir / "poses_final.npy"))
     assert cameras.images.shape[0] == 4 and cameras.images.dtype == np.uint8
     assert content.background == (1.0, 1.0, 1.0)
+
+
+def test_start_cameras_are_the_start_poses_not_the_noisy_given_ones(run_dir):
+    """The red frustums show poses_start.npy: the given, noisy poses (poses_init.npy) after the mask-centroid start
+    and the silhouette-coherence solve. Their checkbox said "start (noisy)"."""
+    cameras = load_viewer_content(run_dir, log=lambda message: None).cameras
+    np.testing.assert_array_equal(cameras.start, np.load(run_dir / "poses_start.npy"))
+    assert not np.allclose(cameras.start, np.load(run_dir / "poses_init.npy"), atol=1e-3)
+    assert FRUSTUM_LABELS["start"] == "start, red"
+
+
+def test_coarse_result_of_a_run_ends_at_the_coarse_iterations(run_dir, tmp_path):
+    """RUN/coarse, the coarse stage's result written when a repair stage follows, holds the run's config.json (coarse
+    and repair iterations) but no log.jsonl or pose history: its final poses are those after the coarse iterations,
+    where the slider put them after the repair iterations too."""
+    run = tmp_path / "run"
+    shutil.copytree(run_dir, run, ignore=shutil.ignore_patterns("checkpoints"))
+    info = json.loads((run / "config.json").read_text())
+    info["config"]["repair"]["iters"] = 5
+    (run / "config.json").write_text(json.dumps(info))
+    coarse = run / "coarse"
+    shutil.copytree(run, coarse, ignore=shutil.ignore_patterns("coarse", "log.jsonl", "poses_history.npz"))
+    assert load_viewer_content(coarse, log=lambda message: None).cameras.iterations.tolist() == [0, ITERS]
+    assert load_viewer_content(run, log=lambda message: None).cameras.iterations[-1] == ITERS + 5  # with its log
 
 
 def test_reference_cameras_are_aligned_as_eval_does(run_dir, tmp_path):

@@ -173,8 +173,13 @@ def plot_sweep(rows: list[dict], out_dir: Path) -> list[Path]:
         for method, style in (("bags", "-o"), ("baseline", "--s")):
             for views in sorted({r["views"] for r in rows}):
                 selected = [r for r in rows if r["method"] == method and r["views"] == views]
-                noises = sorted({r["rot_noise_deg"] for r in selected})
-                means = [np.mean([r[key] for r in selected if r["rot_noise_deg"] == n]) for n in noises]
+                noises, means = [], []
+                for noise in sorted({r["rot_noise_deg"] for r in selected}):
+                    # null (not finite in eval.json): left out of the mean; a noise level with none, off the line
+                    values = [r[key] for r in selected if r["rot_noise_deg"] == noise and r[key] is not None]
+                    if values:
+                        noises.append(noise)
+                        means.append(np.mean(values))
                 axis.plot(noises, means, style, label=f"{method}, {views} views")
         axis.set(xlabel="rotation noise (deg)", ylabel=ylabel)
         axis.legend(fontsize=8)

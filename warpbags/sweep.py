@@ -6,7 +6,7 @@ interrupted sweep continues where it stopped. An executor maps `run_combination`
 `LocalExecutor` runs them one after another in this process, `RayExecutor` as Ray tasks on this machine or on an
 existing cluster. Results: `<out>/sweep.json`, `<out>/sweep.csv` and the plots of `warpbags.report`.
 
-It stays one module (a little over 300 lines) because the executors are the sweep's own map: both call
+It stays one module (a little over 400 lines) because the executors are the sweep's own map: both call
 `run_combination` and `make_executor` picks between them, so moving them out would make an import cycle.
 """
 
@@ -87,6 +87,8 @@ def run_sweep(spec: SweepSpec, data_root: Path | None = None, log: Log = print,
             config = combination_config(spec, run)
             scene.train_views(config.views)
             _check_earlier_run(spec.out / run.name, config, scene)
+            if _is_done(spec.out / run.name):  # an unusable eval.json is named now, not after the other runs train
+                _row(spec.out / run.name, run)
         except WarpbagsError as error:
             raise WarpbagsError(f"sweep run {run.name}: {error}") from None
     spec.out.mkdir(parents=True, exist_ok=True)
@@ -357,18 +359,61 @@ def _quiet(message: str) -> None:
     """Runs inside a sweep log nothing of their own: the sweep logs one line per run."""
 
 
+# evaluate_run writes eval.json atomically, so a malformed one is no sweep's cut short but an older warpbags', another
+# tool's or one edited by hand: the sweep does not overwrite it, it says how to replace it.
+_EVALUATE_AGAIN = "remove it and run the sweep again to evaluate the run anew"
+
+
 def _row(run_dir: Path, run: SweepRun) -> dict:
-    report = json.loads((run_dir / "eval.json").read_text())
-    poses = report["poses"][report["alignment"]]  # pairwise below 3 training views
-    refined = report.get("images_after_test_pose_refinement", report["images"])
+    """The run's row of sweep.json, read from its eval.json; a metric eval.json holds as null (`finite_json`'s
+    NaN or infinity: the PSNR of an exact render, a metric that failed) is None.
+
+    Raises:
+        WarpbagsError: eval.json cannot be read, or lacks a number of the row (an older warpbags' or another tool's
+            file), named with the file.
+    """
+    path = run_dir / "eval.json"
+    try:
+        report = json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as error:
+        raise WarpbagsError(f"{path}: unreadable ({error}); {_EVALUATE_AGAIN}") from None
+    alignment = _lookup(report, path, "alignment")  # pairwise below 3 training views
+    if not isinstance(alignment, str):
+        raise WarpbagsError(f"{path}: alignment is {alignment!r}, not a name; {_EVALUATE_AGAIN}")
+    images = _lookup(report, path, "images", "mean")
+    refined = "images_after_test_pose_refinement" if "images_after_test_pose_refinement" in report else "images"
+
+    def number(*keys: str) -> float | None:
+        value = _lookup(report, path, *keys)
+        if value is not None and (isinstance(value, bool) or not isinstance(value, (int, float))):
+            raise WarpbagsError(f"{path}: {'.'.join(keys)} is {value!r}, not a number; {_EVALUATE_AGAIN}")
+        return value
+
     return {
         "method": run.method, "views": run.views, "rot_noise_deg": run.rot_noise_deg, "seed": run.seed,
-        "rot_err_initial": poses["initial"]["rotation_deg_mean"], "rot_err_final": poses["final"]["rotation_deg_mean"],
-        "trans_err_initial": poses["initial"]["translation_mean"], "trans_err_final": poses["final"]["translation_mean"],
-        "psnr": report["images"]["mean"]["psnr"], "ssim": report["images"]["mean"]["ssim"],
-        "flip": report["images"]["mean"].get("flip"),
-        "psnr_refined": refined["mean"]["psnr"], "run": run_dir.name,
+        "rot_err_initial": number("poses", alignment, "initial", "rotation_deg_mean"),
+        "rot_err_final": number("poses", alignment, "final", "rotation_deg_mean"),
+        "trans_err_initial": number("poses", alignment, "initial", "translation_mean"),
+        "trans_err_final": number("poses", alignment, "final", "translation_mean"),
+        "psnr": number("images", "mean", "psnr"), "ssim": number("images", "mean", "ssim"),
+        "flip": number("images", "mean", "flip") if "flip" in images else None,  # none in those from before FLIP
+        "psnr_refined": number(refined, "mean", "psnr"), "run": run_dir.name,
     }
+
+
+def _lookup(report: object, path: Path, *keys: str) -> object:
+    """report[keys[0]][keys[1]]... of eval.json at `path`.
+
+    Raises:
+        WarpbagsError: a key that is missing (or a level that is no JSON object), named with `path`.
+    """
+    value = report
+    for depth, key in enumerate(keys):
+        if not isinstance(value, dict) or key not in value:
+            raise WarpbagsError(f"{path}: no {'.'.join(keys[:depth + 1])} (not an evaluation of this warpbags); "
+                                f"{_EVALUATE_AGAIN}")
+        value = value[key]
+    return value
 
 
 def _write_tables(rows: list[dict], out: Path) -> None:

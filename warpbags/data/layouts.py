@@ -7,6 +7,7 @@
 
 from __future__ import annotations
 
+import functools
 import json
 import math
 import os
@@ -165,20 +166,23 @@ def transforms_cameras(root: Path) -> LayoutCameras:
         if camera_to_world.shape not in ((4, 4), (3, 4)):
             raise WarpbagsError(f"{path}: frame {name} transform_matrix has shape {camera_to_world.shape}")
         camera_to_world = np.vstack([camera_to_world[:3], [0, 0, 0, 1]]) @ OPENGL_TO_OPENCV
-        width, height = merged.get("w"), merged.get("h")
-        if width is None or height is None:
+        number = functools.partial(_frame_number, path, name, merged)
+        if merged.get("w") is None or merged.get("h") is None:
             width, height = image_size(image_path)
+        else:
+            width, height = number("w", low=0), number("h", low=0)
         if "fl_x" in merged:
-            fx = float(merged["fl_x"])
-            fy = float(merged.get("fl_y", fx))
+            fx = number("fl_x", low=0)
+            fy = number("fl_y", fx, low=0)
         elif "camera_angle_x" in merged:
-            fx = 0.5 * width / math.tan(0.5 * float(merged["camera_angle_x"]))
-            fy = 0.5 * height / math.tan(0.5 * float(merged["camera_angle_y"])) if "camera_angle_y" in merged else fx
+            fx = 0.5 * width / math.tan(0.5 * number("camera_angle_x", low=0, high=math.pi))
+            fy = 0.5 * height / math.tan(0.5 * number("camera_angle_y", low=0, high=math.pi)) \
+                if "camera_angle_y" in merged else fx
         else:
             raise WarpbagsError(f"{path}: no focal length (fl_x or camera_angle_x)")
-        K = np.array([[fx, 0, merged.get("cx", width / 2)], [0, fy, merged.get("cy", height / 2)], [0, 0, 1]], float)
-        distortion = np.array([merged.get(key, 0.0) for key in ("k1", "k2", "p1", "p2")], dtype=np.float64)
-        if any(merged.get(key, 0.0) for key in ("k3", "k4")):
+        K = np.array([[fx, 0, number("cx", width / 2)], [0, fy, number("cy", height / 2)], [0, 0, 1]], float)
+        distortion = np.array([number(key, 0.0) for key in ("k1", "k2", "p1", "p2")], dtype=np.float64)
+        if any(number(key, 0.0) for key in ("k3", "k4")):
             raise WarpbagsError(f"{path}: k3/k4 distortion is not supported (undistort the images first)")
         rows.append((name, image_path, np.linalg.inv(camera_to_world), K, (width, height), distortion))
     rows.sort(key=lambda row: row[0])
@@ -192,6 +196,30 @@ def transforms_cameras(root: Path) -> LayoutCameras:
         distortions=np.stack([row[5] for row in rows]),
         test_names=test_names or None,
     )
+
+
+def _frame_number(path: Path, name: str, fields: dict, key: str, default: object = None, low: float = -math.inf,
+                  high: float = math.inf) -> float:
+    """Field `key` of frame `name` in transforms file `path` (`fields`: the file's fields updated by the frame's),
+    or `default` without one, as a finite float strictly between `low` and `high`.
+
+    Raises:
+        WarpbagsError: the value is not a finite number (a string of no number, null, a list, true) or lies outside
+            the bounds; named with the file, the frame and the field.
+    """
+    value = fields.get(key, default)
+    number = math.nan
+    if not isinstance(value, bool):  # JSON's true is no number, though float() takes it
+        try:
+            number = float(value)
+        except (TypeError, ValueError):
+            pass
+    if not math.isfinite(number):
+        raise WarpbagsError(f"{path}: frame {name}: {key} is {value!r}, not a finite number")
+    if not low < number < high:
+        bounds = f"above {low:g}" if high == math.inf else f"between {low:g} and {high:g}"
+        raise WarpbagsError(f"{path}: frame {name}: {key} is {value!r}, not {bounds}")
+    return number
 
 
 def _frame_name(root: Path, frame: dict, source: Path) -> str:

@@ -19,7 +19,9 @@ Files (under the run folder's repair/):
 
 from __future__ import annotations
 
+import functools
 import math
+import pickle
 from pathlib import Path
 from typing import Callable
 
@@ -28,6 +30,7 @@ import torch
 from warpbags.camera_paths import interpolated_viewmats
 from warpbags.cameras import camera_centers
 from warpbags.configs.train import RepairConfig, TrainConfig
+from warpbags.errors import WarpbagsError, one_line
 from warpbags.files import atomic_output, finite_json
 from warpbags.losses import load_lpips, repair_loss
 from warpbags.model import GaussianModel
@@ -59,6 +62,19 @@ def pseudo_ratio(config: RepairConfig, repair_iteration: int) -> float:
     return config.pseudo_ratio_start + (config.pseudo_ratio_end - config.pseudo_ratio_start) * fraction
 
 
+def _load_saved(path: Path, load: Callable[[Path], object]) -> object:
+    """`load(path)`: a file the repair stage saved (pairs.pt, repairer.pt), read for a resumed run.
+
+    Raises:
+        WarpbagsError: the file cannot be read (cut short, another file in its place, not the layout `load` reads),
+            named in one line as `RunFolder.load_checkpoint` names a checkpoint.
+    """
+    try:
+        return load(path)
+    except (OSError, RuntimeError, EOFError, ValueError, pickle.UnpicklingError, KeyError, TypeError) as error:
+        raise WarpbagsError(f"{path}: unreadable ({one_line(error, limit=1000)})") from None
+
+
 class RepairStage:
     """Pseudo ground truth from a repairer, for a run whose coarse stage is finished.
 
@@ -72,12 +88,18 @@ class RepairStage:
         should_stop: checked while the pairs are built (KeyboardInterrupt when it turns true).
         repairer: an already fitted repairer to use as it is (no pairs are built); default: the config's,
             fitted on this run's pairs.
+
+    Attributes:
+        repair: the run's `RepairConfig` (`config.repair`).
+
+    Raises:
+        WarpbagsError: a resumed run's pairs.pt or repairer.pt cannot be read.
     """
 
     def __init__(self, config: TrainConfig, folder: Path, coarse: GaussianModel, viewmats: torch.Tensor,
                  generator: torch.Generator, log: Callable[[str], None] = print,
                  should_stop: Callable[[], bool] = lambda: False, repairer: Repairer | None = None):
-        self.config, self.generator = config.repair, generator
+        self.repair, self.generator = config.repair, generator
         self.coarse_iters = config.iters  # repair iterations count from here
         self.folder = Path(folder)
         self.samples = self.folder / "samples"
@@ -88,15 +110,16 @@ class RepairStage:
         if repairer is not None:
             self.repairer = repairer
         elif pairs_path.is_file() and repairer_path.is_file():  # a resumed run: reuse what it made
-            self.repairer = make_repairer(self.config, config.seed, device)
-            pairs = RepairPairs.load(pairs_path)
+            self.repairer = make_repairer(self.repair, config.seed, device)
+            pairs = _load_saved(pairs_path, RepairPairs.load)
             # saved on whichever device the run used before
-            self.repairer.load_state_dict(torch.load(repairer_path, map_location="cpu", weights_only=False))
+            self.repairer.load_state_dict(_load_saved(repairer_path, functools.partial(
+                torch.load, map_location="cpu", weights_only=False)))
             log(f"repair: loaded {len(pairs.kinds)} pairs and the fitted repairer from {self.folder}")
         else:
-            self.repairer = make_repairer(self.config, config.seed, device)
+            self.repairer = make_repairer(self.repair, config.seed, device)
             log(f"repair: building training pairs ({len(viewmats)} leave-one-out models, "
-                f"{self.config.loo_iters} iterations each)")
+                f"{self.repair.loo_iters} iterations each)")
             pairs = build_pairs(coarse, viewmats, config, should_stop, log)
             pairs.save(pairs_path)
             stats = self.repairer.fit(pairs, log)
@@ -106,7 +129,7 @@ class RepairStage:
                 temporary.write_text(finite_json({"pairs": {kind: pairs.kinds.count(kind) for kind in set(pairs.kinds)},
                                                   **stats}, indent=2))
             self._save_pair_samples(pairs)
-        self.lpips, unavailable = load_lpips() if self.config.weight_lpips > 0 else (None, None)
+        self.lpips, unavailable = load_lpips() if self.repair.weight_lpips > 0 else (None, None)
         if self.lpips is not None:
             self.lpips.to(device)
         if unavailable:
@@ -121,9 +144,9 @@ class RepairStage:
 
         The cameras use training camera 0's intrinsics (GaussianObject takes a real view's field of view too).
         """
-        config, generator = self.config, self.generator
-        gaps = torch.randint(len(viewmats), (config.pseudo_views,), generator=generator)
-        fractions = 0.3 + 0.4 * torch.rand(config.pseudo_views, generator=generator)  # GaussianObject: 0.5 +- 0.2
+        repair, generator = self.repair, self.generator
+        gaps = torch.randint(len(viewmats), (repair.pseudo_views,), generator=generator)
+        fractions = 0.3 + 0.4 * torch.rand(repair.pseudo_views, generator=generator)  # GaussianObject: 0.5 +- 0.2
         self.viewmats = interpolated_viewmats(viewmats.double(), gaps, fractions.double()).float()
         self.weights = distance_weights(self.viewmats, viewmats)
         with torch.no_grad():
@@ -131,19 +154,19 @@ class RepairStage:
         self.targets = self.repairer.repair(renders)
         rows = [[render.cpu(), target.cpu()] for render, target in zip(renders[:SAMPLE_ROWS], self.targets)]
         write_image_grid(self.samples / f"pseudo_{iteration:06d}.png", rows)
-        for old in sorted(self.samples.glob("pseudo_*.png"))[:-config.samples_kept]:
+        for old in sorted(self.samples.glob("pseudo_*.png"))[:-repair.samples_kept]:
             old.unlink()
 
     def loss(self, model: GaussianModel, viewmats: torch.Tensor, iteration: int) -> tuple[torch.Tensor, dict]:
         """The pseudo-view loss of `model` on one random pseudo view at run iteration `iteration` (refreshing the
         pseudo ground truth when due, around the training cameras at [C,4,4] `viewmats`)."""
         repair_iteration = iteration - self.coarse_iters
-        if self.targets is None or repair_iteration % self.config.refresh_every == 0:
+        if self.targets is None or repair_iteration % self.repair.refresh_every == 0:
             self.refresh(model, viewmats, iteration)
         pick = torch.randint(len(self.viewmats), (1,), generator=self.generator)
         images = model.render_views(self.viewmats[pick])
-        config = self.config
-        losses, terms = repair_loss(images, self.targets[pick], config.weight_l1, config.weight_l2, config.weight_lpips,
+        repair = self.repair
+        losses, terms = repair_loss(images, self.targets[pick], repair.weight_l1, repair.weight_l2, repair.weight_lpips,
                                     self.lpips)
         return (self.weights[pick] * losses).mean(), terms
 

@@ -21,7 +21,7 @@ from warpbags.configs.train import BACKGROUNDS
 from warpbags.errors import WarpbagsError
 from warpbags.gaussians import opacity_weighted_center, read_ply, sh_degree_of
 from warpbags.pose_history import HISTORY_FILE, read_pose_history
-from warpbags.run_folder import RunFolder
+from warpbags.run_folder import LOG_FILE, RunFolder
 
 THUMBNAIL_SIDE = 160  # px: the longer side of the pictures shown on the frustums (they travel to every browser)
 
@@ -33,7 +33,8 @@ class TrainingCameras:
     Attributes:
         Ks: [C,3,3] intrinsics at (width, height).
         width, height: the training image size.
-        start: the noisy poses the optimization started from, or None.
+        start: the poses the optimization started from (poses_start.npy: the given poses, poses_init.npy, after
+            the mask-centroid start and the silhouette-coherence solve where the run used them), or None.
         reference: the reference (dataset) poses aligned to the model's frame, or None.
         iterations: [T] the iterations of the pose frames, increasing (the last is the final poses).
         frames: [T,C,4,4] the optimized poses at those iterations.
@@ -128,8 +129,12 @@ def _training_cameras(path: Path, info: dict, log: Callable[[str], None]) -> Tra
 
 
 def _pose_frames(path: Path, info: dict, start: np.ndarray | None, final: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Iterations [T] and poses [T,C,4,4]: the start at 0, the recorded history, the final poses at the end."""
-    total = RunFolder(path).saved_config(info).total_iters
+    """Iterations [T] and poses [T,C,4,4]: the start at 0, the recorded history, the final poses at the end (after
+    the run's coarse and repair iterations; in a run's coarse/, after its coarse iterations)."""
+    config = RunFolder(path).saved_config(info)
+    # coarse/, the coarse stage's result written when a repair stage follows, holds the run's config but no log:
+    # every trained run folder has one (`Trainer.train` opens it)
+    last = config.total_iters if (path / LOG_FILE).is_file() else config.iters
     iterations, frames = [], []
     if start is not None:
         iterations, frames = [0], [start]
@@ -138,10 +143,10 @@ def _pose_frames(path: Path, info: dict, start: np.ndarray | None, final: np.nda
         raise WarpbagsError(f"{path / HISTORY_FILE} holds {history.viewmats.shape[1]} cameras, the run's poses "
                             f"{len(final)} (poses_final.npy)")
     if history is not None:
-        recorded = (history.iterations > 0) & (history.iterations < total)
+        recorded = (history.iterations > 0) & (history.iterations < last)
         iterations += history.iterations[recorded].tolist()
         frames += list(history.viewmats[recorded].astype(np.float64))
-    return np.array(iterations + [total]), np.stack(frames + [final])
+    return np.array(iterations + [last]), np.stack(frames + [final])
 
 
 def _aligned_reference(final: np.ndarray, true: np.ndarray | None, log: Callable[[str], None]) -> np.ndarray | None:

@@ -1,9 +1,10 @@
 """`Viewer`: a viser web server that shows a run's Gaussians, rendered by warpbags, and its training cameras.
 
-The scene holds the training cameras as frustums in three colours: the noisy start, the optimized poses (with
-their images; a click on one moves the browser's camera there) and the reference poses aligned to the model's
-frame. A slider replays the optimized poses over the run's pose history. The Gaussians themselves are not
-scene nodes: each browser gets them as a background image rendered from its own camera (`ClientRenderer`).
+The scene holds the training cameras as frustums in three colours: the start (poses_start.npy, where the
+optimization began), the optimized poses (with their images; a click on one moves the browser's camera there) and
+the reference poses aligned to the model's frame. A slider replays the optimized poses over the run's pose history.
+The Gaussians themselves are not scene nodes: each browser gets them as a background image rendered from its own
+camera (`ClientRenderer`).
 """
 
 from __future__ import annotations
@@ -23,7 +24,7 @@ from warpbags.viewer.content import TrainingCameras, ViewerContent
 from warpbags.viewer.render import ClientRenderer, DeviceGaussians, FrameStats, camera_to_world
 
 FRUSTUM_COLORS = {"start": (225, 50, 60), "optimized": (30, 110, 230), "reference": (30, 160, 80)}
-FRUSTUM_LABELS = {"start": "start (noisy), red", "optimized": "optimized, blue", "reference": "reference, green"}
+FRUSTUM_LABELS = {"start": "start, red", "optimized": "optimized, blue", "reference": "reference, green"}
 FRUSTUM_SIZE = 0.08  # of the cameras' median distance to the object
 
 
