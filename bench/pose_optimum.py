@@ -69,7 +69,7 @@ def pose_only_optimum(trainer: Trainer, steps: int, lr: float, start_noise: tupl
     are left as they were."""
     cameras = copy.deepcopy(trainer.cameras)
     with torch.no_grad():
-        cameras.viewmats_init.copy_(perturb_viewmats(trainer.viewmats_true.to(cameras.viewmats_init), *start_noise,
+        cameras.base_viewmats.copy_(perturb_viewmats(trainer.viewmats_true.to(cameras.base_viewmats), *start_noise,
                                                      seed=0))
     start = _errors(trainer, cameras.viewmats())
     cameras.reset_moments()

@@ -256,8 +256,8 @@ def test_distance_term_turns_the_camera_towards_a_missed_mask(term):
         latent = torch.cat([case.cameras.rotations.grad, case.cameras.translations.grad], 1)
         step = -(case.cameras.preconditioner @ latent[..., None])[..., 0]
         step = 1e-3 * step / step.norm().clamp_min(1e-30)
-        moved = corrected_viewmats("object", case.cameras.viewmats_init, step, case.cameras.object_centers)
-    shift = case.blob_image_x(moved) - case.blob_image_x(case.cameras.viewmats_init)
+        moved = corrected_viewmats("object", case.cameras.base_viewmats, step, case.cameras.object_centers)
+    shift = case.blob_image_x(moved) - case.blob_image_x(case.cameras.base_viewmats)
     if term == "mask_bce":
         assert shift < 0  # no pull towards the mask (measured -9e-5 px): it only shrinks the render
     else:

@@ -161,7 +161,7 @@ def test_rounds_restart_gaussians_and_keep_poses(scene_dir, tmp_path):
     # the learning rate per coordinate), and the poses went on from where round one ended.
     latent = torch.cat([cameras.rotations, cameras.translations], 1).detach()
     assert 0 < latent.abs().max().item() <= 1.001 * trainer.config.lr.pose
-    assert torch.allclose(cameras.viewmats_init, poses_round_one, atol=1e-6)
+    assert torch.allclose(cameras.base_viewmats, poses_round_one, atol=1e-6)
     assert (trainer.current_viewmats() - poses_round_one).abs().max().item() < added / 3
 
 

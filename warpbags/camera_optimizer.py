@@ -122,23 +122,23 @@ class CameraOptimizer(torch.nn.Module):
     """Per-camera pose corrections of C cameras, their gauge, preconditioner and Adam optimizer.
 
     Args:
-        viewmats_init: [C, 4, 4] starting world-to-camera poses (the corrections are relative to them; `rebase`
-            moves them to the current estimate).
+        base_viewmats: [C, 4, 4] world-to-camera poses the corrections are relative to: the starting poses, until
+            `rebase`, `reset_to`, `apply_average` or `turn_about_object` moves them (the buffer of the same name).
         settings: parameterization, preconditioning, gauge and learning rate.
         object_center: [3] world point the object-centric parameterization turns about.
         Ks, width, height, points: cameras and [P, 3] object points for the preconditioner (needed only with
             `settings.precondition`).
     """
 
-    def __init__(self, viewmats_init: torch.Tensor, settings: CameraOptimizerSettings, object_center: torch.Tensor,
+    def __init__(self, base_viewmats: torch.Tensor, settings: CameraOptimizerSettings, object_center: torch.Tensor,
                  Ks: torch.Tensor | None = None, width: int = 0, height: int = 0, points: torch.Tensor | None = None):
         super().__init__()
         if settings.parameterization not in PARAMETERIZATIONS:
             raise WarpbagsError(f"camera.parameterization must be one of {', '.join(PARAMETERIZATIONS)}, "
                                 f"got {settings.parameterization!r}")
         self.settings = settings
-        cams, options = viewmats_init.shape[0], dict(dtype=viewmats_init.dtype, device=viewmats_init.device)
-        self.register_buffer("viewmats_init", viewmats_init.detach().clone())
+        cams, options = base_viewmats.shape[0], dict(dtype=base_viewmats.dtype, device=base_viewmats.device)
+        self.register_buffer("base_viewmats", base_viewmats.detach().clone())
         self.register_buffer("object_centers", object_center.to(**options).expand(cams, 3).contiguous())
         gauge = torch.ones(cams, 1, **options)
         if settings.fix_first_camera:
@@ -147,7 +147,7 @@ class CameraOptimizer(torch.nn.Module):
         if settings.precondition:
             if points is None or Ks is None:
                 raise ValueError("preconditioning needs Ks and object points")
-            matrix = preconditioner(settings.parameterization, viewmats_init.detach(), Ks.detach(), width, height,
+            matrix = preconditioner(settings.parameterization, base_viewmats.detach(), Ks.detach(), width, height,
                                     points.detach(), self.object_centers, settings.precondition_reg)
         else:
             matrix = torch.eye(6, dtype=torch.float64).expand(cams, 6, 6)
@@ -155,7 +155,7 @@ class CameraOptimizer(torch.nn.Module):
         self.register_buffer("free_rows", torch.ones(6, **options))  # 0 where a parameter is held (orbit freezing)
         # Sums of the estimates averaged into the final poses (`accumulate_average`), in float64: a checkpoint keeps
         # them, and so does the state a searched round restarts from.
-        sums = dict(dtype=torch.float64, device=viewmats_init.device)
+        sums = dict(dtype=torch.float64, device=base_viewmats.device)
         for name, shape in zip(AVERAGE_BUFFERS, ((cams, 3, 3), (cams, 3), ())):
             self.register_buffer(name, torch.zeros(shape, **sums))
         # Rotation and translation latents: two Adam groups, each created once (resume loads into them).
@@ -168,7 +168,7 @@ class CameraOptimizer(torch.nn.Module):
 
     @property
     def num_cameras(self) -> int:
-        return self.viewmats_init.shape[0]
+        return self.base_viewmats.shape[0]
 
     def movable_cameras(self) -> list[int]:
         """The cameras the optimizer may move: all but a gauge camera held at its given pose."""
@@ -183,8 +183,8 @@ class CameraOptimizer(torch.nn.Module):
         """[B, 4, 4] corrected world-to-camera matrices of cameras `views` ([B] long, default all); differentiable."""
         params = self.params()
         if views is None:
-            return corrected_viewmats(self.settings.parameterization, self.viewmats_init, params, self.object_centers)
-        return corrected_viewmats(self.settings.parameterization, self.viewmats_init[views].contiguous(),
+            return corrected_viewmats(self.settings.parameterization, self.base_viewmats, params, self.object_centers)
+        return corrected_viewmats(self.settings.parameterization, self.base_viewmats[views].contiguous(),
                                   params[views].contiguous(), self.object_centers[views].contiguous())
 
     def viewmats(self) -> torch.Tensor:
@@ -221,7 +221,7 @@ class CameraOptimizer(torch.nn.Module):
     def reset_to(self, viewmats: torch.Tensor) -> None:
         """Make [C, 4, 4] `viewmats` the base poses, with no corrections: latents and Adam moments restart at zero."""
         with torch.no_grad():
-            self.viewmats_init.copy_(viewmats.to(self.viewmats_init))
+            self.base_viewmats.copy_(viewmats.to(self.base_viewmats))
             self.rotations.zero_()
             self.translations.zero_()
         self.reset_moments()
@@ -240,9 +240,9 @@ class CameraOptimizer(torch.nn.Module):
         count = int(self.average_count.item())
         if count == 0:
             return
-        mean = mean_viewmats(self.average_rotation_sums, self.average_center_sums, count).to(self.viewmats_init)
+        mean = mean_viewmats(self.average_rotation_sums, self.average_center_sums, count).to(self.base_viewmats)
         held = self.gauge[:, 0] == 0
-        mean[held] = self.viewmats_init[held]  # a gauge camera keeps its given pose to the bit
+        mean[held] = self.base_viewmats[held]  # a gauge camera keeps its given pose to the bit
         self.reset_to(mean)
         with torch.no_grad():
             for name in AVERAGE_BUFFERS:
@@ -255,9 +255,9 @@ class CameraOptimizer(torch.nn.Module):
         poses first (`rebase`)."""
         self.rebase()
         with torch.no_grad():
-            turn = torch.zeros(1, 6, dtype=self.viewmats_init.dtype, device=self.viewmats_init.device)
+            turn = torch.zeros(1, 6, dtype=self.base_viewmats.dtype, device=self.base_viewmats.device)
             turn[0, :3] = rotation
-            self.viewmats_init[camera] = corrected_viewmats("object", self.viewmats_init[camera:camera + 1], turn,
+            self.base_viewmats[camera] = corrected_viewmats("object", self.base_viewmats[camera:camera + 1], turn,
                                                             self.object_centers[camera:camera + 1])[0]
 
     def anchor_loss(self, views: torch.Tensor) -> torch.Tensor:
@@ -278,7 +278,7 @@ class CameraOptimizer(torch.nn.Module):
         if views is None or len(views) == self.num_cameras:
             self.optimizer.step()
             return
-        resting = torch.ones(self.num_cameras, dtype=torch.bool, device=self.viewmats_init.device)
+        resting = torch.ones(self.num_cameras, dtype=torch.bool, device=self.base_viewmats.device)
         resting[views] = False
         kept = []
         for param in (self.rotations, self.translations):
@@ -335,6 +335,8 @@ class CameraOptimizer(torch.nn.Module):
 
     def load_state(self, state: dict) -> None:
         module = dict(state["module"])
+        if "viewmats_init" in module:  # a checkpoint of a warpbags before the buffer was named for what it holds
+            module["base_viewmats"] = module.pop("viewmats_init")
         for name in AVERAGE_BUFFERS:  # a checkpoint of a warpbags before the average has none
             module.setdefault(name, torch.zeros_like(getattr(self, name)))
         self.load_state_dict(module)

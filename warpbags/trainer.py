@@ -374,7 +374,7 @@ class Trainer:
         for label, rotation in [("not turned", None), *turns]:
             back_to_start()
             if rotation is not None:
-                self.cameras.turn_about_object(camera, rotation.to(self.cameras.viewmats_init))
+                self.cameras.turn_about_object(camera, rotation.to(self.cameras.base_viewmats))
             steps = []
             for _ in range(length):
                 steps.append((self.train_step(), self.current_viewmats()))
