@@ -22,7 +22,10 @@ from warpbags.errors import WarpbagsError
 
 BACKGROUNDS = {"white": (1.0, 1.0, 1.0), "black": (0.0, 0.0, 0.0)}  # `TrainConfig.background`'s colours
 ALIGNMENTS = ("procrustes", "pairwise")  # how estimated cameras are mapped onto reference ones (warpbags.alignment)
-ORBIT_RADIUS = 4.0  # warpbags.data.scene.ORBIT_RADIUS: scenes are normalized so that the cameras orbit at this radius
+# The mean distance from the camera centres to the object centre after a scene's normalization (`warpbags.data`),
+# the unit of the pose noise: 4.0 matches the NeRF-Synthetic (Blender) orbit (radius ~4.03), so BARF's pose-noise
+# magnitudes (se(3) sigma 0.15) mean the same thing here.
+ORBIT_RADIUS = 4.0
 MAX_HULL_RESOLUTION = 256  # the carving's first pass holds (1.5 x this)^3 voxel centres: 57 million, ~3 GB, at 256
 # Host threads beyond a few per core only cost their start-up in every CPU render: 100000 took 17.5 s an iteration.
 MAX_RENDER_THREADS = 1024

@@ -168,13 +168,11 @@ def test_every_float_field_must_be_finite():
 def test_non_finite_values_are_named_by_their_train_option():
     """FLOAT_OPTIONS, the float fields' `warpbags train` options as validate names them, are TRAIN_OPTIONS's."""
     from warpbags.cli.train_options import TRAIN_OPTIONS, field_type
-    from warpbags.configs.train import FLOAT_OPTIONS, ORBIT_RADIUS
-    from warpbags.data.scene import ORBIT_RADIUS as SCENE_ORBIT_RADIUS
+    from warpbags.configs.train import FLOAT_OPTIONS
 
     options = {option.path: option.flag for option in TRAIN_OPTIONS
                if option.sets is None and field_type(option.path) is float}
     assert FLOAT_OPTIONS == options
-    assert ORBIT_RADIUS == SCENE_ORBIT_RADIUS  # --trans-noise's bound
 
 
 def test_range_checks_that_training_needed():

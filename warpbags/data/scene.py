@@ -18,6 +18,7 @@ import numpy as np
 import torch
 
 from warpbags.cameras import camera_centers
+from warpbags.configs.train import ORBIT_RADIUS  # noqa: F401 - the normalization's radius, imported from here too
 from warpbags.correspondences import ViewMatches
 from warpbags.errors import WarpbagsError
 
@@ -25,12 +26,6 @@ DEFAULT_SPLIT_SIZES = (4, 6, 9)
 """Training-view counts every scene has a split for (`sparse_{size}.txt`, else farthest-point views): the
 sparse-view protocol of GaussianObject."""
 
-ORBIT_RADIUS = 4.0
-"""Mean distance from the camera centres to the object centre after normalization.
-
-4.0 matches the NeRF-Synthetic (Blender) orbit (radius ~4.03), so BARF's pose-noise magnitudes (se(3) sigma 0.15)
-mean the same thing here.
-"""
 
 
 @dataclass(frozen=True)
