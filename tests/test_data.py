@@ -380,6 +380,22 @@ def test_transforms_json_intrinsics_that_are_no_numbers_are_one_line(synthetic_d
     _expect_error(folder, re.escape(f"{folder / 'transforms.json'}: frame images/view_003.png: {named}"))
 
 
+def test_transforms_json_null_intrinsics_are_absent_ones(synthetic_dir, tmp_path):
+    """null for an optional field (principal point, distortion, image size) is read as its absence, as before the
+    fields were checked: the same cameras as without them."""
+    folder = _strip_to_images(synthetic_dir, tmp_path / "nulls")
+    opengl = np.linalg.inv(dome_viewmats(SYNTHETIC)) @ np.diag([1.0, -1.0, -1.0, 1.0])
+    frames = [{"file_path": f"images/view_{i:03d}", "transform_matrix": opengl[i].tolist()} for i in range(12)]
+    (folder / "transforms.json").write_text(json.dumps({"camera_angle_x": math.radians(SYNTHETIC.fov_deg),
+                                                        "frames": frames}))
+    plain = load_scene(folder, normalize=False)
+    for frame in frames:
+        frame.update({key: None for key in ("cx", "cy", "k1", "k3", "k4", "w", "h")})
+    (folder / "transforms.json").write_text(json.dumps({"camera_angle_x": math.radians(SYNTHETIC.fov_deg),
+                                                        "frames": frames}))
+    torch.testing.assert_close(load_scene(folder, normalize=False).Ks, plain.Ks, rtol=0, atol=0)
+
+
 def test_frame_paths_outside_the_scene_folder_are_one_line(synthetic_dir, tmp_path):
     folder = _strip_to_images(synthetic_dir, tmp_path / "outside")
     frames = [{"file_path": "/elsewhere/view_000.png", "transform_matrix": np.eye(4).tolist()}]

@@ -215,6 +215,9 @@ def test_resumed_repair_stage_names_an_unreadable_saved_file(tmp_path):
     (folder / "repairer.pt").write_bytes(saved[:len(saved) // 2])  # cut short
     with pytest.raises(WarpbagsError, match=f"^{re.escape(str(folder / 'repairer.pt'))}: unreadable \\(") as error:
         resume()
+    torch.save({"weights": torch.zeros(1)}, folder / "repairer.pt")  # a torch file of another layout
+    with pytest.raises(WarpbagsError, match=f"^{re.escape(str(folder / 'repairer.pt'))}: unreadable \\("):
+        resume()
     (folder / "repairer.pt").write_bytes(saved)
     for content in (b"not a torch file", None):  # bytes of another kind; a torch file of another layout
         if content is None:

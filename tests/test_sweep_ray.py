@@ -83,6 +83,7 @@ def test_ray_sweep_gives_the_local_results_and_resumes(scene, tmp_path, local_ra
     (["--executor", "ray", "--address", "nowhere"], "nowhere"),
     (["--address", "127.0.0.1:6379"], "--address"),
     (["--executor", "ray", "--cpus-per-run", "0"], "--cpus-per-run"),
+    (["--executor", "ray", "--cpus-per-run", "2000"], "--cpus-per-run must be in [1, 1024], got 2000"),
 ])
 def test_sweep_executor_bad_values_one_line(scene, tmp_path, options, named):
     result = runner.invoke(app, ["sweep", str(scene), "--rot-noises", "5", "--views", "4",

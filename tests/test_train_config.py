@@ -222,6 +222,17 @@ def test_range_checks_that_training_needed():
         load_preset("quick", **overrides)
 
 
+def test_a_saved_config_from_before_a_bound_still_resumes():
+    """A run saved a blur without blur_until (never applied) or more render threads than MAX_RENDER_THREADS before
+    `validate` refused them: its config reads back as what it trained with, and resuming validates it."""
+    from warpbags.configs.train import MAX_RENDER_THREADS, TrainConfig
+
+    saved = TrainConfig.from_dict({"blur_sigma_px": 4.0, "blur_until": 0, "render_threads": 5000})
+    assert (saved.blur_sigma_px, saved.render_threads) == (0.0, MAX_RENDER_THREADS)
+    assert saved.replaced() == saved
+    assert TrainConfig.from_dict({"blur_sigma_px": 4.0, "blur_until": 50}).blur_sigma_px == 4.0
+
+
 def test_a_field_that_may_be_null_is_typed_by_its_declaration():
     """`resolution: int | None` and `camera.lbfgs_from_round` have the default None, which tells no type: 2.0 and true
     passed (2.0 == 2 and True == 1 pass `resolution in (None, 1, 2, 4, 8)`) and were saved so. A field that may not be

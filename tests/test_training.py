@@ -9,7 +9,10 @@ import os
 import re
 import shutil
 import signal
+import subprocess
+import sys
 import types
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -320,7 +323,8 @@ def test_resuming_with_other_views_or_another_image_size_is_refused(scene_dir, t
     for other, difference in [(config.replaced(views=6), "the scene's views .* are not the run's"),
                               (config.replaced(max_image_size=48), "the images are 48x48 px, the run's 32x32")]:
         with pytest.raises(WarpbagsError, match=f"^--resume: {re.escape(str(tmp_path))} holds a run of other "
-                                                f"training views than the scene's \\(.*{difference}"):
+                                                f"training views or image size than the scene's \\(.*{difference}.*\\); "
+                                                f"give the scene as the run opened it"):
             start_or_resume(training_scene(scene, other), config, tmp_path, resume=True, log=lambda message: None)
     assert start_or_resume(training_scene(scene, config), config, tmp_path, resume=True,
                            log=lambda message: None).iteration == 2
@@ -436,19 +440,35 @@ def test_ctrl_c_stops_one_call_of_train_not_the_next(scene_dir, tmp_path):
 
 
 def test_sigterm_stops_training_with_a_checkpoint_as_ctrl_c_does(scene_dir, tmp_path):
-    """A job scheduler's or `kill`'s SIGTERM: the iteration finishes, a checkpoint is saved, KeyboardInterrupt; the
-    handler the process had is back afterwards."""
-    unhandled = []
-    previous = signal.signal(signal.SIGTERM, lambda signum, frame: unhandled.append(signum))  # not the trainer's
+    """A job scheduler's or `kill`'s SIGTERM: the iteration finishes, a checkpoint is saved, KeyboardInterrupt (in a
+    process of its own: without the trainer's handler, SIGTERM ends the process)."""
+    code = (f"import os, signal, sys\n"
+            f"sys.path.insert(0, {str(Path(__file__).parent)!r})\n"
+            f"from test_training import make_trainer\n"
+            f"from pathlib import Path\n"
+            f"trainer = make_trainer(Path({str(scene_dir)!r}), Path({str(tmp_path / 'run')!r}), iters=6,\n"
+            f"                       checkpoint_every=100)\n"
+            f"trainer.write_run_files()\n"
+            f"try:\n"
+            f"    trainer.train(callback=lambda record: os.kill(os.getpid(), signal.SIGTERM))\n"
+            f"except KeyboardInterrupt:\n"
+            f"    print('stopped at', trainer.iteration, trainer.latest_checkpoint().name)\n"
+            f"print('SIGTERM handler after train:', signal.getsignal(signal.SIGTERM) == signal.SIG_DFL)\n")
+    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=600)
+    assert result.returncode == 0, result.stderr[-2000:]
+    assert result.stdout.splitlines()[-2:] == ["stopped at 1 checkpoint_000001.pt", "SIGTERM handler after train: True"]
+
+
+def test_sigterm_is_left_to_a_handler_the_process_already_has(scene_dir, tmp_path):
+    """A Ray worker's SIGTERM handler exits so that Ray retries the task (which resumes from the last checkpoint):
+    training does not take SIGTERM from it."""
+    received = []
+    previous = signal.signal(signal.SIGTERM, lambda signum, frame: received.append(signum))
     try:
-        trainer = make_trainer(scene_dir, tmp_path, iters=6, checkpoint_every=100)
+        trainer = make_trainer(scene_dir, tmp_path, iters=3, checkpoint_every=100)
         trainer.write_run_files()
-        with pytest.raises(KeyboardInterrupt):
-            trainer.train(callback=lambda record: os.kill(os.getpid(), signal.SIGTERM))
-        assert trainer.iteration == 1 and trainer.latest_checkpoint().name == "checkpoint_000001.pt"
-        assert unhandled == []
-        os.kill(os.getpid(), signal.SIGTERM)  # after train(): the process's own handler again
-        assert unhandled == [signal.SIGTERM]
+        trainer.train(callback=lambda record: os.kill(os.getpid(), signal.SIGTERM))
+        assert trainer.iteration == 3 and received == [signal.SIGTERM] * 3
     finally:
         signal.signal(signal.SIGTERM, previous)
 

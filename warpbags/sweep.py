@@ -21,7 +21,7 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Callable, Protocol
 
-from warpbags.configs.train import DEFAULT_PRESET, TrainConfig, load_preset
+from warpbags.configs.train import DEFAULT_PRESET, MAX_RENDER_THREADS, TrainConfig, load_preset
 from warpbags.data import Scene, open_scene
 from warpbags.devices import checked_device_name
 from warpbags.errors import WarpbagsError
@@ -205,8 +205,8 @@ class RayExecutor:
     gpus_per_run: float = 0.0
 
     def __post_init__(self) -> None:
-        if self.cpus_per_run < 1:
-            raise WarpbagsError(f"--cpus-per-run must be >= 1, got {self.cpus_per_run}")
+        if not 1 <= self.cpus_per_run <= MAX_RENDER_THREADS:  # each task's render threads (`render_threads`)
+            raise WarpbagsError(f"--cpus-per-run must be in [1, {MAX_RENDER_THREADS}], got {self.cpus_per_run}")
         if self.gpus_per_run < 0:
             raise WarpbagsError(f"--gpus-per-run must be >= 0, got {self.gpus_per_run:g}")
 
@@ -298,7 +298,8 @@ def make_executor(name: str, *, address: str | None = None, cpus_per_run: int | 
         return LocalExecutor()
     on_gpu = device == "cuda"
     return RayExecutor(address=address,
-                       cpus_per_run=cpus_per_run if cpus_per_run is not None else 1 if on_gpu else usable_cores(),
+                       cpus_per_run=cpus_per_run if cpus_per_run is not None else 1 if on_gpu
+                       else min(usable_cores(), MAX_RENDER_THREADS),
                        gpus_per_run=gpus_per_run if gpus_per_run is not None else 1.0 if on_gpu else 0.0)
 
 

@@ -52,6 +52,7 @@ from warpbags.threads import torch_threads
 # What stops training with a checkpoint: Ctrl-C, and the SIGTERM a job scheduler or `kill` sends before it kills.
 STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
 
+
 class Trainer:
     """Gaussians + pose corrections from the training views of one scene.
 
@@ -433,8 +434,9 @@ class Trainer:
 
         Logs every iteration and records the poses every `warpbags.pose_history.RECORD_EVERY` iterations.
         Checkpoints every `checkpoint_every` iterations, at the end of the coarse stage and at the end. With a
-        repair stage, the coarse result is also written to coarse/ as a run folder of its own. Ctrl-C (SIGINT) or
-        SIGTERM (`STOP_SIGNALS`) finishes the current iteration, saves a checkpoint and raises KeyboardInterrupt.
+        repair stage, the coarse result is also written to coarse/ as a run folder of its own. Ctrl-C (SIGINT), or
+        SIGTERM where no other handler takes it (`STOP_SIGNALS`), finishes the current iteration, saves a checkpoint
+        and raises KeyboardInterrupt.
         Divergence raises WarpbagsError. `callback(record)` is called after each iteration. The round searched for view hypotheses
         (`camera.hypotheses_round`) trains as a whole: a `stop_at` inside it stops at its start, Ctrl-C goes back to
         its start, only its end is checkpointed, and its iterations are logged (and passed to `callback`) after the
@@ -448,7 +450,10 @@ class Trainer:
         previous_handlers = {}
         try:
             for stop_signal in STOP_SIGNALS:
-                previous_handlers[stop_signal] = signal.signal(stop_signal, self._request_stop)
+                # SIGTERM only where nothing else handles it: a Ray worker's handler exits so that Ray retries the
+                # task, which then resumes from the last checkpoint
+                if stop_signal == signal.SIGINT or signal.getsignal(stop_signal) == signal.SIG_DFL:
+                    previous_handlers[stop_signal] = signal.signal(stop_signal, self._request_stop)
         except ValueError:  # not the main thread: Ctrl-C is handled by the caller
             pass
         record: dict = {}
@@ -477,7 +482,8 @@ class Trainer:
             raise
         finally:
             for stop_signal, handler in previous_handlers.items():
-                signal.signal(stop_signal, handler)
+                if handler is not None:  # None: a handler not installed from Python, which Python cannot put back
+                    signal.signal(stop_signal, handler)
         if self.iteration >= total:
             self.write_results()
         return record
@@ -564,8 +570,9 @@ def start_or_resume(scene: Scene, config: TrainConfig, out_dir: str | Path, devi
         # gives other views or another size, which the checkpoint's poses and Gaussians do not fit.
         differences = run_folder.view_differences(scene, info)
         if differences:
-            raise WarpbagsError(f"--resume: {out_dir} holds a run of other training views than the scene's "
-                                f"({'; '.join(differences)})")
+            raise WarpbagsError(f"--resume: {out_dir} holds a run of other training views or image size than the "
+                                f"scene's ({'; '.join(differences)}); give the scene as the run opened it (its "
+                                f"folder {info.get('scene_root')}, or its preset name, with the same --resolution)")
     else:
         run_folder.require_new()
     made_folders = run_folder.missing_folders()

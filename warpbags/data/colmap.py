@@ -21,6 +21,7 @@ from warpbags.errors import WarpbagsError
 if TYPE_CHECKING:
     import pycolmap
 
+
 def _pycolmap():
     """pycolmap, imported on first use. Its import installs glog's failure handler for SIGTERM too, which prints a
     native stack dump when `kill` or a job scheduler stops the process; SIGTERM gets back the handler it had before

@@ -207,7 +207,8 @@ def _frame_number(path: Path, name: str, fields: dict, key: str, default: object
         WarpbagsError: the value is not a finite number (a string of no number, null, a list, true) or lies outside
             the bounds; named with the file, the frame and the field.
     """
-    value = fields.get(key, default)
+    value = fields.get(key)
+    value = default if value is None else value  # null as absent, as w and h are
     number = math.nan
     if not isinstance(value, bool):  # JSON's true is no number, though float() takes it
         try:

@@ -27,7 +27,6 @@ DEFAULT_SPLIT_SIZES = (4, 6, 9)
 sparse-view protocol of GaussianObject."""
 
 
-
 @dataclass(frozen=True)
 class SceneNormalization:
     """The similarity `x_normalized = scale * (x_source - center)` from source (e.g. COLMAP) to normalized world.

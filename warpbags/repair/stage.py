@@ -19,7 +19,6 @@ Files (under the run folder's repair/):
 
 from __future__ import annotations
 
-import functools
 import math
 import pickle
 from pathlib import Path
@@ -113,8 +112,8 @@ class RepairStage:
             self.repairer = make_repairer(self.repair, config.seed, device)
             pairs = _load_saved(pairs_path, RepairPairs.load)
             # saved on whichever device the run used before
-            self.repairer.load_state_dict(_load_saved(repairer_path, functools.partial(
-                torch.load, map_location="cpu", weights_only=False)))
+            _load_saved(repairer_path, lambda path: self.repairer.load_state_dict(
+                torch.load(path, map_location="cpu", weights_only=False)))
             log(f"repair: loaded {len(pairs.kinds)} pairs and the fitted repairer from {self.folder}")
         else:
             self.repairer = make_repairer(self.repair, config.seed, device)

@@ -21,7 +21,7 @@ from warpbags.configs.train import BACKGROUNDS
 from warpbags.errors import WarpbagsError
 from warpbags.gaussians import opacity_weighted_center, read_ply, sh_degree_of
 from warpbags.pose_history import HISTORY_FILE, read_pose_history
-from warpbags.run_folder import LOG_FILE, RunFolder
+from warpbags.run_folder import RunFolder
 
 THUMBNAIL_SIDE = 160  # px: the longer side of the pictures shown on the frustums (they travel to every browser)
 
@@ -132,9 +132,10 @@ def _pose_frames(path: Path, info: dict, start: np.ndarray | None, final: np.nda
     """Iterations [T] and poses [T,C,4,4]: the start at 0, the recorded history, the final poses at the end (after
     the run's coarse and repair iterations; in a run's coarse/, after its coarse iterations)."""
     config = RunFolder(path).saved_config(info)
-    # coarse/, the coarse stage's result written when a repair stage follows, holds the run's config but no log:
-    # every trained run folder has one (`Trainer.train` opens it)
-    last = config.total_iters if (path / LOG_FILE).is_file() else config.iters
+    # coarse/, the coarse stage's result written inside a run folder when a repair stage follows, holds the run's
+    # config: its poses are those after the coarse iterations
+    coarse = path.name == "coarse" and (path.parent / "config.json").is_file()
+    last = config.iters if coarse else config.total_iters
     iterations, frames = [], []
     if start is not None:
         iterations, frames = [0], [start]
