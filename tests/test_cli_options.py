@@ -95,15 +95,20 @@ def test_each_table_option_is_in_the_help_with_its_field(option):
     assert f"sets {option.path}" in line and description(option)[1:40] in line, line
 
 
+# Options that are refused alone (`TrainConfig.validate`): what each is given beside it here.
+COMPANIONS = {"blur_sigma_px": ["--blur-until", "10"]}  # a blur shrinks to none over blur_until iterations
+
+
 @pytest.mark.parametrize("option", TRAIN_OPTIONS, ids=lambda option: option.flag)
 def test_each_table_option_sets_its_field_as_set_does(parsed, option):
     value = sample(option.path) if option.sets is None else option.sets
     # a preset the option changes (--no-repair changes paper's, not quick's)
     preset = next(name for name, make in PRESETS.items() if field_value(make(), option.path) != value)
     arguments = [option.flag] + ([] if option.sets is not None else [command_line(value)])
-    config = parsed("--preset", preset, *arguments)
+    companions = COMPANIONS.get(option.path, [])
+    config = parsed("--preset", preset, *arguments, *companions)
     assert field_value(config, option.path) == value
-    assert parsed("--preset", preset, "--set", f"{option.path}={json.dumps(value)}") == config
+    assert parsed("--preset", preset, "--set", f"{option.path}={json.dumps(value)}", *companions) == config
 
 
 @pytest.mark.parametrize("option", TRAIN_OPTIONS, ids=lambda option: option.flag)
