@@ -704,7 +704,9 @@ def _finite(value: Any) -> bool:
     return all(_finite(item) for item in value) if isinstance(value, tuple) else True
 
 
-def _is_number(value: Any) -> bool:
+def is_number(value: Any) -> bool:
+    """Whether `value`, read from JSON, is a number: an int or a float, not a bool (JSON's true is no number, though
+    Python's bool is an int). Config fields, log records and eval.json are read through it."""
     return isinstance(value, (int, float)) and not isinstance(value, bool)
 
 
@@ -714,7 +716,7 @@ _KINDS = {int: "an integer", float: "a number", bool: "true or false", str: "a s
 def _is_kind(value: Any, kind: Any) -> bool:
     """Whether `value` passes for a field of the plain type `kind` (ints for floats; a bool is no int)."""
     if kind is float:
-        return _is_number(value)
+        return is_number(value)
     if kind is int:
         return isinstance(value, int) and not isinstance(value, bool)
     return isinstance(value, kind) if isinstance(kind, type) else True
@@ -728,7 +730,7 @@ def _typed(value: Any, default: Any, name: str, declared: Any) -> Any:
     tells nothing."""
     if (default == () or _any_length_tuple(declared)) and isinstance(value, (list, tuple)):
         value = tuple(tuple(item) if isinstance(item, list) else item for item in value)
-        if typing.get_args(declared)[:1] == (float,) and not all(_is_number(item) for item in value):
+        if typing.get_args(declared)[:1] == (float,) and not all(is_number(item) for item in value):
             raise WarpbagsError(f"{name} must be a list of numbers, got {list(value)}")
         return value
     if default is None or value is None:
@@ -745,14 +747,14 @@ def _typed(value: Any, default: Any, name: str, declared: Any) -> Any:
     if isinstance(default, bool) or not isinstance(default, (int, float, tuple)):
         ok = isinstance(value, type(default))
     elif isinstance(default, float):
-        ok = _is_number(value)
+        ok = is_number(value)
     elif isinstance(default, int):
         ok = isinstance(value, int) and not isinstance(value, bool)
     else:
         ok = isinstance(value, (list, tuple)) and len(value) == len(default)
         value = tuple(value) if ok else value
-        if ok and all(map(_is_number, default)):  # a pair of numbers takes numbers only
-            ok = all(map(_is_number, value))
+        if ok and all(map(is_number, default)):  # a pair of numbers takes numbers only
+            ok = all(map(is_number, value))
     if not ok:
         raise WarpbagsError(f"{name} must be like {default!r}, got {value!r}")
     return value

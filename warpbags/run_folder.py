@@ -36,7 +36,7 @@ import numpy as np
 import torch
 
 from warpbags.cameras import improper_viewmats
-from warpbags.configs.train import TrainConfig
+from warpbags.configs.train import TrainConfig, is_number
 from warpbags.data.scene import Scene, SceneNormalization
 from warpbags.errors import WarpbagsError, one_line
 from warpbags.files import atomic_output, is_temporary, temporary_name
@@ -217,7 +217,7 @@ class RunFolder:
                 raise WarpbagsError(f"{path}:{number}: not a log record ({error.msg}; cut short by a crash?)") from None
             if not isinstance(record, dict) or not _is_count(record.get("iter")):
                 raise WarpbagsError(f"{path}:{number}: not a log record (no iteration count \"iter\")")
-            missing = [name for name in LOG_NUMBERS if not _is_number(record.get(name))]
+            missing = [name for name in LOG_NUMBERS if not is_number(record.get(name))]
             if missing:
                 raise WarpbagsError(f"{path}:{number}: not a log record (no number \"{missing[0]}\")")
             records.append(record)
@@ -385,11 +385,7 @@ def checked_cameras(path: Path, array: np.ndarray, intrinsics: bool = False) -> 
 
 
 def _is_count(value) -> bool:
-    return isinstance(value, int) and not isinstance(value, bool) and value >= 0
-
-
-def _is_number(value) -> bool:
-    return isinstance(value, (int, float)) and not isinstance(value, bool)
+    return is_number(value) and isinstance(value, int) and value >= 0
 
 
 def _listed(names: list[str]) -> str:

@@ -21,7 +21,7 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Callable, Protocol
 
-from warpbags.configs.train import DEFAULT_PRESET, MAX_RENDER_THREADS, TrainConfig, load_preset
+from warpbags.configs.train import DEFAULT_PRESET, MAX_RENDER_THREADS, TrainConfig, is_number, load_preset
 from warpbags.data import Scene, open_scene
 from warpbags.devices import checked_device_name
 from warpbags.errors import WarpbagsError
@@ -386,7 +386,7 @@ def _row(run_dir: Path, run: SweepRun) -> dict:
 
     def number(*keys: str) -> float | None:
         value = _lookup(report, path, *keys)
-        if value is not None and (isinstance(value, bool) or not isinstance(value, (int, float))):
+        if value is not None and not is_number(value):
             raise WarpbagsError(f"{path}: {'.'.join(keys)} is {value!r}, not a number; {_EVALUATE_AGAIN}")
         return value
 
