@@ -91,8 +91,8 @@ class RunFolder:
         """
         path = self.path / "config.json"
         try:
-            info = json.loads(path.read_text())
-        except (OSError, UnicodeDecodeError, json.JSONDecodeError) as error:
+            info = json.loads(_text(path))
+        except json.JSONDecodeError as error:
             raise WarpbagsError(f"{path}: unreadable ({error})") from None
         if not isinstance(info, dict):
             raise WarpbagsError(f"{path}: unreadable (not a JSON object)")
@@ -203,12 +203,8 @@ class RunFolder:
         path = self.path / LOG_FILE
         if not path.is_file():
             return []
-        try:
-            lines = path.read_text().splitlines()
-        except (OSError, UnicodeDecodeError) as error:
-            raise WarpbagsError(f"{path}: unreadable ({error})") from None
         records = []
-        for number, line in enumerate(lines, start=1):
+        for number, line in enumerate(_text(path).splitlines(), start=1):
             if not line.strip():
                 continue
             try:
@@ -238,12 +234,8 @@ class RunFolder:
         """
         path = self.path / LOG_FILE
         if path.exists():
-            try:
-                lines = path.read_text().splitlines()
-            except (OSError, UnicodeDecodeError) as error:
-                raise WarpbagsError(f"{path}: unreadable ({error})") from None
             kept = []
-            for line in lines:
+            for line in _text(path).splitlines():
                 try:
                     if json.loads(line)["iter"] <= iteration:
                         kept.append(line)
@@ -382,6 +374,18 @@ def checked_cameras(path: Path, array: np.ndarray, intrinsics: bool = False) -> 
         raise WarpbagsError(f"{path}: camera {camera} is not a world-to-camera pose (its 3x3 part has determinant "
                             f"{np.linalg.det(array[camera, :3, :3]):.3g}, last row {array[camera, 3].tolist()})")
     return array
+
+
+def _text(path: Path) -> str:
+    """The text of the run file `path`.
+
+    Raises:
+        WarpbagsError: it cannot be read, or is not text, named.
+    """
+    try:
+        return path.read_text()
+    except (OSError, UnicodeDecodeError) as error:
+        raise WarpbagsError(f"{path}: unreadable ({error})") from None
 
 
 def _is_count(value) -> bool:
