@@ -436,11 +436,10 @@ class Trainer:
         Checkpoints every `checkpoint_every` iterations, at the end of the coarse stage and at the end. With a
         repair stage, the coarse result is also written to coarse/ as a run folder of its own. Ctrl-C (SIGINT), or
         SIGTERM where no other handler takes it (`STOP_SIGNALS`), finishes the current iteration, saves a checkpoint
-        and raises KeyboardInterrupt.
-        Divergence raises WarpbagsError. `callback(record)` is called after each iteration. The round searched for view hypotheses
-        (`camera.hypotheses_round`) trains as a whole: a `stop_at` inside it stops at its start, Ctrl-C goes back to
-        its start, only its end is checkpointed, and its iterations are logged (and passed to `callback`) after the
-        search, the trainer then at the round's end. A new run of `start_or_resume` that fails (any exception,
+        and raises KeyboardInterrupt. Divergence raises WarpbagsError. `callback(record)` is called after each
+        iteration. The round searched for view hypotheses (`camera.hypotheses_round`) trains as a whole: a `stop_at`
+        inside it stops at its start, Ctrl-C goes back to its start, only its end is checkpointed, and its iterations
+        are logged (and passed to `callback`) after the search, the trainer then at the round's end. A new run of `start_or_resume` that fails (any exception,
         KeyboardInterrupt included) before its first checkpoint is written removes the files it wrote, and the
         folders made for it: nothing half-written stays.
         """
