@@ -812,10 +812,12 @@ def test_outputs_of_the_wrong_kind_are_one_line_before_anything_is_written(finis
     assert sorted(path.name for path in run.iterdir()) == before
 
 
-def test_a_scene_without_a_test_split_is_one_error_and_no_warning(finished_run, tmp_path, caplog):
-    """Without sparse_test.txt every 8th view not trained on is held out: where all of those are training views
-    eval says so in one line, without the loader's warning about the missing file before it; where some remain,
-    the warning stays and the views are evaluated."""
+def test_a_capture_of_few_views_is_evaluated_on_every_8th_view_it_did_not_train_on(finished_run, tmp_path, caplog):
+    """Without sparse_test.txt every 8th view that no 4-, 6- or 9-view split takes is held out, the same views for
+    every view count. A capture of few views may have none left so: its runs are then evaluated on every 8th view
+    they did not train on, and one that trained on all of those is one line, without the loader's warning about
+    the missing file before it."""
+    from warpbags.data import load_scene
     from warpbags.evaluation import held_out_views
 
     scene = tmp_path / "scene"
@@ -823,14 +825,37 @@ def test_a_scene_without_a_test_split_is_one_error_and_no_warning(finished_run, 
     (scene / "sparse_test.txt").unlink()
     for size, views in ((4, "0 4 12 14"), (6, "0 2 4 6 12 14"), (9, "0 2 3 4 5 6 12 13 14")):  # no view 8
         (scene / f"sparse_{size}.txt").write_text(views.replace(" ", "\n") + "\n")
-    run, _ = _run_on_scene(_copy_of(finished_run, tmp_path / "source"), tmp_path, scene)
+    names = load_scene(scene).image_names
+    run, _ = _run_on_scene(_copy_of(finished_run, tmp_path / "source"), tmp_path, scene,
+                           image_names=[names[i] for i in (0, 4, 12, 14)])
     with caplog.at_level("WARNING", logger="warpbags.data"):
-        assert len(held_out_views(load_run(run)).image_names) == 1
+        assert held_out_views(load_run(run)).image_names == [names[8]]
     assert "sparse_test.txt missing, test views [8]" in caplog.text
+
+    (scene / "sparse_2.txt").write_text("0\n8\n")  # view 8 in a split: the scene's rule holds out no view
+    assert held_out_views(load_run(run)).image_names == [names[8]]  # the run did not train on it
+    info = json.loads((run / "config.json").read_text())
+    (run / "config.json").write_text(json.dumps({**info, "image_names": [names[i] for i in (0, 4, 8, 12)]}))
     caplog.clear()
-    (scene / "sparse_2.txt").write_text("0\n8\n")  # view 8, the one every-8th view left, becomes a training view
     with caplog.at_level("WARNING", logger="warpbags.data"):
         result = runner.invoke(app, ["eval", str(run), "--refine-iters", "0"])
     assert result.exit_code == 2 and len(_lines(result)) == 1, result.output
     assert "has no test split" in result.output and "every 8th view" in " ".join(result.output.split())
     assert "sparse_test.txt missing" not in caplog.text and not (run / "eval.json").exists()
+
+
+def test_a_test_split_that_holds_a_training_view_of_the_run_is_one_error(finished_run, tmp_path):
+    """A sparse_test.txt written after training that names one of the run's training views would score the run on
+    an image it was fitted to: eval refuses, naming the view, before it writes anything."""
+    from warpbags.data import load_scene
+
+    scene = tmp_path / "scene"
+    shutil.copytree(json.loads((finished_run / "config.json").read_text())["scene_root"], scene)
+    names = load_scene(scene).image_names
+    test = [int(line) for line in (scene / "sparse_test.txt").read_text().split()]
+    run, _ = _run_on_scene(_copy_of(finished_run, tmp_path / "source"), tmp_path, scene,
+                           image_names=[names[test[0]]] + [name for name in names if name != names[test[0]]][:3])
+    result = runner.invoke(app, ["eval", str(run), "--refine-iters", "0"])
+    assert result.exit_code == 2 and len(_lines(result)) == 1, result.output
+    assert "holds views the run trained on" in result.output and names[test[0]] in result.output
+    assert not (run / "eval.json").exists()

@@ -107,3 +107,25 @@ def test_unusable_eval_json_of_a_finished_run_is_one_line_before_anything_trains
     assert f"{out / 'bags-4v-rot5-seed0' / 'eval.json'}: {named}" in lines[0], lines[0]
     assert lines[0].endswith("remove it and run the sweep again to evaluate the run anew"), lines[0]
     assert sorted(path.name for path in out.iterdir()) == ["bags-4v-rot5-seed0"]
+
+
+def test_a_scene_whose_runs_would_have_no_test_view_is_one_line_before_anything_trains(scene, tmp_path, monkeypatch):
+    """Evaluating a run needs held-out views: a capture whose every 8th view is one of the sweep's training views
+    (no sparse_test.txt) trained the first run to the end and then stopped at its evaluation. It is one line before
+    any run trains."""
+    import shutil
+
+    def train(*args, **kwargs):
+        raise AssertionError("a run trained")
+
+    monkeypatch.setattr("warpbags.sweep.start_or_resume", train)
+    capture = tmp_path / "capture"
+    shutil.copytree(scene, capture)
+    (capture / "sparse_test.txt").unlink()
+    (capture / "sparse_4.txt").write_text("0\n8\n3\n12\n")  # 16 views: every 8th is 0 and 8
+    out = tmp_path / "sweep"
+    result = runner.invoke(app, ["sweep", str(capture), "--rot-noises", "5", "--views", "4", "--out", str(out)])
+    lines = [line for line in result.output.splitlines() if line.strip()]
+    assert result.exit_code == 2 and len(lines) == 1, result.output
+    assert "has no test split" in lines[0] and "baseline-4v-rot5-seed0" in lines[0], lines[0]
+    assert not out.exists()

@@ -23,6 +23,7 @@ from typing import Callable, Protocol
 
 from warpbags.configs.train import DEFAULT_PRESET, MAX_RENDER_THREADS, TrainConfig, is_number, load_preset
 from warpbags.data import Scene, open_scene
+from warpbags.data.splits import test_views
 from warpbags.devices import checked_device_name
 from warpbags.errors import WarpbagsError
 from warpbags.evaluation import evaluate_run
@@ -85,7 +86,7 @@ def run_sweep(spec: SweepSpec, data_root: Path | None = None, log: Log = print,
     for run in sweep_runs(spec):  # every run's settings checked before the first one trains
         try:
             config = combination_config(spec, run)
-            scene.train_views(config.views)
+            test_views(scene, [scene.image_names[i] for i in scene.train_views(config.views)])  # eval's views
             _check_earlier_run(spec.out / run.name, config, scene)
             if _is_done(spec.out / run.name):  # an unusable eval.json is named now, not after the other runs train
                 _row(spec.out / run.name, run)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+from collections.abc import Collection
 from pathlib import Path
 
 from warpbags.data.scene import DEFAULT_SPLIT_SIZES, Scene, farthest_views
@@ -73,3 +74,26 @@ def read_splits(
         sources["test"] = f"every {TEST_EVERY}th"
         logger.warning("%s: sparse_test.txt missing, test views %s", scene.name, splits["test"])
     return splits, sources
+
+
+def test_views(scene: Scene, training_names: Collection[str]) -> list[int]:
+    """The views a run that trained on the views named `training_names` is evaluated on: the scene's test split,
+    or, where the every-8th rule left that empty (a capture of few views, whose 4-, 6- and 9-view splits take every
+    8th view), every 8th view the run did not train on.
+
+    Raises:
+        WarpbagsError: there are none, or the test split holds a view the run trained on (a sparse_test.txt
+            written after training).
+    """
+    test, source = scene.splits.get("test", []), scene.split_sources.get("test", "")
+    trained = [scene.image_names[i] for i in test if scene.image_names[i] in training_names]
+    if trained:
+        raise WarpbagsError(f"{scene.root}: its test split ({source}) holds views the run trained on: "
+                            f"{', '.join(trained)}")
+    if not test and source == f"every {TEST_EVERY}th":
+        test = [i for i in range(0, scene.num_views, TEST_EVERY) if scene.image_names[i] not in training_names]
+    if not test:
+        raise WarpbagsError(f"{scene.root} has no test split (sparse_test.txt)"
+                            + (f": without the file every {TEST_EVERY}th view is held out, and all of those are "
+                               "training views" if source == f"every {TEST_EVERY}th" else ""))
+    return list(test)
