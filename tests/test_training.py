@@ -135,6 +135,17 @@ def test_pose_optimizer_is_created_once_and_keeps_state(scene_dir, tmp_path, fix
     assert rates["translation"] == pytest.approx(trainer.config.lr.pose_translation_scale * rates["rotation"])
 
 
+
+def test_a_gauge_camera_stays_at_its_given_pose_from_the_start(scene_dir, tmp_path):
+    """`--fix-first-camera` holds camera 0 at its given pose: the mask-centroid start turned it with the others, and
+    the gauge then held it there, an error nothing could correct."""
+    trainer = make_trainer(scene_dir, tmp_path, rot_noise_deg=10.0, trans_noise=0.2, camera={"fix_first_camera": True})
+    given = trainer.scene.viewmats[0]  # the gauge is given exactly (`camera_setup.given_viewmats`)
+    assert torch.allclose(trainer.current_viewmats()[0], given, atol=1e-6)
+    trainer.train(stop_at=20)
+    assert torch.allclose(trainer.current_viewmats()[0], given, atol=1e-6)
+    assert not torch.allclose(trainer.current_viewmats()[1:], trainer.scene.viewmats[1:], atol=1e-3)
+
 def test_one_view_per_step_moves_only_the_rendered_camera(scene_dir, tmp_path):
     trainer = make_trainer(scene_dir, tmp_path, pose_opt_start=0, views_per_step=1, rot_noise_deg=5.0)
     everyone = set()

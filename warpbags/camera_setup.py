@@ -39,12 +39,15 @@ def starting_poses(viewmats: torch.Tensor, masks: torch.Tensor | None, Ks: torch
     """The poses the optimization starts from ([C,4,4]) and the object centre ([3], world) the cameras agree on.
 
     With masks, pose optimization and `camera.centroid_start`, each camera is first turned so that its mask-centroid
-    ray passes through the rays' meeting point. Otherwise the poses stay as given and the centre is where the
-    optical axes (nearly) meet.
+    ray passes through the rays' meeting point, except a gauge camera (`camera.fix_first_camera`), which keeps its
+    given pose. Otherwise the poses stay as given and the centre is where the optical axes (nearly) meet.
     """
     if masks is not None and config.camera.centroid_start and config.pose_opt:
         start, center = centroid_start(masks.cpu(), viewmats.cpu(), Ks.cpu())
-        return start.to(viewmats), center.to(viewmats)
+        start = start.to(viewmats)
+        if config.camera.fix_first_camera:  # the gauge is never corrected, so it must not be turned either
+            start[0] = viewmats[0]
+        return start, center.to(viewmats)
     if masks is None and config.camera.centroid_start and config.pose_opt:
         log("no masks: no mask-centroid start")
     axes = viewmats[:, 2, :3].double().cpu()  # camera z axes in world coordinates
