@@ -329,6 +329,20 @@ def test_turntable_frames_and_video(finished_run):
     assert len(list((finished_run / "turntable").glob("frame_*.png"))) == 3
 
 
+
+def test_a_turntable_of_an_odd_size_keeps_every_pixel_in_its_video(finished_run, tmp_path):
+    """mp4v holds even sizes only: OpenCV wrote a 63 x 47 run's video at 62 x 46, its last column and row gone. The
+    video is padded to 64 x 48 instead, the frames stay 63 x 47."""
+    import cv2
+
+    run = _copy_of(finished_run, tmp_path / "run")
+    info = json.loads((run / "config.json").read_text())
+    (run / "config.json").write_text(json.dumps({**info, "width": 63, "height": 47}))
+    assert runner.invoke(app, ["render", str(run), "--frames", "2"]).exit_code == 0
+    assert cv2.imread(str(run / "turntable" / "frame_000.png")).shape[:2] == (47, 63)
+    capture = cv2.VideoCapture(str(run / "turntable.mp4"))
+    assert (capture.get(cv2.CAP_PROP_FRAME_WIDTH), capture.get(cv2.CAP_PROP_FRAME_HEIGHT)) == (64, 48)
+
 def test_a_damaged_turntable_frame_is_left_out_of_the_report_by_name(finished_run, tmp_path):
     import cv2
 

@@ -214,12 +214,15 @@ def render_turntable(path: str | Path, frames: int = 36, video: bool = True) -> 
         if not cv2.imwrite(str(frame), cv2.cvtColor(image, cv2.COLOR_RGB2BGR)):
             raise WarpbagsError(f"could not write {frame}")
     if video:
+        # mp4v holds even sizes only (OpenCV would drop an odd size's last row or column): repeat it instead
+        pad = ((0, height % 2), (0, width % 2), (0, 0))
         with atomic_output(run.path / "turntable.mp4") as temporary:
-            writer = cv2.VideoWriter(str(temporary), cv2.VideoWriter_fourcc(*"mp4v"), 12, (width, height))
+            writer = cv2.VideoWriter(str(temporary), cv2.VideoWriter_fourcc(*"mp4v"), 12,
+                                     (width + width % 2, height + height % 2))
             if not writer.isOpened():
                 raise WarpbagsError(f"OpenCV cannot write an mp4v video to {temporary}: pass --no-video for the "
                                     "frames alone")
             for image in pixels:
-                writer.write(cv2.cvtColor(image, cv2.COLOR_RGB2BGR))
+                writer.write(cv2.cvtColor(np.pad(image, pad, mode="edge"), cv2.COLOR_RGB2BGR))
             writer.release()
     return out
