@@ -27,7 +27,8 @@ def export(
 ) -> None:
     """Write the Gaussians (standard 3DGS PLY) and final poses in the input scene's frame: poses_final.npy holds
     [C,4,4] world-to-camera matrices with OpenCV axes, whatever the input layout, and sparse/0/ the training cameras
-    as a COLMAP model that COLMAP-reading trainers (3DGS, gsplat, nerfstudio) take as it is."""
+    as a COLMAP model that COLMAP-reading trainers (gsplat, nerfstudio; 3DGS only for undistorted input) take as it
+    is."""
     folder, image_folder = export_run(run_dir or latest_run(), out, colmap=colmap)
     written = ["gaussians.ply", "poses_final.npy"] + (["sparse/0/"] if colmap else [])
     stdout.print(f"wrote {', '.join(str(folder / name) for name in written)} (input scene frame)"
