@@ -162,7 +162,8 @@ def plot_sweep(rows: list[dict], out_dir: Path) -> list[Path]:
         pose_axis.plot(iters, [r["rot_err_deg"] for r in records], style, label=label, linewidth=1)
     loss_axis.set(xlabel="iteration", ylabel="total loss", yscale="log", title="loss (Fig. 6)")
     pose_axis.set(xlabel="iteration", ylabel="rotation error (deg)", title="pose error (Fig. 7)")
-    pose_axis.legend(fontsize=7)
+    if pose_axis.lines:  # runs without a log (their rows read from eval.json alone) draw no curve to name
+        pose_axis.legend(fontsize=7)
     figure.tight_layout()
     figure.savefig(out_dir / "curves.png", dpi=110)
     plt.close(figure)
