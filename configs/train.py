@@ -231,8 +231,9 @@ class RepairConfig:
         refresh_every: the pseudo cameras are redrawn and their repaired renders rebuilt this often.
         pseudo_ratio_start, pseudo_ratio_end, pseudo_until: loss = (1 - r) real + r pseudo, with r going
             linearly from start to end over the first `pseudo_until` fraction of the repair iterations and 0
-            after (GaussianObject: 1.0 -> 0.5 over 2800 of 4000). The real-view term keeps its coarse form and
-            drives the pose deltas; pseudo views never move the poses.
+            after (GaussianObject: 1.0 -> 0.5 over 2800 of 4000). The real-view term is the coarse loss as the
+            coarse stage ended it (its silhouette terms where they were on; the depth term off) and drives the pose
+            deltas; pseudo views never move the poses.
         weight_l1, weight_l2, weight_lpips: the pseudo-view loss mix (GaussianObject: 0.5 / 0.5 / 2.0; the LPIPS
             term only where the `lpips` package and its weights are available). Each pseudo view's loss is also
             scaled by min(1, 2 d / d_max), d its distance to the nearest training camera (GaussianObject).

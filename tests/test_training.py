@@ -890,6 +890,25 @@ def test_the_pose_lr_warms_up_at_the_start_of_every_rounds_pose_window():
         load_preset("quick", lr={"pose_warmup": -1})
 
 
+
+def test_the_repair_stage_keeps_the_coarse_stages_real_view_loss_and_warms_its_pose_lr_up():
+    """The repair stage's poses keep moving from the real views: it dropped the silhouette terms that hold them (a
+    tiny run's cameras drifted 2.9 -> 5.5 deg in 20 repair iterations) and took full pose-lr steps from Adam's
+    reset moments. Now its real-view loss is the coarse stage's last (silhouettes as they ended, depth off) and the
+    pose lr ramps up over its first `lr.pose_warmup` steps, as at every round's window."""
+    repair = {"iters": 10}
+    config = load_preset("quick", iters=80, rounds=2, lr={"pose_warmup": 4}, repair=repair)
+    schedule = Schedule(config)
+    plain = Schedule(load_preset("quick", iters=80, rounds=2, lr={"pose_warmup": 0}, repair=repair))
+    last_coarse, first_repair = schedule.at(79), schedule.at(80)
+    assert first_repair.silhouette and last_coarse.silhouette and not first_repair.depth
+    ramp = [schedule.at(80 + k).pose_lr / plain.at(80 + k).pose_lr for k in range(6)]
+    assert ramp == pytest.approx([0.25, 0.5, 0.75, 1.0, 1.0, 1.0])
+    # silhouette terms switched off within each round stay off in the repair stage, on where they lasted the round
+    for until, expected in ((10, False), (40, True)):
+        assert Schedule(load_preset("quick", iters=80, rounds=2, silhouette_until=until, repair=repair)
+                        ).at(85).silhouette is expected
+
 def test_lbfgs_rounds_solve_the_poses_every_few_iterations_instead_of_adam_steps():
     schedule = Schedule(load_preset("quick", iters=40, rounds=2, camera={"lbfgs_from_round": 1, "lbfgs_every": 4}))
     steps = [schedule.at(i) for i in range(40)]

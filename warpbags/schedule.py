@@ -155,14 +155,18 @@ class Schedule:
         gaussian_fraction = 1.0 if in_repair else round_iteration / max(this_round_length - 1, 1)
         pose_start, pose_end = self.pose_window(iteration)
         pose_fraction = 1.0 if in_repair else (iteration - pose_start) / max(pose_end - pose_start - 1, 1)
-        # a linear ramp over the first `lr.pose_warmup` steps of the window (none in the repair stage)
-        warmup_steps = config.lr.pose_warmup
-        warmup = 1.0 if in_repair or warmup_steps <= 0 else min(1.0, max(iteration - pose_start + 1, 1) / warmup_steps)
+        # a linear ramp over the first `lr.pose_warmup` steps of each window and of the repair stage: Adam's moments
+        # start at zero there (each round rebases the cameras; the last round's average resets them)
+        warmup_steps, window_start = config.lr.pose_warmup, config.iters if in_repair else pose_start
+        warmup = 1.0 if warmup_steps <= 0 else min(1.0, max(iteration - window_start + 1, 1) / warmup_steps)
+        # the repair stage's real-view loss is the coarse stage's as it ended: the silhouette terms that hold the
+        # still-moving poses stay where they were on; the depth term, which ends early in each round, stays off
+        silhouette_iteration = self.round_iteration(config.iters - 1) if in_repair else round_iteration
         poses_move, solves = self.poses_move(iteration), self.solves_poses(iteration)
         return StepSettings(
             round_iteration=round_iteration,
             sh_degree=self.sh_degree(iteration), blur_sigma=self.blur_sigma(iteration),
-            silhouette=(config.silhouette_until <= 0 or round_iteration < config.silhouette_until) and not in_repair,
+            silhouette=config.silhouette_until <= 0 or silhouette_iteration < config.silhouette_until,
             depth=not in_repair and round_iteration < config.depth_until and config.lambda_depth > 0,
             pose_active=poses_move and not solves,
             pose_solve=poses_move and solves and (iteration + 1) % config.camera.lbfgs_every == 0,
