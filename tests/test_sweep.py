@@ -129,3 +129,15 @@ def test_a_scene_whose_runs_would_have_no_test_view_is_one_line_before_anything_
     assert result.exit_code == 2 and len(lines) == 1, result.output
     assert "has no test split" in lines[0] and "baseline-4v-rot5-seed0" in lines[0], lines[0]
     assert not out.exists()
+
+
+@pytest.mark.skipif(__import__("torch").cuda.is_available(), reason="needs a machine without CUDA")
+def test_device_cuda_without_cuda_is_one_line_before_the_sweep_folder_is_made(scene, tmp_path):
+    """The local executor's runs use this machine: --device cuda here failed only in the first run, after its
+    progress line and with the sweep's folder made."""
+    out = tmp_path / "sweep"
+    result = runner.invoke(app, ["sweep", str(scene), "--rot-noises", "5", "--views", "4", "--device", "cuda",
+                                 "--out", str(out)])
+    lines = [line for line in result.output.splitlines() if line.strip()]
+    assert result.exit_code == 2 and len(lines) == 1 and "no CUDA device" in lines[0], result.output
+    assert not out.exists()

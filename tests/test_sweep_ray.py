@@ -90,7 +90,7 @@ def test_sweep_executor_bad_values_one_line(scene, tmp_path, options, named):
                                  "--out", str(tmp_path / "sweep"), *options])
     assert result.exit_code == 2, result.output
     assert named in result.output and result.output.strip().count("\n") == 0, result.output
-    assert not ray.is_initialized()
+    assert not ray.is_initialized() and not (tmp_path / "sweep").exists()  # refused before the folder is made
 
 
 def test_sweep_on_ray_without_ray_names_the_extra(scene, tmp_path, monkeypatch):
@@ -98,4 +98,5 @@ def test_sweep_on_ray_without_ray_names_the_extra(scene, tmp_path, monkeypatch):
     result = runner.invoke(app, ["sweep", str(scene), "--rot-noises", "5", "--views", "4",
                                  "--out", str(tmp_path / "sweep"), "--executor", "ray"])
     assert result.exit_code == 2, result.output
-    assert "pip install warpbags[ray]" in result.output and result.output.strip().count("\n") == 0, result.output
+    assert 'pip install -e ".[ray]"' in result.output and result.output.strip().count("\n") == 0, result.output
+    assert not (tmp_path / "sweep").exists()  # before the scene is read and the sweep's folder made

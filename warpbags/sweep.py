@@ -24,7 +24,7 @@ from typing import Callable, Protocol
 from warpbags.configs.train import DEFAULT_PRESET, MAX_RENDER_THREADS, TrainConfig, is_number, load_preset
 from warpbags.data import Scene, open_scene
 from warpbags.data.splits import test_views
-from warpbags.devices import checked_device_name
+from warpbags.devices import checked_device_name, torch_device
 from warpbags.errors import WarpbagsError
 from warpbags.evaluation import evaluate_run
 from warpbags.files import atomic_output, finite_json, writable_folder
@@ -35,7 +35,7 @@ from warpbags.trainer import start_or_resume, training_scene
 
 METHODS = {"baseline": False, "bags": True}  # method -> pose optimization
 EXECUTORS = ("local", "ray")
-RAY_INSTALL = "pip install warpbags[ray]"
+RAY_INSTALL = 'pip install -e ".[ray]" in the warpbags checkout (scripts/setup.sh installs it)'
 Log = Callable[[str], None]
 
 
@@ -72,6 +72,10 @@ class SweepRun:
 class Executor(Protocol):
     """Runs `run_combination` for each combination and returns their rows in the order given."""
 
+    def check(self, spec: SweepSpec) -> None:
+        """Raise WarpbagsError for what would stop the runs before they start (called before the sweep reads its
+        scene or writes anything)."""
+
     def map(self, spec: SweepSpec, runs: list[SweepRun], scene: Scene, log: Log) -> list[dict]: ...
 
 
@@ -79,8 +83,10 @@ def run_sweep(spec: SweepSpec, data_root: Path | None = None, log: Log = print,
               executor: Executor | None = None) -> list[dict]:
     """Train and evaluate every combination not done yet (with `executor`, default `LocalExecutor`); write
     sweep.json, sweep.csv and the plots; returns one row per run."""
-    checked_device_name(spec.device)  # whether CUDA is there is each run's machine's business
+    checked_device_name(spec.device)  # whether CUDA is there is the executor's business: its runs' machines
     _check_iters(spec)
+    executor = executor or LocalExecutor()
+    executor.check(spec)
     writable_folder(spec.out, "to hold the sweep")
     scene = open_scene(spec.scene, root=data_root)
     for run in sweep_runs(spec):  # every run's settings checked before the first one trains
@@ -93,7 +99,7 @@ def run_sweep(spec: SweepSpec, data_root: Path | None = None, log: Log = print,
         except WarpbagsError as error:
             raise WarpbagsError(f"sweep run {run.name}: {error}") from None
     spec.out.mkdir(parents=True, exist_ok=True)
-    rows = (executor or LocalExecutor()).map(spec, sweep_runs(spec), scene, log)
+    rows = executor.map(spec, sweep_runs(spec), scene, log)
     _write_tables(rows, spec.out)
     plot_sweep(rows, spec.out)
     return rows
@@ -175,6 +181,9 @@ def progress(spec: SweepSpec, run: SweepRun) -> str:
 class LocalExecutor:
     """The default: one run after another in this process, rendering on every core."""
 
+    def check(self, spec: SweepSpec) -> None:
+        torch_device(spec.device)  # --device cuda on a machine without CUDA
+
     def map(self, spec: SweepSpec, runs: list[SweepRun], scene: Scene, log: Log) -> list[dict]:
         rows = []
         for run in runs:
@@ -211,9 +220,15 @@ class RayExecutor:
         if self.gpus_per_run < 0:
             raise WarpbagsError(f"--gpus-per-run must be >= 0, got {self.gpus_per_run:g}")
 
-    def map(self, spec: SweepSpec, runs: list[SweepRun], scene: Scene, log: Log) -> list[dict]:
+    def check(self, spec: SweepSpec) -> None:
+        """Ray importable, a GPU declared for CUDA runs and a given cluster address answering."""
         if spec.device == "cuda" and self.gpus_per_run == 0:
             raise WarpbagsError("--device cuda with --gpus-per-run 0: a Ray task sees no GPU it did not declare")
+        _import_ray()
+        if self.address not in (None, "auto"):
+            _check_reachable(self.address)
+
+    def map(self, spec: SweepSpec, runs: list[SweepRun], scene: Scene, log: Log) -> list[dict]:
         ray = _import_ray()
         started_here = not ray.is_initialized()
         if started_here:
@@ -232,9 +247,7 @@ class RayExecutor:
             os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")
             options = {"address": "local", "include_dashboard": False}
         else:
-            if self.address != "auto":
-                _check_reachable(self.address)
-            options = {"address": self.address}
+            options = {"address": self.address}  # answering: `check`
         try:
             # Workers' own output (Warp's banner, module loads) stays in Ray's logs, as the local runs are quiet.
             ray.init(log_to_driver=False, **options)
