@@ -23,8 +23,11 @@ def _demo_commands(tmp_path: Path, *args: str) -> list[list[str]]:
     stub = stub_bin / "warpbags"
     stub.write_text(f'#!/usr/bin/env bash\nprintf "%s\\t" "$@" >> "{log}"\necho >> "{log}"\n')
     stub.chmod(0o755)
-    (scripts / "setup.sh").write_text(f'set -euo pipefail\nexport PATH="{stub_bin}:$PATH"\n')
-    subprocess.run(["bash", str(scripts / "demo.sh"), *args], check=True, cwd=tmp_path, timeout=60)
+    # as the real setup.sh, it moves to the checkout's root; the demo is called from a folder of the user's
+    (scripts / "setup.sh").write_text(f'set -euo pipefail\ncd "{tmp_path}"\nexport PATH="{stub_bin}:$PATH"\n')
+    caller = tmp_path / "caller"
+    caller.mkdir()
+    subprocess.run(["bash", str(scripts / "demo.sh"), *args], check=True, cwd=caller, timeout=60)
     return [line.rstrip("\t").split("\t") for line in log.read_text().splitlines()]
 
 
@@ -41,17 +44,22 @@ def _last_out(arguments: list[str]) -> str | None:
 
 @pytest.mark.parametrize("extra, out, device", [
     ((), None, "cpu"),
-    (("--out", "elsewhere", "--device", "cuda"), "elsewhere", "cuda"),
-    (("--out=elsewhere", "--device=cuda", "--iters", "10"), "elsewhere", "cuda"),
+    (("--out", "elsewhere", "--device", "cuda"), "caller/elsewhere", "cuda"),
+    (("--out=elsewhere", "--device=cuda", "--iters", "10"), "caller/elsewhere", "cuda"),
+    (("--out", "/absolute/run"), "/absolute/run", "cpu"),
 ])
 def test_demo_evaluates_the_folder_and_device_training_used(tmp_path, extra, out, device):
+    """Every extra argument reaches `warpbags train`; a relative --out is the caller's, not the checkout's (setup.sh
+    moves to the checkout: `bash ~/warpbags/scripts/demo.sh --out run` wrote ~/warpbags/run)."""
     train, evaluate = _demo_commands(tmp_path, *extra)
     assert train[:2] == ["train", "maryrose"]
-    assert train[len(train) - len(extra):] == list(extra)
+    assert train[len(train) - len(extra) - 2:len(train) - 2] == list(extra)
     trained_into = _last_out(train)
     if out is None:
         assert trained_into.startswith("runs/maryrose-4v-demo-")
-    else:
+    elif out.startswith("/"):
         assert trained_into == out
+    else:
+        assert trained_into == str(tmp_path / out)
     assert evaluate[:2] == ["eval", trained_into]
     assert evaluate[evaluate.index("--device") + 1] == device
