@@ -165,6 +165,7 @@ def test_agree_prints_and_writes_each_cameras_disagreement(two_runs, tmp_path):
 
 @pytest.mark.parametrize("arguments, message", [
     (["A"], "agreement needs at least two runs of one capture, got 1"),
+    (["A", "B", "A"], "is given twice: compare different runs of one capture"),
     (["A", "NOT_A_RUN"], "is not a training run (no config.json)"),
     (["A", "B", "--json", "FOLDER"], "is a folder: name the file to write"),
     (["A", "B", "--json", "INSIDE_A_FILE"], "is a file, not a folder to write --json into"),

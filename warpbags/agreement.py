@@ -104,8 +104,8 @@ def pose_agreement(runs: Sequence[TrainingRun], preferred: str = "procrustes") -
     """Compare the final poses of `runs`, every pair of them.
 
     Raises:
-        WarpbagsError: fewer than two runs; a run of another scene folder, other training views or another
-            training resolution than the first, or with poses that are not finite, named.
+        WarpbagsError: fewer than two runs; a run given twice; a run of another scene folder, other training views
+            or another training resolution than the first, or with poses that are not finite, named.
     """
     if len(runs) < 2:
         raise WarpbagsError(f"agreement needs at least two runs of one capture, got {len(runs)}")
@@ -113,7 +113,11 @@ def pose_agreement(runs: Sequence[TrainingRun], preferred: str = "procrustes") -
         require_info(run, "scene_root", "image_names", "width", "height")
         if not torch.isfinite(run.poses_final).all():
             raise WarpbagsError(f"{run.path / 'poses_final.npy'} holds poses that are not finite")
-    first = runs[0]
+    first, seen = runs[0], set()
+    for run in runs:  # a run compared with itself agrees to the bit and says nothing
+        if Path(run.path).resolve() in seen:
+            raise WarpbagsError(f"{run.path} is given twice: compare different runs of one capture")
+        seen.add(Path(run.path).resolve())
     for run in runs[1:]:
         if run.info["scene_root"] != first.info["scene_root"]:
             raise WarpbagsError(f"{run.path} is a run of {run.info['scene_root']}, {first.path} of "
