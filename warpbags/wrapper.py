@@ -9,7 +9,8 @@ hand-written backward kernels, as has the photometric loss (kernels/loss.py: L1 
 passes). Binning is not differentiable.
 
 Tensors stay where they are: CPU tensors run on Warp's "cpu" device, CUDA tensors on the matching CUDA device and
-the current torch stream, without host copies; every launch names its device and stream. Kernel arguments are
+the current torch stream, without host copies (binning reads back one number, the intersection count that
+sizes its buffers, as gsplat does); every launch names its device and stream. Kernel arguments are
 passed by parameter name. float32 and float64 are both supported (float64 for gradchecks).
 
 It stays one module, as gsplat's `_wrapper.py` does, because it is one thing, the torch-Warp bridge: one
