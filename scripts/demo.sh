@@ -13,8 +13,8 @@ device=cpu
 args=("$@")
 for ((i = 0; i < ${#args[@]}; i++)); do
     case "${args[i]}" in
-        --out) out="$(from_caller "${args[i + 1]:-$out}")" ;;
-        --out=*) out="$(from_caller "${args[i]#--out=}")" ;;
+        --out) [[ -n "${args[i + 1]:-}" ]] && out="$(from_caller "${args[i + 1]}")" ;;
+        --out=?*) out="$(from_caller "${args[i]#--out=}")" ;;
         --device) device="${args[i + 1]:-$device}" ;;
         --device=*) device="${args[i]#--device=}" ;;
     esac

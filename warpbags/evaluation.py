@@ -32,7 +32,7 @@ from warpbags.alignment import align_viewmats, alignment_for, centre_floor_error
 from warpbags.camera_optimizer import CameraOptimizer, CameraOptimizerSettings
 from warpbags.configs.train import ALIGNMENTS
 from warpbags.data import ORBIT_RADIUS, Scene, load_scene
-from warpbags.data.splits import test_views
+from warpbags.data.splits import evaluation_views
 from warpbags.devices import torch_device
 from warpbags.errors import WarpbagsError, one_line
 from warpbags.files import atomic_output, finite_json, writable_file, writable_folder
@@ -74,7 +74,7 @@ def held_out_views(run: TrainingRun) -> Scene:
     missing test split is this function's error alone.
 
     Raises:
-        WarpbagsError: the scene folder is gone, has no test split (`warpbags.data.splits.test_views`), or no
+        WarpbagsError: the scene folder is gone, has no test split (`warpbags.data.splits.evaluation_views`), or no
             longer matches the run's frame.
     """
     require_info(run, "scene_root", "resolution", "normalization", "image_names")
@@ -85,7 +85,7 @@ def held_out_views(run: TrainingRun) -> Scene:
         if not np.allclose(scene.normalization.matrix(), stored.matrix(), atol=1e-5):
             raise WarpbagsError(f"{info['scene_root']} no longer matches the run's normalization: was the scene "
                                 "changed?")
-        test = test_views(scene, info["image_names"])
+        test = evaluation_views(scene, info["image_names"])
     return scene.subset(test).downscaled(config.max_image_size)
 
 

@@ -159,8 +159,9 @@ class Schedule:
         # start at zero there (each round rebases the cameras; the last round's average resets them)
         warmup_steps, window_start = config.lr.pose_warmup, config.iters if in_repair else pose_start
         warmup = 1.0 if warmup_steps <= 0 else min(1.0, max(iteration - window_start + 1, 1) / warmup_steps)
-        # the repair stage's real-view loss is the coarse stage's as it ended: the silhouette terms that hold the
-        # still-moving poses stay where they were on; the depth term, which ends early in each round, stays off
+        # the repair stage's real-view loss is the coarse stage's as it ended (for the fixed-pose baseline too, so
+        # the two stay comparable): the silhouette terms, which hold the poses that keep moving, stay where they were
+        # on; the depth term, which ends early in each round, stays off
         silhouette_iteration = self.round_iteration(config.iters - 1) if in_repair else round_iteration
         poses_move, solves = self.poses_move(iteration), self.solves_poses(iteration)
         return StepSettings(

@@ -23,7 +23,7 @@ from typing import Callable, Protocol
 
 from warpbags.configs.train import DEFAULT_PRESET, MAX_RENDER_THREADS, TrainConfig, is_number, load_preset
 from warpbags.data import Scene, open_scene
-from warpbags.data.splits import test_views
+from warpbags.data.splits import evaluation_views
 from warpbags.devices import checked_device_name, torch_device
 from warpbags.errors import WarpbagsError
 from warpbags.evaluation import evaluate_run
@@ -70,7 +70,8 @@ class SweepRun:
 
 
 class Executor(Protocol):
-    """Runs `run_combination` for each combination and returns their rows in the order given."""
+    """Runs `run_combination` for each combination and returns their rows in the order given; both methods are
+    required (`run_sweep` calls `check` first)."""
 
     def check(self, spec: SweepSpec) -> None:
         """Raise WarpbagsError for what would stop the runs before they start (called before the sweep reads its
@@ -92,7 +93,7 @@ def run_sweep(spec: SweepSpec, data_root: Path | None = None, log: Log = print,
     for run in sweep_runs(spec):  # every run's settings checked before the first one trains
         try:
             config = combination_config(spec, run)
-            test_views(scene, [scene.image_names[i] for i in scene.train_views(config.views)])  # eval's views
+            evaluation_views(scene, [scene.image_names[i] for i in scene.train_views(config.views)])  # eval's views
             _check_earlier_run(spec.out / run.name, config, scene)
             if _is_done(spec.out / run.name):  # an unusable eval.json is named now, not after the other runs train
                 _row(spec.out / run.name, run)
@@ -224,8 +225,8 @@ class RayExecutor:
         """Ray importable, a GPU declared for CUDA runs and a given cluster address answering."""
         if spec.device == "cuda" and self.gpus_per_run == 0:
             raise WarpbagsError("--device cuda with --gpus-per-run 0: a Ray task sees no GPU it did not declare")
-        _import_ray()
-        if self.address not in (None, "auto"):
+        ray = _import_ray()
+        if self.address not in (None, "auto") and not ray.is_initialized():  # an initialized Ray is used as it is
             _check_reachable(self.address)
 
     def map(self, spec: SweepSpec, runs: list[SweepRun], scene: Scene, log: Log) -> list[dict]:

@@ -76,7 +76,7 @@ def read_splits(
     return splits, sources
 
 
-def test_views(scene: Scene, training_names: Collection[str]) -> list[int]:
+def evaluation_views(scene: Scene, training_names: Collection[str]) -> list[int]:
     """The views a run that trained on the views named `training_names` is evaluated on: the scene's test split,
     or, where the every-8th rule left that empty (a capture of few views, whose 4-, 6- and 9-view splits take every
     8th view), every 8th view the run did not train on.
@@ -92,6 +92,9 @@ def test_views(scene: Scene, training_names: Collection[str]) -> list[int]:
                             f"{', '.join(trained)}")
     if not test and source == f"every {TEST_EVERY}th":
         test = [i for i in range(0, scene.num_views, TEST_EVERY) if scene.image_names[i] not in training_names]
+        if test:  # runs of other view counts may be evaluated on other views: said where eval's warnings are
+            logger.warning("%s: every %dth view is in a training split; this run is evaluated on those it did not "
+                           "train on, %s", scene.name, TEST_EVERY, test)
     if not test:
         raise WarpbagsError(f"{scene.root} has no test split (sparse_test.txt)"
                             + (f": without the file every {TEST_EVERY}th view is held out, and all of those are "
