@@ -329,7 +329,6 @@ def test_turntable_frames_and_video(finished_run):
     assert len(list((finished_run / "turntable").glob("frame_*.png"))) == 3
 
 
-
 def test_a_turntable_of_an_odd_size_keeps_every_pixel_in_its_video(finished_run, tmp_path):
     """mp4v holds even sizes only: OpenCV wrote a 63 x 47 run's video at 62 x 46, its last column and row gone. The
     video is padded to 64 x 48 instead, the frames stay 63 x 47."""
@@ -342,6 +341,7 @@ def test_a_turntable_of_an_odd_size_keeps_every_pixel_in_its_video(finished_run,
     assert cv2.imread(str(run / "turntable" / "frame_000.png")).shape[:2] == (47, 63)
     capture = cv2.VideoCapture(str(run / "turntable.mp4"))
     assert (capture.get(cv2.CAP_PROP_FRAME_WIDTH), capture.get(cv2.CAP_PROP_FRAME_HEIGHT)) == (64, 48)
+
 
 def test_a_damaged_turntable_frame_is_left_out_of_the_report_by_name(finished_run, tmp_path):
     import cv2
@@ -827,8 +827,8 @@ def test_outputs_of_the_wrong_kind_are_one_line_before_anything_is_written(finis
 
 
 def test_a_capture_of_few_views_is_evaluated_on_every_8th_view_it_did_not_train_on(finished_run, tmp_path, caplog):
-    """Without sparse_test.txt every 8th view that no 4-, 6- or 9-view split takes is held out, the same views for
-    every view count. A capture of few views may have none left so: its runs are then evaluated on every 8th view
+    """Without sparse_test.txt every 8th view that no split takes is held out, the same views for every view
+    count. A capture of few views may have none left so: its runs are then evaluated on every 8th view
     they did not train on, and one that trained on all of those is one line, without the loader's warning about
     the missing file before it."""
     from warpbags.data import load_scene

@@ -5,8 +5,10 @@ from __future__ import annotations
 
 import json
 import math
+import shutil
 
 import pytest
+import torch
 from typer.testing import CliRunner
 
 from warpbags.cli.main import app
@@ -113,7 +115,6 @@ def test_a_scene_whose_runs_would_have_no_test_view_is_one_line_before_anything_
     """Evaluating a run needs held-out views: a capture whose every 8th view is one of the sweep's training views
     (no sparse_test.txt) trained the first run to the end and then stopped at its evaluation. It is one line before
     any run trains."""
-    import shutil
 
     def train(*args, **kwargs):
         raise AssertionError("a run trained")
@@ -131,7 +132,7 @@ def test_a_scene_whose_runs_would_have_no_test_view_is_one_line_before_anything_
     assert not out.exists()
 
 
-@pytest.mark.skipif(__import__("torch").cuda.is_available(), reason="needs a machine without CUDA")
+@pytest.mark.skipif(torch.cuda.is_available(), reason="needs a machine without CUDA")
 def test_device_cuda_without_cuda_is_one_line_before_the_sweep_folder_is_made(scene, tmp_path):
     """The local executor's runs use this machine: --device cuda here failed only in the first run, after its
     progress line and with the sweep's folder made."""

@@ -135,7 +135,6 @@ def test_pose_optimizer_is_created_once_and_keeps_state(scene_dir, tmp_path, fix
     assert rates["translation"] == pytest.approx(trainer.config.lr.pose_translation_scale * rates["rotation"])
 
 
-
 def test_a_gauge_camera_stays_at_its_given_pose_from_the_start(scene_dir, tmp_path):
     """`--fix-first-camera` holds camera 0 at its given pose: the mask-centroid start turned it with the others, and
     the gauge then held it there, an error nothing could correct."""
@@ -145,6 +144,7 @@ def test_a_gauge_camera_stays_at_its_given_pose_from_the_start(scene_dir, tmp_pa
     trainer.train(stop_at=20)
     assert torch.allclose(trainer.current_viewmats()[0], given, atol=1e-6)
     assert not torch.allclose(trainer.current_viewmats()[1:], trainer.scene.viewmats[1:], atol=1e-3)
+
 
 def test_one_view_per_step_moves_only_the_rendered_camera(scene_dir, tmp_path):
     trainer = make_trainer(scene_dir, tmp_path, pose_opt_start=0, views_per_step=1, rot_noise_deg=5.0)
@@ -334,8 +334,8 @@ def test_resuming_with_other_views_or_another_image_size_is_refused(scene_dir, t
     for other, difference in [(config.replaced(views=6), "the scene's views .* are not the run's"),
                               (config.replaced(max_image_size=48), "the images are 48x48 px, the run's 32x32")]:
         with pytest.raises(WarpbagsError, match=f"^--resume: {re.escape(str(tmp_path))} holds a run of other "
-                                                f"training views or image size than the scene's \\(.*{difference}.*\\); "
-                                                f"give the scene as the run opened it"):
+                                                f"training views or image size than the scene's "
+                                                f"\\(.*{difference}.*\\); give the scene as the run opened it"):
             start_or_resume(training_scene(scene, other), config, tmp_path, resume=True, log=lambda message: None)
     assert start_or_resume(training_scene(scene, config), config, tmp_path, resume=True,
                            log=lambda message: None).iteration == 2
@@ -888,7 +888,6 @@ def test_the_pose_lr_warms_up_at_the_start_of_every_rounds_pose_window():
         assert ramp == pytest.approx([0.25, 0.5, 0.75, 1.0, 1.0, 1.0])
     with pytest.raises(WarpbagsError, match="lr.pose_warmup must be >= 0"):
         load_preset("quick", lr={"pose_warmup": -1})
-
 
 
 def test_the_repair_stage_keeps_the_coarse_stages_real_view_loss_and_warms_its_pose_lr_up():

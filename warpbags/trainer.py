@@ -439,9 +439,9 @@ class Trainer:
         and raises KeyboardInterrupt. Divergence raises WarpbagsError. `callback(record)` is called after each
         iteration. The round searched for view hypotheses (`camera.hypotheses_round`) trains as a whole: a `stop_at`
         inside it stops at its start, Ctrl-C goes back to its start, only its end is checkpointed, and its iterations
-        are logged (and passed to `callback`) after the search, the trainer then at the round's end. A new run of `start_or_resume` that fails (any exception,
-        KeyboardInterrupt included) before its first checkpoint is written removes the files it wrote, and the
-        folders made for it: nothing half-written stays.
+        are logged (and passed to `callback`) after the search, the trainer then at the round's end. A new run of
+        `start_or_resume` that fails (any exception, KeyboardInterrupt included) before its first checkpoint is
+        written removes the files it wrote, and the folders made for it: nothing half-written stays.
         """
         total = self.config.total_iters
         stop_at = total if stop_at is None else min(stop_at, total)

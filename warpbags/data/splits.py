@@ -78,8 +78,8 @@ def read_splits(
 
 def evaluation_views(scene: Scene, training_names: Collection[str]) -> list[int]:
     """The views a run that trained on the views named `training_names` is evaluated on: the scene's test split,
-    or, where the every-8th rule left that empty (a capture of few views, whose 4-, 6- and 9-view splits take every
-    8th view), every 8th view the run did not train on.
+    or, where the every-8th rule left that empty (a capture of few views, whose splits take every 8th view), every
+    8th view the run did not train on.
 
     Raises:
         WarpbagsError: there are none, or the test split holds a view the run trained on (a sparse_test.txt
