@@ -4,13 +4,14 @@ from __future__ import annotations
 
 import functools
 import math
+import signal
 import sys
 from typing import Callable
 
 from rich.console import Console
 from rich.markup import escape
 
-from warpbags.errors import WarpbagsError
+from warpbags.errors import Stopped, WarpbagsError
 
 stderr = Console(stderr=True)
 
@@ -26,9 +27,11 @@ def clean_errors(command: Callable) -> Callable:
             # escaped: a message's own brackets (`warpbags[ray]`, a list) are text, not Rich markup
             stderr.print(f"[bold red]error:[/] {escape(str(error))}", highlight=False, soft_wrap=True)
             sys.exit(2)
-        except KeyboardInterrupt:
-            stderr.print("[yellow]interrupted[/]")
-            sys.exit(130)
+        except KeyboardInterrupt as interrupt:
+            # the shell's convention, which job schedulers read: 128 + the signal (130 Ctrl-C, 143 SIGTERM)
+            signum = interrupt.signum if isinstance(interrupt, Stopped) else signal.SIGINT
+            stderr.print(f"[yellow]stopped by {signal.Signals(signum).name}[/]")
+            sys.exit(128 + signum)
 
     return wrapper
 

@@ -484,6 +484,24 @@ def test_sigterm_is_left_to_a_handler_the_process_already_has(scene_dir, tmp_pat
         signal.signal(signal.SIGTERM, previous)
 
 
+def test_train_stopped_by_sigterm_exits_143_and_keeps_its_checkpoint(scene_dir, tmp_path):
+    """`warpbags train` stopped by SIGTERM exits with the shell's 128 + 15, which job schedulers read, not Ctrl-C's
+    130, and says so; the checkpoint it saved is there to resume from."""
+    out = tmp_path / "run"
+    command = [sys.executable, "-m", "warpbags.cli.main", "train", str(scene_dir), "--views", "4", "--out", str(out),
+               "--log-every", "1", "--set", "iters=400", "--set", "rounds=1", "--set", "init_points=800",
+               "--set", "hull_resolution=32", "--set", "checkpoint_every=1000", "--set", "camera.hypotheses_round=0"]
+    process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    for line in process.stdout:
+        if line.startswith("iter "):
+            process.send_signal(signal.SIGTERM)
+            break
+    stdout, stderr = process.communicate(timeout=600)
+    assert process.returncode == 128 + signal.SIGTERM, stderr[-2000:]
+    assert "stopped by SIGTERM" in stderr and "checkpoint saved, continue with --resume" in " ".join(stdout.split())
+    assert list((out / "checkpoints").glob("checkpoint_*.pt"))
+
+
 def test_a_new_run_that_fails_before_its_first_checkpoint_leaves_nothing_behind(scene_dir, tmp_path):
     """A run of `start_or_resume` that cannot be resumed (no checkpoint yet) removes what it wrote when it fails,
     whatever the failure, and the folder if it made it; from its first checkpoint on it is kept for --resume."""

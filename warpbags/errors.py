@@ -1,5 +1,7 @@
 """The one exception type users see: bad input, described in a single line; and other exceptions in one line."""
 
+import signal
+
 
 class WarpbagsError(Exception):
     """Bad input or an unusable file; the message names the offending file or value in one line.
@@ -13,3 +15,13 @@ def one_line(error: BaseException, limit: int = 200) -> str:
     exception from another library (a checkpoint torch cannot read, a metric package that will not import) says."""
     lines = str(error).splitlines()
     return f"{type(error).__name__}: {lines[0] if lines else ''}"[:limit]
+
+
+class Stopped(KeyboardInterrupt):
+    """Training stopped by a signal (Ctrl-C's SIGINT, or the SIGTERM of `kill` or a job scheduler) after saving a
+    checkpoint. A KeyboardInterrupt, so what handles Ctrl-C handles it; `signum` says which signal, for the shell's
+    exit status 128 + signum (130 for SIGINT, 143 for SIGTERM)."""
+
+    def __init__(self, signum: int):
+        super().__init__(signal.Signals(signum).name)
+        self.signum = signum

@@ -39,7 +39,7 @@ from warpbags.correspondences import find_view_matches
 from warpbags.data import open_scene
 from warpbags.data.scene import Scene
 from warpbags.devices import torch_device
-from warpbags.errors import WarpbagsError
+from warpbags.errors import Stopped, WarpbagsError
 from warpbags.files import writable_folder
 from warpbags.model import Diverged, GaussianModel, TrainingViews, scene_extent
 from warpbags.repair import RepairStage, Repairer, repairer_factory
@@ -117,7 +117,7 @@ class Trainer:
             self.model = self._fresh_model(self.viewmats_start)  # carved again, with the coherent poses
         self.repair_stage: RepairStage | None = None  # built when the repair stage first uses pseudo views
         self._repair_state: dict | None = None  # its checkpointed state, applied when it is built
-        self._stop_requested = False
+        self._stop_signal: int | None = None  # the signal that asked training to stop (`_request_stop`)
         # Set by `start_or_resume` for a new run (the folders it makes: `RunFolder.missing_folders`): until the first
         # checkpoint, a failure removes what the run wrote (`RunFolder.remove_unfinished`). None: the caller's folder.
         self.new_run_folders: list[Path] | None = None
@@ -246,7 +246,7 @@ class Trainer:
         """Build the repair stage on the coarse result (pairs and a fitted repairer, or those of a resumed run), or
         use `repairer` as it is."""
         self.repair_stage = RepairStage(self.config, self.out_dir / "repair", self.model, self.current_viewmats(),
-                                        self.generator, log=self.log, should_stop=lambda: self._stop_requested,
+                                        self.generator, log=self.log, should_stop=lambda: self._stop_signal is not None,
                                         repairer=repairer)
         if self._repair_state is not None:
             self.repair_stage.load_state_dict(self._repair_state)
@@ -336,7 +336,7 @@ class Trainer:
 
     # ----------------------------------------------------------------------------------------------- loop
     def _request_stop(self, signum, frame) -> None:
-        self._stop_requested = True
+        self._stop_signal = signum
 
     def _worst_fit_view(self) -> int:
         """The training view with the highest loss under the current Gaussians and poses (last iteration's terms),
@@ -379,7 +379,7 @@ class Trainer:
             steps = []
             for _ in range(length):
                 steps.append((self.train_step(), self.current_viewmats()))
-                if self._stop_requested:
+                if self._stop_signal is not None:
                     back_to_start()
                     return None
             trial = dict(label=label, steps=steps, model=self.model, cameras=copy.deepcopy(self.cameras.state()),
@@ -424,9 +424,9 @@ class Trainer:
             self.write_results(self.out_dir / "coarse")
         if can_checkpoint and (iteration % self.config.checkpoint_every == 0 or iteration == stop_at or coarse_done):
             self.save_checkpoint()
-        if self._stop_requested and can_checkpoint:
+        if self._stop_signal is not None and can_checkpoint:
             self.save_checkpoint()
-            raise KeyboardInterrupt
+            raise Stopped(self._stop_signal)
         return record
 
     def train(self, stop_at: int | None = None, callback: Callable[[dict], None] | None = None) -> dict:
@@ -445,7 +445,7 @@ class Trainer:
         """
         total = self.config.total_iters
         stop_at = total if stop_at is None else min(stop_at, total)
-        self._stop_requested = False  # a Ctrl-C that stopped an earlier call is not this one's
+        self._stop_signal = None  # a Ctrl-C that stopped an earlier call is not this one's
         previous_handlers = {}
         try:
             for stop_signal in STOP_SIGNALS:
@@ -468,7 +468,7 @@ class Trainer:
                         steps = self._search_view_hypotheses()
                         if steps is None:  # Ctrl-C during the search: back at the round's start
                             self.save_checkpoint()
-                            raise KeyboardInterrupt
+                            raise Stopped(self._stop_signal)
                         # Only the kept round's state is left, so only its last iteration can be checkpointed.
                         for index, (record, viewmats) in enumerate(steps):
                             record = self._finish_iteration(record, viewmats, write_log, callback, stop_at,
@@ -476,6 +476,11 @@ class Trainer:
                         continue
                     record = self._finish_iteration(self.train_step(), self.current_viewmats(), write_log, callback,
                                                     stop_at)
+        except KeyboardInterrupt as interrupt:
+            self.remove_if_unfinished()
+            if isinstance(interrupt, Stopped) or self._stop_signal is None:
+                raise
+            raise Stopped(self._stop_signal) from None  # the repair stage's pair building stops on the same request
         except BaseException:
             self.remove_if_unfinished()
             raise
