@@ -827,19 +827,29 @@ def test_pyramid_levels_train_early_rounds_at_lower_resolution(scene_dir, tmp_pa
     assert np.load(tmp_path / "intrinsics.npy")[0, 0, 2] == pytest.approx(trainer.full_scene.Ks[0, 0, 2].item())
 
 
+def test_every_configured_round_runs_and_their_lengths_differ_by_at_most_one():
+    """Rounds that do not divide the iterations are balanced, the longer ones last: a ceil-length split ran 5 rounds
+    of 10 iterations asked for 6, and left the last round (whose Gaussians are the result) 1 iteration of 4."""
+    for iters, rounds, lengths in [(10, 6, [1, 2, 2, 1, 2, 2]), (10, 4, [2, 3, 2, 3]), (20, 8, [2, 3, 2, 3, 2, 3, 2, 3]),
+                                   (600, 3, [200, 200, 200])]:
+        schedule = Schedule(load_preset("quick", iters=iters, rounds=rounds))
+        starts = [i for i in range(iters) if i == 0 or schedule.starts_round(i)]
+        assert schedule.rounds == rounds and [schedule.round_end(start) - start for start in starts] == lengths
+        assert [schedule.round_index(start) for start in starts] == list(range(rounds))
+
+
 def test_the_position_lr_ends_every_round_at_its_final_value():
-    """The Gaussians' position lr decays over each round's own length: a shorter last round (11 iterations in rounds
-    of 3, 3, 3, 2) still reaches the final value at its last iteration."""
+    """The Gaussians' position lr decays over each round's own length: rounds of unequal length (11 iterations in
+    rounds of 2, 3, 3, 3) each reach the final value at their last iteration."""
     schedule = Schedule(load_preset("quick", iters=11, rounds=4))
     fractions = [schedule.at(i).gaussian_lr_fraction for i in range(11)]
-    assert fractions == [0.0, 0.5, 1.0, 0.0, 0.5, 1.0, 0.0, 0.5, 1.0, 0.0, 1.0]
+    assert fractions == [0.0, 1.0, 0.0, 0.5, 1.0, 0.0, 0.5, 1.0, 0.0, 0.5, 1.0]
 
 
-def test_a_shorter_last_round_has_its_pose_window_too():
-    """Windows are shares of each round's own length: 10 iterations in rounds of 4, 4 and 2 with poses in each
-    round's second half move them at 2-3, 6-7 and 9 (shares of the nominal 4 would leave the last round none)."""
+def test_rounds_of_unequal_length_have_their_pose_windows_as_shares_of_their_own_length():
+    """10 iterations in rounds of 3, 3 and 4 with poses in each round's second half move them at 2, 5 and 8-9."""
     schedule = Schedule(load_preset("quick", iters=10, rounds=3, pose_round_window=(0.5, 1.0)))
-    assert [i for i in range(10) if schedule.at(i).pose_active] == [2, 3, 6, 7, 9]
+    assert [i for i in range(10) if schedule.at(i).pose_active] == [2, 5, 8, 9]
 
 
 def test_rounds_take_their_own_pose_windows():

@@ -9,6 +9,7 @@ leave-one-out fits run the same schedule.
 
 from __future__ import annotations
 
+import bisect
 import math
 from dataclasses import dataclass
 
@@ -65,12 +66,18 @@ class Schedule:
         self.config = config
         # Rounds re-carve the hull with improved poses; with frozen poses (the baseline) they would only throw
         # trained Gaussians away, so the baseline trains one round with the whole budget.
-        rounds = config.rounds if config.pose_opt else 1
-        self.round_length = math.ceil(config.iters / rounds)
-        self.rounds = math.ceil(config.iters / self.round_length)  # rounds actually run (the last may be shorter)
+        self.rounds = config.rounds if config.pose_opt else 1
+        # Round k is [k iters // rounds, (k + 1) iters // rounds): every configured round runs, their lengths differ
+        # by at most one iteration, and the later rounds (the last one's Gaussians are the result) are the longer.
+        self.round_starts = [k * config.iters // self.rounds for k in range(self.rounds)]
+        self.round_length = math.ceil(config.iters / self.rounds)  # the longest round: the repair stage's cycle
 
     def round_iteration(self, iteration: int) -> int:
-        return iteration % self.round_length
+        """The iteration within its coarse round; in the repair stage, within cycles of the longest round's length
+        (what the repair stage's densification counts)."""
+        if iteration >= self.config.iters:
+            return (iteration - self.config.iters) % self.round_length
+        return iteration - self.round_starts[self.round_index(iteration)]
 
     def starts_round(self, iteration: int) -> bool:
         """True at the first iteration of every coarse round after the first (fresh Gaussians)."""
@@ -101,11 +108,12 @@ class Schedule:
 
     def round_index(self, iteration: int) -> int:
         """The 0-based coarse round of `iteration` (the repair stage counts as the last round)."""
-        return min(iteration // self.round_length, self.rounds - 1)
+        return bisect.bisect_right(self.round_starts, iteration) - 1
 
     def round_end(self, iteration: int) -> int:
-        """The first iteration after the coarse round of `iteration` (the last round may be shorter)."""
-        return min(iteration - self.round_iteration(iteration) + self.round_length, self.config.iters)
+        """The first iteration after the coarse round of `iteration` (the coarse stage's end for the repair stage)."""
+        next_round = self.round_index(iteration) + 1
+        return self.round_starts[next_round] if next_round < self.rounds else self.config.iters
 
     def orbit_free(self, iteration: int) -> bool:
         return self.round_index(iteration) >= self.config.camera.orbit_from_round
@@ -115,7 +123,7 @@ class Schedule:
         `pose_round_windows`, else `pose_round_window`, as shares of the round's own length, so that a shorter last
         round has its window too; no earlier than `pose_opt_start`)."""
         config = self.config
-        round_start = iteration - self.round_iteration(iteration)
+        round_start = self.round_starts[self.round_index(iteration)]
         length = max(self.round_end(iteration) - round_start, 1)  # (the repair stage's is not used)
         windows = config.pose_round_windows
         window_start, window_end = (windows[min(self.round_index(iteration), len(windows) - 1)] if windows
@@ -150,8 +158,8 @@ class Schedule:
         config, round_iteration, in_repair = self.config, self.round_iteration(iteration), self.in_repair(iteration)
         # GaussianObject's repair keeps the final position lr; the poses keep their final lr. The pose lr decays
         # within each round's pose window (a warm restart per round: each round is a fresh coarse-to-fine fit).
-        # The position lr decays over the round's own length: a shorter last round still ends at its final value.
-        this_round_length = self.round_end(iteration) - (iteration - round_iteration)
+        # The position lr decays over the round's own length: rounds of unequal length all end at its final value.
+        this_round_length = self.round_end(iteration) - self.round_starts[self.round_index(iteration)]
         gaussian_fraction = 1.0 if in_repair else round_iteration / max(this_round_length - 1, 1)
         pose_start, pose_end = self.pose_window(iteration)
         pose_fraction = 1.0 if in_repair else (iteration - pose_start) / max(pose_end - pose_start - 1, 1)
