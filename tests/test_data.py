@@ -917,3 +917,15 @@ def test_on_background_puts_the_masked_object_on_a_grey_level_or_colour():
     assert torch.equal(coloured[~inside], torch.tensor([0.25, 0.5, 0.75]).expand(int((~inside).sum()), 3))
     unmasked = dataclasses.replace(scene, masks=None)
     assert unmasked.on_background(1.0) is images  # without masks there is no background to replace
+
+
+def test_downscaling_refuses_a_view_whose_object_vanishes(synthetic):
+    """A mask thresholded empty at the training size (or a pyramid level) would give that view unbounded silhouette
+    distances (1e37: the chamfer became inf, "training diverged"): the view is named instead."""
+    small = synthetic.downscaled(synthetic.width // 4)
+    assert all(mask.any() for mask in small.masks)  # the object stays at a quarter of the size
+    masks = synthetic.masks.clone()
+    masks[2] = 0
+    masks[2, 10:12, 10:12] = 1  # 4 object pixels: none left at a quarter of the size
+    with pytest.raises(WarpbagsError, match=f"object of view {synthetic.image_names[2]} covers under half a pixel"):
+        dataclasses.replace(synthetic, masks=masks).downscaled(synthetic.width // 4)

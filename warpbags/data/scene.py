@@ -221,6 +221,13 @@ class Scene:
         Ks[:, 0, :] *= width / self.width
         Ks[:, 1, :] *= height / self.height
         masks = None if self.masks is None else (resize(self.masks, cv2.INTER_AREA) > 0.5).float()
+        if masks is not None:  # a view without object pixels has no silhouette to fit (its distances are unbounded)
+            vanished = [name for name, before, after in zip(self.image_names, self.masks, masks)
+                        if (before > 0.5).any() and not after.any()]
+            if vanished:
+                raise WarpbagsError(f"{self.root}: the object of view {vanished[0]} covers under half a pixel at "
+                                    f"{width}x{height}, where its mask is empty: train at a larger --max-image-size "
+                                    "or with fewer pyramid_levels")
         depths = None if self.depths is None else resize(self.depths, cv2.INTER_NEAREST)
         return replace(self, images=resize(self.images, cv2.INTER_AREA).clamp(0, 1), masks=masks, depths=depths,
                        Ks=Ks, width=width, height=height,
