@@ -11,8 +11,9 @@ import torch
 
 import warpbags
 from warpbags.alignment import pose_errors
+from warpbags.configs.train import load_preset
 from warpbags.camera_optimizer import CameraOptimizer, CameraOptimizerSettings, corrected_viewmats
-from warpbags.camera_setup import coherent_start
+from warpbags.camera_setup import coherent_start, starting_poses
 from warpbags.cameras import camera_centers, pixel_directions, project_points
 from warpbags.data import SyntheticOptions, ensure_synthetic_scene, load_scene
 from warpbags.data.noise import perturb_viewmats
@@ -64,6 +65,22 @@ def test_centroid_start_recovers_an_off_axis_camera(scene):
     assert after[2] < 0.35 * before[2], after
     assert after.max() < 4.5
     assert center.norm() < 0.3  # the synthetic object sits at the origin of the normalized world
+
+
+@pytest.mark.parametrize("pose_opt", [True, False])
+def test_a_forward_facing_rig_keeps_its_poses_and_takes_the_origin_as_object_centre(pose_opt):
+    """Parallel optical axes (four cameras on a line, a forward-facing capture) have no meeting point: the poses stay
+    as given, the centre is the origin and the log says why (a singular solve raised numpy's LinAlgError, even for
+    the baseline, which never uses the centre)."""
+    viewmats = torch.eye(4).repeat(4, 1, 1)
+    viewmats[:, 0, 3] = -torch.arange(4.0)  # camera centres at x = 0..3, all looking down +z
+    Ks = torch.tensor([[50.0, 0, 16], [0, 50, 16], [0, 0, 1]]).repeat(4, 1, 1)
+    masks = torch.zeros(4, 32, 32)
+    masks[:, 12:20, 12:20] = 1
+    messages = []
+    start, center = starting_poses(viewmats, masks, Ks, load_preset("quick", pose_opt=pose_opt), messages.append)
+    assert torch.equal(start, viewmats) and torch.equal(center, torch.zeros(3))
+    assert any("nearly parallel" in message for message in messages), messages
 
 
 def _coherence_case(scene, count=4):

@@ -17,7 +17,7 @@ from warpbags.configs.train import TrainConfig
 from warpbags.correspondences import ViewMatches, epipolar_loss
 from warpbags.data.noise import PoseNoise, noisy_viewmats
 from warpbags.data.scene import Scene
-from warpbags.silhouette import SilhouetteTargets, centroid_start, rays_meeting_point
+from warpbags.silhouette import NEARLY_PARALLEL, SilhouetteTargets, centroid_start, rays_meeting_point
 
 
 def given_viewmats(scene: Scene, config: TrainConfig) -> torch.Tensor:
@@ -43,15 +43,22 @@ def starting_poses(viewmats: torch.Tensor, masks: torch.Tensor | None, Ks: torch
     given pose. Otherwise the poses stay as given and the centre is where the optical axes (nearly) meet.
     """
     if masks is not None and config.camera.centroid_start and config.pose_opt:
-        start, center = centroid_start(masks.cpu(), viewmats.cpu(), Ks.cpu())
-        start = start.to(viewmats)
-        if config.camera.fix_first_camera:  # the gauge is never corrected, so it must not be turned either
-            start[0] = viewmats[0]
-        return start, center.to(viewmats)
+        started = centroid_start(masks.cpu(), viewmats.cpu(), Ks.cpu())
+        if started is not None:
+            start, center = started[0].to(viewmats), started[1].to(viewmats)
+            if config.camera.fix_first_camera:  # the gauge is never corrected, so it must not be turned either
+                start[0] = viewmats[0]
+            return start, center
+        log("the rays through the masks' centroids are nearly parallel (a forward-facing capture?): no "
+            "mask-centroid start")
     if masks is None and config.camera.centroid_start and config.pose_opt:
         log("no masks: no mask-centroid start")
     axes = viewmats[:, 2, :3].double().cpu()  # camera z axes in world coordinates
-    center = rays_meeting_point(camera_centers(viewmats).double().cpu(), axes)
+    center = rays_meeting_point(camera_centers(viewmats).double().cpu(), axes, min_spread=NEARLY_PARALLEL)
+    if center is None:
+        log("the optical axes are nearly parallel (a forward-facing capture?): the object centre is taken at the "
+            "world origin, where a scene's normalization puts it")
+        center = torch.zeros(3, dtype=torch.float64)
     return viewmats.clone(), center.to(viewmats)
 
 

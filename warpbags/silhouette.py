@@ -63,6 +63,11 @@ def centroid_rays(masks: torch.Tensor, viewmats: torch.Tensor, Ks: torch.Tensor)
     return camera, world
 
 
+NEARLY_PARALLEL = 1e-3
+"""`rays_meeting_point`'s `min_spread` for an object centre: rays within about 2 deg of one another (a forward-facing
+capture) do not meet at one."""
+
+
 def rays_meeting_point(origins: torch.Tensor, directions: torch.Tensor, min_spread: float = 0.0) -> torch.Tensor | None:
     """The least-squares point closest to the lines origins + s directions: x with sum_c P_c x = sum_c P_c o_c,
     P_c = I - d_c d_c^T. The one implementation for the mask-centroid start, the trainer's object centre and the
@@ -91,18 +96,22 @@ def rays_meeting_point(origins: torch.Tensor, directions: torch.Tensor, min_spre
     return torch.from_numpy(point).to(origins)
 
 
-def centroid_start(masks: torch.Tensor, viewmats: torch.Tensor, Ks: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+def centroid_start(masks: torch.Tensor, viewmats: torch.Tensor, Ks: torch.Tensor
+                   ) -> tuple[torch.Tensor, torch.Tensor] | None:
     """Turn every camera about its centre so that its mask-centroid ray passes through the object centre.
 
     Args:
         masks: [C, H, W] object masks in [0, 1]. viewmats: [C, 4, 4] world-to-camera. Ks: [C, 3, 3].
 
     Returns:
-        (the turned [C, 4, 4] world-to-camera matrices, the [3] object centre they now agree on exactly).
+        (the turned [C, 4, 4] world-to-camera matrices, the [3] object centre they now agree on exactly), or None
+        where the rays are nearly parallel (`NEARLY_PARALLEL`: a forward-facing capture has no such centre).
     """
     viewmats = viewmats.double()
     ray_camera, ray_world = centroid_rays(masks.double(), viewmats, Ks.double())
-    center = rays_meeting_point(camera_centers(viewmats), ray_world)
+    center = rays_meeting_point(camera_centers(viewmats), ray_world, min_spread=NEARLY_PARALLEL)
+    if center is None:
+        return None
     to_center = (viewmats[:, :3, :3] @ center + viewmats[:, :3, 3])
     to_center = to_center / to_center.norm(dim=-1, keepdim=True)
     turn = torch.eye(4, dtype=torch.float64, device=viewmats.device).repeat(len(viewmats), 1, 1)

@@ -29,7 +29,7 @@ from warpbags.data.layouts import LayoutCameras, read_layout_cameras, scaled_int
 from warpbags.data.scene import ORBIT_RADIUS, Scene, SceneNormalization
 from warpbags.data.splits import read_splits
 from warpbags.errors import WarpbagsError
-from warpbags.silhouette import rays_meeting_point
+from warpbags.silhouette import NEARLY_PARALLEL, rays_meeting_point
 
 logger = logging.getLogger("warpbags.data")
 
@@ -191,7 +191,7 @@ def object_center(
     directions = np.einsum("cji,cj->ci", viewmats[:, :3, :3], rays_camera)
     directions /= np.linalg.norm(directions, axis=1, keepdims=True)
     origins = camera_centers(torch.from_numpy(viewmats))
-    center = rays_meeting_point(origins, torch.from_numpy(directions), min_spread=1e-3)
+    center = rays_meeting_point(origins, torch.from_numpy(directions), min_spread=NEARLY_PARALLEL)
     if center is not None:
         return center.numpy()
     if points is not None and len(points):
