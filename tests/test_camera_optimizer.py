@@ -117,6 +117,18 @@ def test_unrendered_cameras_do_not_move(parameterization):
     torch.testing.assert_close(cameras.viewmats()[2:], cameras.base_viewmats[2:], rtol=0, atol=1e-6)
 
 
+def test_a_first_step_leaves_the_resting_cameras_moments_at_zero():
+    """After a reset (a round's rebase, the average) Adam has no state yet; a term that reaches cameras not rendered
+    this step (the epipolar one) must not leave them momentum from a step they did not take."""
+    cameras = _optimizer(CameraOptimizerSettings(lr=1e-2))
+    cameras(torch.arange(4))[:, :3, 3].sum().backward()  # every camera has a gradient
+    cameras.step(torch.tensor([0]))
+    for param in (cameras.rotations, cameras.translations):
+        state = cameras.optimizer.state[param]
+        assert state["exp_avg"][0].abs().max() > 0 and torch.all(state["exp_avg"][1:] == 0)
+        assert torch.all(state["exp_avg_sq"][1:] == 0) and torch.all(param.detach()[1:] == 0)
+
+
 def test_the_camera_optimizer_is_an_ordinary_torch_module():
     # Its poses come from forward; Module.apply(fn) keeps torch's meaning, so a parent module can initialize or
     # move it like any other submodule.

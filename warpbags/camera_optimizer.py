@@ -273,7 +273,10 @@ class CameraOptimizer(torch.nn.Module):
         """One Adam step of the cameras in `views` (default all); the others keep their values and Adam moments.
 
         Adam would move a camera that was not rendered this step through its momentum (its gradient row is zero,
-        not absent): those rows are put back after the step.
+        not absent, or a term such as the epipolar one gives it a gradient): those rows are put back after the
+        step, and on a first step (after a reset) their moments stay zero. Adam's step count is the optimizer's,
+        not each camera's (as with gsplat's SelectiveAdam): with one view per step, a camera's bias corrections
+        are those of more steps than it took.
         """
         if views is None or len(views) == self.num_cameras:
             self.optimizer.step()
@@ -283,7 +286,9 @@ class CameraOptimizer(torch.nn.Module):
         kept = []
         for param in (self.rotations, self.translations):
             state = self.optimizer.state.get(param, {})
-            rows = {key: value[resting].clone() for key, value in state.items() if torch.is_tensor(value) and value.dim() == 2}
+            rows = ({key: value[resting].clone() for key, value in state.items()
+                     if torch.is_tensor(value) and value.dim() == 2} if state else
+                    {key: torch.zeros_like(param.detach()[resting]) for key in ("exp_avg", "exp_avg_sq")})
             kept.append((param, param.detach()[resting].clone(), rows))
         self.optimizer.step()
         with torch.no_grad():
