@@ -769,6 +769,9 @@ def test_a_malformed_saved_config_names_config_json(finished_run, tmp_path):
     with pytest.raises(WarpbagsError, match="^" + re.escape(f"{run / 'config.json'}: iters must be like 5000, got "
                                                             "'abc'")):
         load_run(run)
+    (run / "config.json").write_text(json.dumps({**info, "config": {**info["config"], "iters": 0}}))
+    with pytest.raises(WarpbagsError, match="^" + re.escape(f"{run / 'config.json'}: --iters must be")):
+        load_run(run)  # out of range: refused by name, not a modulo by zero in the schedule
 
 
 def test_export_refuses_the_run_its_scene_and_other_folders_and_checks_its_targets_first(finished_run, tmp_path):

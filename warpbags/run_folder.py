@@ -102,15 +102,15 @@ class RunFolder:
         """The TrainConfig in config.json (or in `info`, config.json already read).
 
         Raises:
-            WarpbagsError: no config.json, or one that cannot be read or holds a value of the wrong type (named
-                with the file).
+            WarpbagsError: no config.json, or one that cannot be read or holds a value of the wrong type or out of
+                range (named with the file).
         """
         info = self.read_info() if info is None else info
         try:
-            return TrainConfig.from_dict(info["config"])
+            return TrainConfig.from_dict(info["config"]).validate()
         except (KeyError, TypeError, AttributeError) as error:
             raise WarpbagsError(f"{self.path / 'config.json'}: unreadable ({error})") from None
-        except WarpbagsError as error:  # a field of the wrong type ("iters must be like 5000, got 'abc'")
+        except WarpbagsError as error:  # a field of the wrong type ("iters must be like 5000, got 'abc'") or range
             raise WarpbagsError(f"{self.path / 'config.json'}: {error}") from None
 
     def trained_on(self, scene: Scene, info: dict | None = None) -> bool:
