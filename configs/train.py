@@ -55,7 +55,7 @@ class LearningRates:
             rotation and a sideways translation shift the image almost alike; a slower translation makes the
             optimizer explain shifts by rotation first (GaussianObject's COLMAP-free mode uses 1/3).
         pose_warmup: the pose lr ramps up linearly over the first this many steps of each round's pose window
-            (0 = none). Adam's moments restart with every round, and its first steps move every latent by about
+            (0 = none); the ramp multiplies the window's decay, so with it the lr peaks a little below `pose`. Adam's moments restart with every round, and its first steps move every latent by about
             the lr whatever the gradient: through the preconditioner that turns maryrose's cameras 4-8 deg about
             the object in one step (docs/pose-recovery.md).
     """
@@ -139,7 +139,8 @@ class CameraConfig:
             Object parameterization only.
         round_anchor: from the second coarse round on, each rendered camera's corrections since its round started
             cost round_anchor / 2 |delta|^2 (delta in the parameterization's units: radians, focal lengths, log
-            depth; in the repair stage, since the last coarse round started). A round's fresh, half-fitted
+            depth; in the repair stage, since the last coarse round started, or since the averaged poses where
+            `average_share` > 0). A round's fresh, half-fitted
             Gaussians pull the poses where they explain the images best, which on a real capture is partly along
             directions the images barely constrain; the anchor lets a later round move a camera only as far as the
             images pull it firmly (a proximal step; the first round, which starts far off, is free). 0 = off.

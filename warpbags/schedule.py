@@ -40,7 +40,8 @@ class StepSettings:
         pose_lr: the camera optimizer's rotation learning rate.
         orbit_free: the object-centric orbit rows are optimized (`camera.orbit_from_round`).
         pose_anchor: weight of the pull of the rendered cameras' corrections towards where the round started
-            (`camera.round_anchor` from the second round on and in the repair stage, else 0).
+            (`camera.round_anchor` from the second round on and in the repair stage, where it pulls towards the
+            coarse stage's final poses when those are an average, else 0).
         pose_average: the poses after this step join the average that becomes the final poses
             (`camera.average_share`).
     """

@@ -99,7 +99,7 @@ class Trainer:
         self.iteration = 0
         self.model = self._fresh_model(self.viewmats_start)
         # The camera optimizer is created exactly once (resume loads state into it); its preconditioner comes from
-        # the first round's initial points.
+        # the hull carved at the starting poses, before the coherence solve moves them (round 0 is carved again).
         views = self.model.training_views
         self.cameras = training_cameras(config, self.viewmats_start, self.object_center, views.Ks, views.scene.width,
                                         views.scene.height, self.model.params["means"].detach())
