@@ -122,7 +122,7 @@ def emit_intersections_kernel(
     opacities: wp.array(dtype=Any),
     radii: wp.array(dtype=wp.int32),
     write_offsets: wp.array(dtype=wp.int32),
-    depth_bits: wp.array(dtype=wp.int32),
+    depth_keys: wp.array(dtype=wp.int32),
     tiles: TileGeometry,
     isect_keys: wp.array(dtype=wp.int64),
     isect_ids: wp.array(dtype=wp.int32),
@@ -133,7 +133,7 @@ def emit_intersections_kernel(
     cam = gid / tiles.num_gaussians
     a, b, c, t = reach_quadric(conics[gid], opacities[gid % tiles.num_gaussians])
     x0, x1, y0, y1 = tile_bounds(means2d[gid], radii[gid], tiles.tile_size, tiles.tiles_x, tiles.tiles_y)
-    depth_key = wp.int64(depth_bits[gid])
+    depth_key = wp.int64(depth_keys[gid])
     cursor = write_offsets[gid]
     for ty in range(y0, y1):
         tx0, tx1 = row_tile_span(means2d[gid], a, b, c, t, ty, x0, x1, tiles.tile_size, tiles.width, tiles.height)
@@ -246,3 +246,17 @@ def fill_tiles_front_to_back_kernel(
             for tx in range(span[0], span[1]):
                 isect_ids[chunk_cursors[chunk, first_tile + tx]] = gid
                 chunk_cursors[chunk, first_tile + tx] = chunk_cursors[chunk, first_tile + tx] + 1
+
+
+def _declare_overloads() -> None:
+    """The GPU path's kernels in both precisions, declared up front: the CPU never launches them, so without this
+    a CPU machine (the CUDA code-generation test) would never build them."""
+    for scalar in (wp.float32, wp.float64):
+        splats = [wp.array(dtype=wp.types.vector(2, scalar)), wp.array(dtype=wp.types.vector(3, scalar)),
+                  wp.array(dtype=scalar), wp.array(dtype=wp.int32)]
+        wp.overload(count_tiles_kernel, [*splats, TileGeometry, wp.array(dtype=wp.int32)])
+        wp.overload(emit_intersections_kernel, [*splats, wp.array(dtype=wp.int32), wp.array(dtype=wp.int32),
+                                                TileGeometry, wp.array(dtype=wp.int64), wp.array(dtype=wp.int32)])
+
+
+_declare_overloads()

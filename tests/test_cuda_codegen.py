@@ -21,10 +21,11 @@ from warpbags.losses import photometric_loss
 from warpbags.wrapper import least_outside_samples, mean_neighbour_distances, nearest_points
 
 KERNEL_MODULES = ["pose", "project", "sh", "bin", "rasterize", "loss", "nearest", "knn", "coherence"]
-# Kernels checked by name to be in their module's CUDA code in both precisions: the render instantiates them (a
-# kernel it does not launch is not compiled here).
+# Kernels checked by name to be in their module's CUDA code in both precisions: the render instantiates them, or,
+# for the GPU-only binning the CPU never launches, their module declares both overloads.
 NAMED_KERNELS = {"project": ("project_gaussians_kernel", "project_gaussians_backward_kernel"),
-                 "sh": ("sh_to_colors_kernel", "sh_to_colors_backward_kernel")}
+                 "sh": ("sh_to_colors_kernel", "sh_to_colors_backward_kernel"),
+                 "bin": ("count_tiles_kernel", "emit_intersections_kernel")}
 
 
 @pytest.mark.parametrize("module_name", KERNEL_MODULES)
