@@ -147,6 +147,15 @@ def test_counting_sort_binning_equals_key_sort(dtype, tile_size, cams, threads):
     tile_offsets, isect_ids = _bin_by_sort(splats, tiles, depths, cams * tiles_x * tiles_y)
     assert len(isect_ids) > 4 * cams * tiles_x * tiles_y  # several Gaussians per tile
     assert torch.equal(bins.tile_offsets, tile_offsets) and torch.equal(bins.isect_ids, isect_ids)
+    # Gaussians at equal depths are listed in index order by both (a sort that is not stable may swap them), and
+    # float64 depths closer than a float32 step in depth order (a key of their float32 bits would tie them)
+    for offset in (0.0, -1e-12):
+        tied = depths.clone()
+        tied[:, 1::2] = tied[:, ::2][:, :n // 2] + offset
+        bins = bin_gaussians(means2d, conics, scene["opacities"], radii, tied, width, height, tile_size,
+                             cpu_threads=threads)
+        tile_offsets, isect_ids = _bin_by_sort(splats, tiles, tied, cams * tiles_x * tiles_y)
+        assert torch.equal(bins.tile_offsets, tile_offsets) and torch.equal(bins.isect_ids, isect_ids)
 
 
 @pytest.mark.parametrize("render_mode,channels", [("RGB", 3), ("D", 1), ("ED", 1), ("RGB+D", 4), ("RGB+ED", 4)])

@@ -597,17 +597,24 @@ def _bin_by_sort(splats: dict, tiles: TileGeometry, depths: torch.Tensor, num_ti
     ends = torch.cumsum(counts, 0, dtype=torch.int64)
     num_isects = int(ends[-1]) if ends.numel() else 0
     write_offsets = (ends - counts).to(torch.int32)
-    # Culled Gaussians emit nothing, so every depth used here is > near_plane > 0.
-    depth_bits = depths.detach().reshape(-1).to(torch.float32).contiguous().view(torch.int32)
+    # Culled Gaussians emit nothing, so every depth used here is > near_plane > 0, and a positive float32's bits
+    # order as it does. float64 depths closer than a float32 step would tie there: their key is the Gaussian's rank
+    # in its camera's depth order instead, the CPU path's order.
+    if depths.dtype == torch.float32:
+        depth_keys = depths.detach().reshape(-1).contiguous().view(torch.int32)
+    else:
+        order = torch.argsort(depths.detach(), dim=1, stable=True)
+        ranks = torch.empty_like(order).scatter_(1, order, torch.arange(order.shape[1], device=device).expand_as(order))
+        depth_keys = ranks.reshape(-1).to(torch.int32)
     keys = torch.empty(num_isects, dtype=torch.int64, device=device)
     ids = torch.empty(num_isects, dtype=torch.int32, device=device)
     if num_isects:
         launcher.launch(
             emit_intersections_kernel, depths.numel(), **splats, write_offsets=_to_warp(write_offsets, "int32"),
-            depth_bits=_to_warp(depth_bits, "int32"), tiles=tiles, isect_keys=_to_warp(keys, "int64"),
+            depth_keys=_to_warp(depth_keys, "int32"), tiles=tiles, isect_keys=_to_warp(keys, "int64"),
             isect_ids=_to_warp(ids, "int32"),
         )
-    keys, order = torch.sort(keys)
+    keys, order = torch.sort(keys, stable=True)  # equal keys (float32 depth ties) in index order, as on the CPU
     tile_offsets = torch.searchsorted(keys >> 32, torch.arange(num_tiles + 1, device=device)).to(torch.int32)
     return tile_offsets, ids[order].contiguous()
 
