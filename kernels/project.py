@@ -20,6 +20,8 @@ import warp as wp
 
 from warpbags.kernels.rasterize import ALPHA_THRESHOLD  # the rasterizer skips contributions below this alpha
 
+MAX_RADIUS = wp.constant(2.0**30)  # pixels: a footprint radius that still fits an int32 after the tile arithmetic
+
 
 @wp.func
 def view_rotation_translation(viewmat: Any):
@@ -109,10 +111,12 @@ def project_gaussians_kernel(
     p_cam = rot @ mean + trans
     depth = p_cam[2]
     radii[cam, gid] = 0
-    if depth < near_plane or depth > far_plane:
+    # Culling tests are written so that a NaN fails them: a NaN Gaussian is culled on every device (the CPU turned
+    # its radius into INT_MIN, which the backward pass then visited, making the camera's gradients NaN).
+    if not (depth >= near_plane and depth <= far_plane):
         return
     opacity = opacities[gid]
-    if opacity < opacities.dtype(ALPHA_THRESHOLD):
+    if not (opacity >= opacities.dtype(ALPHA_THRESHOLD)):
         return
 
     K = Ks[cam]
@@ -127,17 +131,18 @@ def project_gaussians_kernel(
     b = cov2d[0, 1]
     c = cov2d[1, 1] + eps2d
     det = a * c - b * b
-    if det <= opacities.dtype(0.0):
+    if not (det > opacities.dtype(0.0)):
         return
 
     # Largest eigenvalue of the 2D covariance bounds the footprint; scaled by the opacity-aware cut-off.
     mid = opacities.dtype(0.5) * (a + c)
     lambda_max = mid + wp.sqrt(wp.max(opacities.dtype(0.01), mid * mid - det))
     extent_sq = opacities.dtype(2.0) * wp.log(opacity / opacities.dtype(ALPHA_THRESHOLD))
-    radius = wp.ceil(wp.sqrt(extent_sq * lambda_max))
+    # Clamped where int32 ends (CUDA saturates the cast, the CPU wrapped a screen-filling Gaussian to INT_MIN).
+    radius = wp.min(wp.ceil(wp.sqrt(extent_sq * lambda_max)), opacities.dtype(MAX_RADIUS))
     # Radius 0 (an opacity of exactly 1/255, whose extent is 0) is culled as well: a radius of 0 then always means
     # that nothing was written, and the backward kernel skips those pairs by their radius.
-    if radius <= opacities.dtype(0.0):
+    if not (radius > opacities.dtype(0.0)):
         return
 
     mean2d = wp.vector(fx * p_cam[0] / depth + cx, fy * p_cam[1] / depth + cy)
@@ -326,7 +331,7 @@ def project_gaussians_backward_kernel(
     the radius is an integer: neither has one.
     """
     cam, gid = wp.tid()
-    if radii[cam, gid] == 0:
+    if radii[cam, gid] <= 0:
         return
     rot, trans = view_rotation_translation(viewmats[cam])
     mean = means[gid]

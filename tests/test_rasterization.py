@@ -158,6 +158,27 @@ def test_counting_sort_binning_equals_key_sort(dtype, tile_size, cams, threads):
         assert torch.equal(bins.tile_offsets, tile_offsets) and torch.equal(bins.isect_ids, isect_ids)
 
 
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_a_nan_gaussian_is_culled_and_a_screen_filling_one_kept(dtype):
+    """Culling is NaN-safe: a Gaussian with a NaN mean is culled (on the CPU its radius became INT_MIN, which the
+    backward pass visited, making every pose gradient of its cameras NaN); a footprint beyond int32 is clamped, not
+    wrapped to a negative radius that culled a Gaussian covering the whole image."""
+    scene = random_scene(n=20, cams=2, width=16, height=12, seed=2, dtype=dtype)
+    scene["means"] = scene["means"].clone()
+    scene["means"][0] = math.nan
+    deltas = torch.zeros(2, 6, dtype=dtype, requires_grad=True)
+    out, _, meta = warpbags.rasterization(**scene, pose_deltas=deltas)
+    out.sum().backward()
+    assert torch.all(meta["radii"][:, 0] == 0) and torch.isfinite(out).all()
+    assert torch.isfinite(deltas.grad).all() and deltas.grad.abs().sum() > 0
+    scene = random_scene(n=20, cams=2, width=16, height=12, seed=2, dtype=dtype)
+    scene["scales"] = scene["scales"].clone()
+    scene["scales"][0] = 1e9
+    _, alphas, meta = warpbags.rasterization(**scene)
+    assert torch.all(meta["radii"][:, 0] == 2**30)
+    assert alphas.min() >= 0.99 * scene["opacities"][0]  # it covers every pixel
+
+
 @pytest.mark.parametrize("render_mode,channels", [("RGB", 3), ("D", 1), ("ED", 1), ("RGB+D", 4), ("RGB+ED", 4)])
 def test_render_modes(render_mode, channels):
     """Every mode against the independent dense renderer: colour, accumulated depth (D) and expected depth (ED,
