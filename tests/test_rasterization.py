@@ -179,6 +179,42 @@ def test_a_nan_gaussian_is_culled_and_a_screen_filling_one_kept(dtype):
     assert alphas.min() >= 0.99 * scene["opacities"][0]  # it covers every pixel
 
 
+def test_binning_refuses_counts_beyond_int32_offsets(monkeypatch):
+    """Offsets and indices are int32 in the kernels: past the limit they would wrap (out-of-bounds writes on a GPU,
+    where nothing checks); both binning paths say so instead. The limit is lowered to what a small scene reaches."""
+    from warpbags import wrapper
+
+    scene = random_scene(n=200, cams=2, width=16, height=12, seed=1)
+    means2d, conics, depths, radii = wrapper.project_gaussians(scene["means"], scene["quats"], scene["scales"],
+                                                               scene["opacities"], scene["viewmats"], scene["Ks"], 16, 12)
+    bins = wrapper.bin_gaussians(means2d, conics, scene["opacities"], radii, depths, 16, 12, 4)
+    splats = dict(means2d=wrapper._to_warp(means2d.reshape(-1, 2).contiguous(), "vec2"),
+                  conics=wrapper._to_warp(conics.reshape(-1, 3).contiguous(), "vec3"),
+                  opacities=wrapper._to_warp(scene["opacities"], "scalar"),
+                  radii=wrapper._to_warp(radii.reshape(-1).contiguous(), "int32"))
+    assert len(bins.isect_ids) > 2 * max(200, 16 * 12)  # above the other limits
+    monkeypatch.setattr(wrapper, "INT32_LIMIT", len(bins.isect_ids))
+    with pytest.raises(ValueError, match="Gaussian-tile intersections exceed int32"):
+        wrapper.bin_gaussians(means2d, conics, scene["opacities"], radii, depths, 16, 12, 4)
+    with pytest.raises(ValueError, match="Gaussian-tile intersections exceed int32"):  # the CUDA path's
+        wrapper._bin_by_sort(splats, wrapper._tile_geometry(200, 16, 12, 4), depths, 2 * 4 * 3)
+    monkeypatch.setattr(wrapper, "INT32_LIMIT", 2 * 16 * 12)
+    with pytest.raises(ValueError, match="2 cameras x 200 Gaussians or x 16x12 pixels exceed int32"):
+        wrapper.bin_gaussians(means2d, conics, scene["opacities"], radii, depths, 16, 12, 4)
+
+
+def test_spherical_harmonics_refuses_fewer_coefficients_than_its_degree_reads():
+    """The kernel reads (degree + 1)^2 coefficients per Gaussian: with fewer it read past the tensor (garbage
+    colours such as 1e275, no error)."""
+    from warpbags.wrapper import spherical_harmonics
+
+    scene = random_scene(n=5, cams=1)
+    with pytest.raises(ValueError, match=r"degree 3 \(0-3\) needs coeffs \[N, K >= 16, 3\], got \[5, 1, 3\]"):
+        spherical_harmonics(scene["means"], torch.rand(5, 1, 3, dtype=torch.float64), scene["viewmats"], 3)
+    colors = spherical_harmonics(scene["means"], torch.zeros(5, 16, 3, dtype=torch.float64), scene["viewmats"], 3)
+    assert torch.equal(colors, torch.full((1, 5, 3), 0.5, dtype=torch.float64))
+
+
 @pytest.mark.parametrize("render_mode,channels", [("RGB", 3), ("D", 1), ("ED", 1), ("RGB+D", 4), ("RGB+ED", 4)])
 def test_render_modes(render_mode, channels):
     """Every mode against the independent dense renderer: colour, accumulated depth (D) and expected depth (ED,

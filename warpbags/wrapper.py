@@ -532,6 +532,10 @@ def spherical_harmonics(means: torch.Tensor, coeffs: torch.Tensor, viewmats: tor
         [C, N, 3] colours; differentiable in means, coeffs and viewmats (the coefficients above the degree get a
         zero gradient, and so do means and viewmats at degree 0).
     """
+    if not 0 <= degree <= 3 or coeffs.ndim != 3 or coeffs.shape[1] < (degree + 1) ** 2 or coeffs.shape[2] != 3:
+        # the kernel reads coefficients up to the degree's: too few would be read past the tensor's end
+        raise ValueError(f"spherical_harmonics of degree {degree} (0-3) needs coeffs [N, K >= {(degree + 1) ** 2}, 3], "
+                         f"got {list(coeffs.shape)}")
     if torch.is_grad_enabled() and any(t.requires_grad for t in (means, coeffs, viewmats)):
         return _SHColors.apply(means, coeffs, viewmats, degree)
     cams, n = viewmats.shape[0], means.shape[0]
@@ -566,6 +570,10 @@ def bin_gaussians(means2d: torch.Tensor, conics: torch.Tensor, opacities: torch.
     """
     cams, n = radii.shape
     device = radii.device
+    # the kernels index Gaussians (cam * N + gaussian) and pixels (cam * H * W) in int32
+    if cams * n >= INT32_LIMIT or cams * width * height >= INT32_LIMIT:
+        raise ValueError(f"{cams} cameras x {n} Gaussians or x {width}x{height} pixels exceed int32 indices: render "
+                         "fewer cameras per call")
     tiles = _tile_geometry(n, width, height, tile_size)
     num_tiles = cams * tiles.tiles_x * tiles.tiles_y
     splats = dict(means2d=_to_warp(means2d.detach().reshape(-1, 2).contiguous(), "vec2"),
@@ -588,6 +596,16 @@ def _tile_geometry(num_gaussians: int, width: int, height: int, tile_size: int) 
     return tiles
 
 
+INT32_LIMIT = 2**31
+"""Intersections, Gaussian and pixel indices are int32 in the kernels (as gsplat's): at this many they would wrap."""
+
+
+def _check_intersections(count: int, what: str = "Gaussian-tile intersections") -> None:
+    if count >= INT32_LIMIT:
+        raise ValueError(f"{count} {what} exceed int32 offsets: render fewer cameras per call, fewer or smaller "
+                         "Gaussians, or with a larger tile size")
+
+
 def _bin_by_sort(splats: dict, tiles: TileGeometry, depths: torch.Tensor, num_tiles: int):
     """gsplat's binning: one (tile, depth) key per intersection, sorted (the GPU path)."""
     device = depths.device
@@ -596,6 +614,7 @@ def _bin_by_sort(splats: dict, tiles: TileGeometry, depths: torch.Tensor, num_ti
     launcher.launch(count_tiles_kernel, depths.numel(), **splats, tiles=tiles, tile_counts=_to_warp(counts, "int32"))
     ends = torch.cumsum(counts, 0, dtype=torch.int64)
     num_isects = int(ends[-1]) if ends.numel() else 0
+    _check_intersections(num_isects)
     write_offsets = (ends - counts).to(torch.int32)
     # Culled Gaussians emit nothing, so every depth used here is > near_plane > 0, and a positive float32's bits
     # order as it does. float64 depths closer than a float32 step would tie there: their key is the Gaussian's rank
@@ -634,7 +653,9 @@ def _bin_by_counting(splats: dict, tiles: TileGeometry, radii: torch.Tensor, dep
     launcher.launch(tile_rows_kernel, cams * n, means2d=splats["means2d"], radii=splats["radii"],
                     depth_order=depth_order, tiles=tiles, first_rows=_to_warp(first_rows, "int32"),
                     row_counts=_to_warp(row_counts, "int32"))
-    row_ends = torch.cumsum(row_counts, 0, dtype=torch.int32)
+    row_ends = torch.cumsum(row_counts, 0, dtype=torch.int64)
+    _check_intersections(int(row_ends[-1]) if len(row_ends) else 0, "rows of tiles met by Gaussians")
+    row_ends = row_ends.to(torch.int32)
     spans = torch.empty(int(row_ends[-1]) if len(row_ends) else 0, 2, dtype=torch.int32)
     rows = dict(spans=wp.from_torch(spans, dtype=wp.vec2i), row_offsets=_to_warp(row_ends - row_counts, "int32"),
                 first_rows=_to_warp(first_rows, "int32"), row_counts=_to_warp(row_counts, "int32"), tiles=tiles)
@@ -660,6 +681,7 @@ def _bin_by_counting(splats: dict, tiles: TileGeometry, radii: torch.Tensor, dep
     _run_ranges(count, one_each, threads)
     # Tile offsets over every camera's tiles; within a tile, each chunk writes after the camera's earlier chunks.
     camera_counts = torch.zeros(cams, tiles_per_camera, dtype=torch.int32).index_add_(0, cameras_of.long(), counts)
+    _check_intersections(int(counts.sum(dtype=torch.int64)))
     tile_offsets = torch.zeros(num_tiles + 1, dtype=torch.int32)
     torch.cumsum(camera_counts.reshape(-1), 0, dtype=torch.int32, out=tile_offsets[1:])
     before = torch.zeros_like(counts)
