@@ -84,6 +84,26 @@ def test_early_termination_matches_reference_and_gradients():
     assert_gradients_close(ours_in, ref_in)
 
 
+def test_the_alpha_clamp_matches_reference_and_gradients():
+    """Gaussians of opacity up to 1 whose centres cover pixels: alpha is clamped at 0.99 there (3DGS), and the
+    clamp's zero gradient is what the reference's min() gives."""
+    scene = random_scene(n=10, cams=1, width=12, height=12, seed=4, spread=0.3, scale_range=(1.5, 2.0))
+    scene["opacities"] = torch.linspace(0.99, 1.0, 10, dtype=torch.float64)
+    _, _, meta = warpbags.rasterization(**scene)
+    ys, xs = torch.meshgrid(torch.arange(12.0, dtype=torch.float64) + 0.5, torch.arange(12.0, dtype=torch.float64) + 0.5,
+                            indexing="ij")
+    dx, dy = xs[..., None] - meta["means2d"][0, :, 0], ys[..., None] - meta["means2d"][0, :, 1]
+    a, b, c = meta["conics"][0].unbind(-1)
+    raw = scene["opacities"] * torch.exp(-(0.5 * (a * dx ** 2 + c * dy ** 2) + b * dx * dy))
+    assert (raw > 0.99).sum() >= 3  # pixels where the clamp applies
+    inputs = _inputs(scene, 1)
+    (ours_in, ours), (ref_in, ref) = _render_both(inputs)
+    torch.testing.assert_close(ours, ref, rtol=1e-9, atol=1e-9)
+    ours.sum().backward()
+    ref.sum().backward()
+    assert_gradients_close(ours_in, ref_in)
+
+
 @pytest.mark.parametrize("sh_degree", [None, 2])
 def test_gradcheck_float64_every_input(sh_degree):
     """Finite differences (float64) against the analytic gradient of every differentiable input."""
