@@ -307,6 +307,39 @@ def test_llff_layout_matches_exact_poses(synthetic_dir, tmp_path):
     torch.testing.assert_close(scene.Ks[0], torch.from_numpy(intrinsics(SYNTHETIC)).float())
 
 
+def _llff_poses_bounds() -> np.ndarray:
+    camera_to_world = np.linalg.inv(dome_viewmats(SYNTHETIC))
+    right, down, forward = camera_to_world[:, :3, 0], camera_to_world[:, :3, 1], camera_to_world[:, :3, 2]
+    hwf = np.tile([SYNTHETIC.height, SYNTHETIC.width, intrinsics(SYNTHETIC)[0, 0]], (12, 1))
+    matrices = np.stack([down, right, -forward, camera_to_world[:, :3, 3], hwf], axis=2)  # [C,3,5]
+    return np.concatenate([matrices.reshape(12, 15), np.ones((12, 2))], 1)
+
+
+@pytest.mark.parametrize("column,value", [(14, math.nan), (14, 0.0), (14, -77.0), (14, math.inf), (4, math.nan)])
+def test_a_calibration_that_is_not_a_camera_is_refused_at_load(synthetic_dir, tmp_path, column, value):
+    """A NaN, zero or infinite focal length (or image height) ended in a linear-algebra traceback; a negative one
+    trained to nonsense, silently. The loader names the image and the file."""
+    folder = _strip_to_images(synthetic_dir, tmp_path / "llff")
+    poses_bounds = _llff_poses_bounds()
+    poses_bounds[3, column] = value
+    np.save(folder / "poses_bounds.npy", poses_bounds)
+    _expect_error(folder, re.escape(f"{folder / 'poses_bounds.npy'}: the calibration of view_003.png is not a "
+                                    "camera's"))
+
+
+@pytest.mark.parametrize("content", [b"", b"0 1 2\n", np.array(["a"] * 17)])
+def test_an_llff_poses_file_that_is_not_an_array_of_numbers_is_named(synthetic_dir, tmp_path, content):
+    """An empty .npy made numpy raise EOFError, which the command line printed as a bare "Aborted."; text asked
+    the user to load it with allow_pickle."""
+    folder = _strip_to_images(synthetic_dir, tmp_path / "llff")
+    if isinstance(content, bytes):
+        (folder / "poses_bounds.npy").write_bytes(content)
+    else:
+        np.save(folder / "poses_bounds.npy", content)
+    _expect_error(folder, re.escape(f"LLFF poses {folder / 'poses_bounds.npy'} ")
+                  + "(is not a NumPy array file|holds <U1 values, expected real numbers)")
+
+
 def test_transforms_json_matches_exact_poses(synthetic_dir, tmp_path):
     folder = _strip_to_images(synthetic_dir, tmp_path / "nerfstudio")
     viewmats = dome_viewmats(SYNTHETIC)

@@ -1,5 +1,5 @@
 """Output files: atomic (a reader never sees a half-written checkpoint, PLY, table or report), strict JSON, and
-output folders checked before any work."""
+output folders checked before any work; NumPy arrays read with one line naming a file that is not one."""
 
 from __future__ import annotations
 
@@ -9,6 +9,8 @@ import os
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
+
+import numpy as np
 
 from warpbags.errors import WarpbagsError
 
@@ -89,3 +91,21 @@ def finite_json(value, indent: int | None = 2) -> str:
         return item
 
     return json.dumps(finite(value), indent=indent, allow_nan=False)
+
+
+def read_array(path: Path, what: str) -> np.ndarray:
+    """The real numbers in the .npy file `path` (no pickles), or one line naming it as `what`.
+
+    Raises:
+        WarpbagsError: unreadable, not a NumPy array file (empty or truncated: numpy's EOFError, which the command
+            line turned into a bare "Aborted."; text; a pickle), or not real numbers.
+    """
+    try:
+        array = np.load(path)
+    except OSError as error:
+        raise WarpbagsError(f"cannot read {what} {path}: {error.strerror or error}") from None
+    except (ValueError, EOFError):
+        raise WarpbagsError(f"{what} {path} is not a NumPy array file (empty, truncated, text or pickled)") from None
+    if not (np.issubdtype(array.dtype, np.floating) or np.issubdtype(array.dtype, np.integer)):
+        raise WarpbagsError(f"{what} {path} holds {array.dtype} values, expected real numbers")
+    return array

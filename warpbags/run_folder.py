@@ -39,7 +39,7 @@ from warpbags.cameras import improper_viewmats
 from warpbags.configs.train import TrainConfig, is_number
 from warpbags.data.scene import Scene, SceneNormalization
 from warpbags.errors import WarpbagsError, one_line
-from warpbags.files import atomic_output, is_temporary, temporary_name
+from warpbags.files import atomic_output, is_temporary, read_array, temporary_name
 from warpbags.gaussians import read_ply, write_ply
 from warpbags.pose_history import HISTORY_FILE, RECORD_EVERY, record_poses
 
@@ -152,10 +152,7 @@ class RunFolder:
         path = self.path / f"{name}.npy"
         if not path.is_file():
             return None
-        try:
-            array = np.load(path).astype(np.float64)
-        except (OSError, ValueError, TypeError) as error:
-            raise WarpbagsError(f"{path}: unreadable ({error})") from None
+        array = read_array(path, "camera file").astype(np.float64)
         return checked_cameras(path, array, intrinsics=name == "intrinsics")
 
     def read_cameras(self) -> dict[str, np.ndarray | None]:

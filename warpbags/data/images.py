@@ -16,6 +16,7 @@ import numpy as np
 from PIL import Image
 
 from warpbags.errors import WarpbagsError
+from warpbags.files import read_array
 
 IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".PNG", ".JPG", ".JPEG")
 JPEG_EXTENSIONS = (".jpg", ".jpeg")
@@ -235,10 +236,7 @@ def read_depths(root: Path, names: list[str], width: int, height: int) -> tuple[
                 expected = folder / f"{Path(name).stem}{extension}"
                 raise WarpbagsError(f"depth map for image {name} is missing: expected {expected}")
             if extension == ".npy":
-                try:
-                    depth = np.load(path).astype(np.float32)
-                except (OSError, ValueError) as error:
-                    raise WarpbagsError(f"cannot read depth map {path}: {error}") from None
+                depth = read_array(path, "depth map").astype(np.float32)
             else:
                 raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
                 if raw is None or raw.ndim != 2:

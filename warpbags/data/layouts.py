@@ -21,6 +21,7 @@ from warpbags.cameras import improper_viewmats
 from warpbags.data.colmap import read_model
 from warpbags.data.images import IMAGE_EXTENSIONS, first_existing_image_dir, image_size
 from warpbags.errors import WarpbagsError
+from warpbags.files import read_array
 
 # OpenGL (x right, y up, z back) camera axes to OpenCV (x right, y down, z forward): flip y and z.
 OPENGL_TO_OPENCV = np.diag([1.0, -1.0, -1.0, 1.0])
@@ -71,7 +72,9 @@ def read_layout_cameras(root: Path) -> LayoutCameras:
 
 def _proper(cameras: LayoutCameras, source: Path) -> LayoutCameras:
     """`cameras`, whose poses must each be a rotation and a translation (`improper_viewmats`): a scaled or sheared
-    matrix would train as a wrong camera, and every reader of the run would refuse its poses afterwards.
+    matrix would train as a wrong camera, and every reader of the run would refuse its poses afterwards; and whose
+    calibrations must be finite with positive focal lengths and image sizes (a negative focal length trained to
+    nonsense, a NaN one failed deep in linear algebra).
 
     Raises:
         WarpbagsError: one is not, named by its image and `source`, the file it came from.
@@ -80,6 +83,10 @@ def _proper(cameras: LayoutCameras, source: Path) -> LayoutCameras:
     if improper:
         raise WarpbagsError(f"{source}: the pose of {cameras.image_names[improper[0]]} is not a rotation and a "
                             "translation (scaled, sheared, mirrored or not finite)")
+    for name, K, size in zip(cameras.image_names, cameras.Ks, cameras.calibration_sizes):
+        if not (np.isfinite(K).all() and K[0, 0] > 0 and K[1, 1] > 0 and np.isfinite(size).all() and (size > 0).all()):
+            raise WarpbagsError(f"{source}: the calibration of {name} is not a camera's (focal lengths {K[0, 0]:g}, "
+                                f"{K[1, 1]:g} and image size {size[0]:g} x {size[1]:g} must be finite and > 0)")
     return cameras
 
 
@@ -103,10 +110,7 @@ def colmap_cameras(root: Path) -> LayoutCameras:
 def llff_cameras(root: Path) -> LayoutCameras:
     """`poses_bounds.npy`: per image [R | t | hwf] 3x5 camera-to-world, columns (down, right, back), then near/far."""
     path = root / "poses_bounds.npy"
-    try:
-        poses_bounds = np.load(path)
-    except (OSError, ValueError) as error:
-        raise WarpbagsError(f"cannot read {path}: {error}") from None
+    poses_bounds = read_array(path, "LLFF poses")
     if poses_bounds.ndim != 2 or poses_bounds.shape[1] != 17:
         raise WarpbagsError(f"{path} has shape {poses_bounds.shape}, expected [N,17]")
     image_dir = first_existing_image_dir(root)
