@@ -791,18 +791,24 @@ def parse_settings(settings: list[str]) -> dict[str, Any]:
     "repair.b=2" -> {"repair": {"b": 2}}. Values are JSON (numbers, true/false, lists); anything else is a string.
 
     Raises:
-        WarpbagsError: an item without "=", or a group's field after the group was set to a value.
+        WarpbagsError: an item without "=", a group's field after the group was set to a value, the preset (chosen
+            by --preset: a `--set` relabelled the run without changing its schedule), or a field set to null
+            outside a group (`load_preset` takes None as "the preset's value": it was ignored silently).
     """
     overrides: dict[str, Any] = {}
     for item in settings:
         key, separator, text = item.partition("=")
         if not separator or not key:
             raise WarpbagsError(f"--set {item!r}: expected name=value or group.name=value")
+        if key == "preset":
+            raise WarpbagsError(f"--set {item!r}: the preset is chosen by --preset, which sets every other field")
         try:
             value = json.loads(text)
         except json.JSONDecodeError:
             value = text
         group, _, name = key.rpartition(".")
+        if value is None and not group:
+            raise WarpbagsError(f"--set {item!r}: null is not a value of {key}; leave it out for the preset's")
         if group:
             fields = overrides.setdefault(group, {})
             if not isinstance(fields, dict):

@@ -126,6 +126,9 @@ def test_an_option_and_a_set_of_its_field_are_one_error_line(option):
     (["--set", "views"], "expected name=value"),
     (["--set", "nonsense=1"], "unknown training option(s): nonsense"),
     (["--set", "views=1"], "--views must be >= 2, got 1"),
+    # the preset only relabelled the run; a top-level null was dropped as "the preset's value", silently
+    (["--set", 'preset="paper"'], "the preset is chosen by --preset"),
+    (["--set", "seed=null"], "--set 'seed=null': null is not a value of seed; leave it out for the preset's"),
 ])
 def test_fields_given_twice_and_bad_settings_are_one_line(arguments, message):
     assert message in one_line(runner.invoke(app, ["train", "scene", *arguments]))
