@@ -596,6 +596,11 @@ def test_a_sweep_with_two_views_reports_their_pairwise_errors(finished_run, tmp_
         report = json.loads((spec.out / row["run"] / "eval.json").read_text())
         assert report["alignment"] == "pairwise"
         assert row["rot_err_initial"] == report["poses"]["pairwise"]["initial"]["rotation_deg_mean"] > 0.5
+    # `warpbags eval` asked for procrustes titles its held-out table with the alignment it used
+    result = runner.invoke(app, ["eval", str(spec.out / rows[0]["run"]), "--refine-iters", "0"],
+                           env={"COLUMNS": "200"})
+    assert result.exit_code == 0 and "held-out views (" in result.output, result.output
+    assert "pairwise alignment)" in result.output and "procrustes alignment)" not in result.output, result.output
 
 
 def test_json_outputs_write_a_non_finite_number_as_null():
