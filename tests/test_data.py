@@ -719,6 +719,13 @@ def _expect_error(folder: Path, match: str, **kwargs) -> None:
         assert _snapshot(folder) == before
 
 
+def test_a_resolution_the_scene_does_not_ship_names_the_folders_it_has(maryrose):
+    """maryrose ships images_8/ only: -r 1 said its first image was missing, not that the folder was."""
+    with pytest.raises(WarpbagsError, match=re.escape(f"no images_1/ or images/ folder in {maryrose.root} "
+                                                      "(resolution 1); it has images_8/")):
+        load_scene(maryrose.root, resolution=1)
+
+
 def test_missing_folder(tmp_path):
     _expect_error(tmp_path / "nowhere", "nowhere does not exist")
 

@@ -65,10 +65,6 @@ def load_scene(
         raise WarpbagsError(f"scene folder {root} does not exist")
     cameras = read_layout_cameras(root)
     resolution = _resolution(root, cameras, resolution)
-
-    image_folders = (f"images_{resolution}", "images")
-    if cameras.layout != "transforms" and not any((root / folder).is_dir() for folder in image_folders):
-        raise WarpbagsError(f"no images_{resolution}/ or images/ folder in {root} (resolution {resolution})")
     image_files = [resolution_path(root, path, resolution) for path in cameras.image_paths]
     images, alphas, width, height = read_images(image_files, cameras.image_paths, resolution,
                                                 alpha_masks=mask_folder(root, resolution) is None)
@@ -147,6 +143,7 @@ def _resolution(root: Path, cameras: LayoutCameras, asked: int | None) -> int:
     if not cameras.image_paths:
         raise WarpbagsError(f"no images in {root}: its {cameras.layout} cameras name none")
     factor = asked or (1 if cameras.layout == "transforms" else default_resolution(root))
+    _require_image_folder(root, cameras, factor)
     first = resolution_path(root, cameras.image_paths[0], factor)
     width, height = image_size(first)
     if first != cameras.image_paths[0]:  # read from images_{factor}/: the full size is factor times its own
@@ -163,7 +160,17 @@ def _resolution(root: Path, cameras: LayoutCameras, asked: int | None) -> int:
         raise WarpbagsError(f"{root}: {count} images of {width}x{height} px at resolution {factor} take "
                             f"{scene_bytes(count, width, height, factor) / 1024**3:.1f} GiB, more than this machine's "
                             f"{memory / 1024**3:.1f} GiB: choose a coarser --resolution (2, 4 or 8)")
+    _require_image_folder(root, cameras, factor)
     return factor
+
+
+def _require_image_folder(root: Path, cameras: LayoutCameras, factor: int) -> None:
+    """An `images_{factor}/` or `images/` folder to read a COLMAP or LLFF scene at `factor` from (a transforms.json
+    names its images' paths itself); said with the folders the scene has, not as the first image missing."""
+    if cameras.layout != "transforms" and not any((root / folder).is_dir() for folder in (f"images_{factor}", "images")):
+        folders = sorted(f"{path.name}/" for path in root.glob("images*") if path.is_dir())
+        raise WarpbagsError(f"no images_{factor}/ or images/ folder in {root} (resolution {factor}); it has "
+                            f"{', '.join(folders) or 'no image folder'}")
 
 
 def object_center(
