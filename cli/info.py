@@ -61,7 +61,9 @@ def info(
 
 def synth(
     out_dir: Path = typer.Argument(..., help="Folder to write the synthetic scene to (must not exist or be empty)."),
-    views: int = typer.Option(SyntheticOptions.views, help="Number of cameras on the dome."),
+    views: int = typer.Option(SyntheticOptions.views, help="Number of cameras on the dome (at least 4). About one in "
+                              "eight is held out for testing, never one of the 4/6/9-view splits: training on 4 views "
+                              "needs 5 or more."),
     size: int = typer.Option(SyntheticOptions.width, help="Image width and height in pixels."),
     seed: int = typer.Option(SyntheticOptions.seed, help="Seed for textures and sampled points."),
     light_jitter_deg: float = typer.Option(0.0, help="Turn each view's light by up to this angle (lighting that "
