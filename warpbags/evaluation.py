@@ -232,6 +232,14 @@ def psnr(image: np.ndarray, target: np.ndarray) -> float:
     return float(peak_signal_noise_ratio(target, image, data_range=1.0))
 
 
+def ssim(image: np.ndarray, target: np.ndarray) -> float:
+    """SSIM of an [H,W,3] image in [0, 1] against its target as 3DGS, GaussianObject and nerfstudio report it (Wang et
+    al.: an 11 x 11 Gaussian window of sigma 1.5, population statistics; scikit-image's, which keeps the pixels the
+    window fits in). scikit-image's default, a 7 x 7 uniform window, reads about 0.015 higher."""
+    return float(structural_similarity(target, image, channel_axis=-1, data_range=1.0, gaussian_weights=True,
+                                       sigma=1.5, use_sample_covariance=False))
+
+
 def image_metrics(images: torch.Tensor, targets: torch.Tensor, lpips_metric: LpipsMetric,
                   flip_metric: FlipMetric | None = None) -> dict:
     """Per-view and mean PSNR, SSIM, FLIP, LPIPS of [C,H,W,3] renders against targets (both on the same
@@ -241,7 +249,7 @@ def image_metrics(images: torch.Tensor, targets: torch.Tensor, lpips_metric: Lpi
     for image, target in zip(images.clamp(0, 1).double().numpy(), targets.double().numpy()):
         per_view.append({
             "psnr": psnr(image, target),
-            "ssim": float(structural_similarity(target, image, channel_axis=-1, data_range=1.0)),
+            "ssim": ssim(image, target),
             "flip": flip_metric(image, target),
             "lpips": lpips_metric(image, target),
         })
