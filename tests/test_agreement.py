@@ -79,6 +79,22 @@ def test_a_camera_one_run_turned_is_the_one_that_disagrees():
     assert result.pixels[0, [0, 1, 3]].max() < 1e-6
 
 
+def test_centre_distances_are_a_share_of_the_orbit_in_the_frame_they_are_measured_in():
+    """Training leaves a run's scale a few % off the scene's. The same run in a frame twice as large (its cameras'
+    centres and its object scaled about the origin) disagrees with another run by the same share of the orbit: it
+    read twice as much when divided by the scene's radius of 4."""
+    poses = orbit_viewmats(4)
+    moved = poses.clone()
+    moved[2, :3, 3] -= moved[2, :3, :3] @ (0.4 * moved[2, 0, :3])  # its centre 0.4 along its own x axis
+    doubled = moved.clone()
+    doubled[:, :3, 3] *= 2
+    small, large = fake_run("b", moved), fake_run("b2", doubled)
+    large.params = {**large.params, "means": 2 * large.params["means"]}
+    near = pose_agreement([fake_run("a", poses), small]).centre_percent
+    assert near[0, 2] > 2.0  # camera 2 moved 10% of the orbit sideways; Procrustes spreads part of it
+    np.testing.assert_allclose(pose_agreement([fake_run("a", poses), large]).centre_percent, near, rtol=1e-6)
+
+
 def test_the_central_run_is_the_one_the_others_agree_with():
     poses = orbit_viewmats(5)
     near = poses.clone()
