@@ -413,6 +413,23 @@ def test_transforms_json_intrinsics_that_are_no_numbers_are_one_line(synthetic_d
     _expect_error(folder, re.escape(f"{folder / 'transforms.json'}: frame images/view_003.png: {named}"))
 
 
+@pytest.mark.parametrize("damage, named", [
+    (lambda frames: frames.__setitem__(3, 5), "a frame is 5, not an object with a file_path"),  # was a TypeError
+    (lambda frames: frames[3].__setitem__("file_path", None), "a frame has no file_path (a path, got null)"),
+    (lambda frames: frames.append(dict(frames[3])), "image images/view_003.png is named by two frames"),
+])
+def test_transforms_json_frames_that_name_no_image_or_one_twice_are_one_line(synthetic_dir, tmp_path, damage, named):
+    """A frame that is no object was a TypeError traceback, a null file_path read as the image "None.png", and an
+    image named by two frames trained as two views (a 9-view split held it twice)."""
+    folder = _strip_to_images(synthetic_dir, tmp_path / "frames")
+    opengl = np.linalg.inv(dome_viewmats(SYNTHETIC)) @ np.diag([1.0, -1.0, -1.0, 1.0])
+    frames = [{"file_path": f"images/view_{i:03d}", "transform_matrix": opengl[i].tolist()} for i in range(12)]
+    damage(frames)
+    (folder / "transforms.json").write_text(json.dumps({"camera_angle_x": math.radians(SYNTHETIC.fov_deg),
+                                                        "frames": frames}))
+    _expect_error(folder, re.escape(f"{folder / 'transforms.json'}: {named}"))
+
+
 def test_transforms_json_null_intrinsics_are_absent_ones(synthetic_dir, tmp_path):
     """null for an optional field (principal point, distortion, image size) is read as its absence, as before the
     fields were checked: the same cameras as without them."""

@@ -190,6 +190,10 @@ def transforms_cameras(root: Path) -> LayoutCameras:
             raise WarpbagsError(f"{path}: k3/k4 distortion is not supported (undistort the images first)")
         rows.append((name, image_path, np.linalg.inv(camera_to_world), K, (width, height), distortion))
     rows.sort(key=lambda row: row[0])
+    repeated = [name for name, following in zip([row[0] for row in rows], [row[0] for row in rows[1:]])
+                if name == following]
+    if repeated:  # one image as two views: a split could hold it twice
+        raise WarpbagsError(f"{', '.join(str(path) for path in sources)}: image {repeated[0]} is named by two frames")
     return LayoutCameras(
         layout="transforms",
         image_paths=[row[1] for row in rows],
@@ -228,8 +232,10 @@ def _frame_number(path: Path, name: str, fields: dict, key: str, default: object
 
 
 def _frame_name(root: Path, frame: dict, source: Path) -> str:
-    if "file_path" not in frame:
-        raise WarpbagsError(f"{source}: a frame has no file_path")
+    if not isinstance(frame, dict):
+        raise WarpbagsError(f"{source}: a frame is {json.dumps(frame)[:40]}, not an object with a file_path")
+    if not isinstance(frame.get("file_path"), str) or not frame["file_path"]:
+        raise WarpbagsError(f"{source}: a frame has no file_path (a path, got {json.dumps(frame.get('file_path'))})")
     relative = Path(str(frame["file_path"]))
     if not relative.suffix:  # Blender writes "./train/r_0" for "./train/r_0.png"
         relative = relative.with_suffix(".png")
