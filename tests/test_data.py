@@ -565,6 +565,10 @@ def test_masks_saved_as_0_and_1_are_read_and_an_empty_mask_is_named(scene_copy):
     expected = load_scene(scene_copy).masks[3]
     cv2.imwrite(str(scene_copy / "masks" / "view_003.png"), (mask > 127).astype(np.uint8))  # 0 / 1
     assert torch.equal(load_scene(scene_copy).masks[3], expected)
+    # 16-bit PNGs, 0 / 1 and 0 / 65535: decoded as 8 bits the first read as empty ("holds no object pixel")
+    for level in (1, 65535):
+        cv2.imwrite(str(scene_copy / "masks" / "view_003.png"), (mask > 127).astype(np.uint16) * level)
+        assert torch.equal(load_scene(scene_copy).masks[3], expected)
     cv2.imwrite(str(scene_copy / "masks" / "view_003.png"), np.zeros_like(mask))
     _expect_error(scene_copy, r"mask .*view_003.png holds no object pixel")
 

@@ -184,10 +184,12 @@ def _resize_to(array: np.ndarray, width: int, height: int, path: Path, what: str
 
 
 def _read_mask(path: Path, width: int) -> np.ndarray | None:
-    """A mask file as uint8 grayscale; a JPEG at 2, 4 or 8 times `width` is decoded at that reduction."""
+    """A mask file as grayscale of its own depth (uint8, or uint16 for a 16-bit PNG, which 8-bit decoding shifted
+    to 0 where it held 0 / 1); a JPEG at 2, 4 or 8 times `width` is decoded at that reduction."""
     reduction = round(image_size(path)[0] / width) if path.suffix.lower() in JPEG_EXTENSIONS else 1
     reduced = _decoded_reduced(path, reduction)
-    return cv2.imread(str(path), JPEG_REDUCED_FLAGS[reduction][1] if reduced else cv2.IMREAD_GRAYSCALE | _AS_STORED)
+    return cv2.imread(str(path), JPEG_REDUCED_FLAGS[reduction][1] if reduced else
+                      cv2.IMREAD_GRAYSCALE | cv2.IMREAD_ANYDEPTH | _AS_STORED)
 
 
 def mask_folder(root: Path, resolution: int) -> Path | None:
@@ -200,7 +202,8 @@ def mask_folder(root: Path, resolution: int) -> Path | None:
 
 def read_masks(root: Path, names: list[str], width: int, height: int, resolution: int) -> np.ndarray | None:
     """[C,H,W] float32 0/1 masks from `masks_{resolution}/` or `masks/`, or None without a mask folder. A mask file
-    holds 0 / 255 (or grey levels, thresholded at half) or, as some segmentation tools save them, 0 / 1.
+    holds 0 / 255 (or grey levels, thresholded at half; 0 / 65535 in 16 bits) or, as some segmentation tools save
+    them, 0 / 1.
 
     Raises:
         WarpbagsError: a mask missing, unreadable, of another size than its image, or without any object pixel.
@@ -216,7 +219,8 @@ def read_masks(root: Path, names: list[str], width: int, height: int, resolution
         mask = _read_mask(path, width)
         if mask is None:
             raise WarpbagsError(f"mask {path} is unreadable")
-        full_scale = 1.0 if mask.max() == 1 else 255.0  # 0 / 1 masks, else 8-bit levels
+        # 0 / 1 masks, else levels of the file's depth (8 or 16 bits)
+        full_scale = 1.0 if mask.max() == 1 else float(np.iinfo(mask.dtype).max)
         mask = _resize_to(mask.astype(np.float32) / full_scale, width, height, path, "mask", nearest=False)
         masks[index] = mask >= 0.5
         if not masks[index].any():
