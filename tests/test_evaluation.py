@@ -344,9 +344,10 @@ def test_turntable_frames_and_video(finished_run):
     assert first.shape[:2] == (64, 64) and first.min() < 200  # the object is in view, not just white background
     capture = cv2.VideoCapture(str(finished_run / "turntable.mp4"))
     assert int(capture.get(cv2.CAP_PROP_FRAME_COUNT)) == 6
-    # a shorter render afterwards leaves no frame of the longer one behind
+    # a shorter render afterwards leaves no frame (nor the video) of the longer one behind
     assert runner.invoke(app, ["render", str(finished_run), "--frames", "3", "--no-video"]).exit_code == 0
     assert len(list((finished_run / "turntable").glob("frame_*.png"))) == 3
+    assert not (finished_run / "turntable.mp4").exists()
 
 
 def test_a_turntable_of_an_odd_size_keeps_every_pixel_in_its_video(finished_run, tmp_path):

@@ -183,7 +183,7 @@ def export_run(path: str | Path, out: str | Path | None = None, colmap: bool = T
 @torch_threads(1)
 def render_turntable(path: str | Path, frames: int = 36, video: bool = True) -> Path:
     """Novel views on a full orbit of the object: `<run>/turntable/frame_XXX.png` and, with `video`,
-    `<run>/turntable.mp4` (OpenCV, mp4v, 12 fps). The orbit starts at training camera 0 and turns about the
+    `<run>/turntable.mp4` (OpenCV, mp4v, 12 fps; without it, an earlier render's video is removed). The orbit starts at training camera 0 and turns about the
     training cameras' mean up axis through the object centre. Returns the frame folder."""
     if frames < 1:
         raise WarpbagsError(f"--frames must be >= 1, got {frames}")
@@ -196,8 +196,9 @@ def render_turntable(path: str | Path, frames: int = 36, video: bool = True) -> 
     names = [f"frame_{index:03d}.png" for index in range(frames)]
     for name in names + [path.name for path in out.glob("frame_*.png")]:  # written, or removed as stale
         writable_file(out / name, "to write a turntable frame to")
-    if video:
-        writable_file(run.path / "turntable.mp4", "to write the turntable video to")
+    video_path = run.path / "turntable.mp4"
+    if video or video_path.exists():  # written, or removed as stale (an earlier render's shows other frames)
+        writable_file(video_path, "to write the turntable video to")
     camera_0 = run.intrinsics[0].float()
     viewmats = turntable_viewmats(run.poses_final, frames).float()
     Ks = camera_0.expand(frames, 3, 3).contiguous()
@@ -213,10 +214,12 @@ def render_turntable(path: str | Path, frames: int = 36, video: bool = True) -> 
         frame = out / name
         if not cv2.imwrite(str(frame), cv2.cvtColor(image, cv2.COLOR_RGB2BGR)):
             raise WarpbagsError(f"could not write {frame}")
-    if video:
+    if not video:
+        video_path.unlink(missing_ok=True)
+    else:
         # mp4v holds even sizes only (OpenCV would drop an odd size's last row or column): repeat it instead
         pad = ((0, height % 2), (0, width % 2), (0, 0))
-        with atomic_output(run.path / "turntable.mp4") as temporary:
+        with atomic_output(video_path) as temporary:
             writer = cv2.VideoWriter(str(temporary), cv2.VideoWriter_fourcc(*"mp4v"), 12,
                                      (width + width % 2, height + height % 2))
             if not writer.isOpened():
