@@ -250,7 +250,8 @@ def _intersect(primitive: Primitive, origins: np.ndarray, directions: np.ndarray
         root = -b - np.sqrt(np.maximum(disc, 0))
         hit = (disc >= 0) & (root > eps)
         t[hit] = root[hit]
-        normals = (local_origins + t[:, None] * local_directions) / radius
+        with np.errstate(invalid="ignore"):  # a missing ray's t is inf: inf * 0 where its direction has a zero
+            normals = (local_origins + t[:, None] * local_directions) / radius
     else:  # cylinder along local z
         radius, half_height = primitive.size[0], primitive.size[2]
         ox, oy, oz = local_origins.T
