@@ -4,7 +4,8 @@ Layout:
     config.json        the resolved TrainConfig plus scene/view information
     poses_true.npy     [C,4,4] world-to-camera poses of the training views (normalized scene world)
     poses_init.npy     [C,4,4] the (noisy) poses given to training
-    poses_start.npy    [C,4,4] the poses the optimization starts from (after the mask-centroid start, if used)
+    poses_start.npy    [C,4,4] the poses the optimization starts from (after the mask-centroid start and the
+                       silhouette-coherence solve, where used)
     intrinsics.npy     [C,3,3] the training views' intrinsics at the training resolution
     log.jsonl          one JSON object per iteration (its "iter" is the count of iterations done)
     poses_history.npz  the poses every RECORD_EVERY (10) iterations, for `warpbags view`: `iterations` [T] int64,
