@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import math
 import os
 import re
 import shutil
@@ -138,6 +139,17 @@ def test_image_metrics_are_psnr_of_the_clamped_render_and_the_literatures_ssim()
         t, i = target[view].double().numpy(), clamped[view].double().numpy()
         assert metrics["per_view"][view]["ssim"] == pytest.approx(_gaussian_window_ssim(i, t), rel=1e-9)
     assert metrics["mean"]["psnr"] == pytest.approx(float((-10 * torch.log10(mse)).mean()), rel=1e-9)
+
+
+def test_ssim_of_images_smaller_than_its_window_is_scored_not_refused():
+    """scikit-image refuses an image smaller than the 11 x 11 window (a ValueError out of `warpbags eval`): such an
+    image is scored with the largest odd uniform window it holds, and one under 3 pixels is NaN (null in eval.json)."""
+    from warpbags.evaluation import ssim
+
+    target = np.random.default_rng(0).random((8, 9, 3))
+    assert ssim(target, target) == pytest.approx(1.0)
+    assert 0.0 < ssim(0.8 * target + 0.1, target) < 1.0
+    assert math.isnan(ssim(target[:2], target[:2]))
 
 
 def _gaussian_window_ssim(image: np.ndarray, target: np.ndarray) -> float:

@@ -21,6 +21,7 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import logging
+import math
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -232,12 +233,22 @@ def psnr(image: np.ndarray, target: np.ndarray) -> float:
     return float(peak_signal_noise_ratio(target, image, data_range=1.0))
 
 
+SSIM_WINDOW = 11  # pixels: the Gaussian window of sigma 1.5, truncated at 3.5 sigma
+
+
 def ssim(image: np.ndarray, target: np.ndarray) -> float:
     """SSIM of an [H,W,3] image in [0, 1] against its target as 3DGS, GaussianObject and nerfstudio report it (Wang et
     al.: an 11 x 11 Gaussian window of sigma 1.5, population statistics; scikit-image's, which keeps the pixels the
-    window fits in). scikit-image's default, a 7 x 7 uniform window, reads about 0.015 higher."""
-    return float(structural_similarity(target, image, channel_axis=-1, data_range=1.0, gaussian_weights=True,
-                                       sigma=1.5, use_sample_covariance=False))
+    window fits in). scikit-image's default, a 7 x 7 uniform window, reads about 0.015 higher. An image under 11
+    pixels a side is scored with the largest odd uniform window it holds (NaN under 3 pixels) instead of refused."""
+    side = min(image.shape[:2])
+    if side >= SSIM_WINDOW:
+        return float(structural_similarity(target, image, channel_axis=-1, data_range=1.0, gaussian_weights=True,
+                                           sigma=1.5, use_sample_covariance=False))
+    window = side if side % 2 else side - 1
+    if window < 3:
+        return math.nan
+    return float(structural_similarity(target, image, channel_axis=-1, data_range=1.0, win_size=window))
 
 
 def image_metrics(images: torch.Tensor, targets: torch.Tensor, lpips_metric: LpipsMetric,
