@@ -77,6 +77,25 @@ def test_ray_sweep_gives_the_local_results_and_resumes(scene, tmp_path, local_ra
     assert evals == {name: (spec.out / name / "eval.json").stat().st_mtime_ns for name in names}
 
 
+def test_a_ray_sweep_stopped_by_sigterm_exits_143_without_rays_stack_dump(scene, tmp_path):
+    """Ray's core worker took SIGTERM with a native handler: a stack dump and exit 1. The sweep stops as a local one
+    does: 143, "stopped by SIGTERM", Ray shut down."""
+    import signal
+    import subprocess
+
+    command = [sys.executable, "-m", "warpbags.cli.main", "sweep", str(scene), "--rot-noises", "5", "--views", "4",
+               "--seeds", "0", "--iters", "400", "--out", str(tmp_path / "sweep"), "--executor", "ray"]
+    process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                               env={**os.environ, "RAY_USAGE_STATS_ENABLED": "0"})
+    for line in process.stdout:
+        if line.startswith("train "):  # every task submitted once the first line is out: Ray is up
+            break
+    process.send_signal(signal.SIGTERM)
+    stdout, stderr = process.communicate(timeout=300)
+    assert process.returncode == 128 + signal.SIGTERM, stderr[-3000:]
+    assert "stopped by SIGTERM" in stderr and "SIGTERM received" not in stderr, stderr[-3000:]
+
+
 @pytest.mark.parametrize("options, named", [
     (["--executor", "foo"], "foo"),
     (["--executor", "ray", "--address", "127.0.0.1:1"], "127.0.0.1:1"),

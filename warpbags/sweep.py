@@ -16,7 +16,9 @@ import csv
 import dataclasses
 import json
 import os
+import signal
 import socket
+import threading
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Callable, Protocol
@@ -25,7 +27,7 @@ from warpbags.configs.train import DEFAULT_PRESET, MAX_RENDER_THREADS, TrainConf
 from warpbags.data import Scene, open_scene
 from warpbags.data.splits import evaluation_views
 from warpbags.devices import checked_device_name, torch_device
-from warpbags.errors import WarpbagsError
+from warpbags.errors import Stopped, WarpbagsError
 from warpbags.evaluation import evaluate_run
 from warpbags.files import atomic_output, finite_json, writable_folder
 from warpbags.report import plot_sweep
@@ -232,8 +234,14 @@ class RayExecutor:
     def map(self, spec: SweepSpec, runs: list[SweepRun], scene: Scene, log: Log) -> list[dict]:
         ray = _import_ray()
         started_here = not ray.is_initialized()
+        previous = signal.getsignal(signal.SIGTERM)
         if started_here:
             self._connect(ray)
+        # Ray's core worker installs a native handler that prints a stack dump and exits 1 on SIGTERM: the sweep
+        # stops as a local one does instead (its runs resume; Ray is shut down; exit 143)
+        takes_sigterm = started_here and threading.current_thread() is threading.main_thread()
+        if takes_sigterm:
+            signal.signal(signal.SIGTERM, _stop_on_signal)
         try:
             self._check_node_resources(ray)
             # Workers may run in another folder than this process: give them absolute paths.
@@ -241,6 +249,8 @@ class RayExecutor:
         finally:
             if started_here:
                 ray.shutdown()
+            if takes_sigterm and previous is not None:
+                signal.signal(signal.SIGTERM, previous)
 
     def _connect(self, ray) -> None:
         if self.address is None:
@@ -293,6 +303,10 @@ class RayExecutor:
             rows[run] = _task_result(ray, ready, run)
             log(f"finished {run.name}")
         return rows
+
+
+def _stop_on_signal(signum, frame) -> None:
+    raise Stopped(signum)
 
 
 def make_executor(name: str, *, address: str | None = None, cpus_per_run: int | None = None,
