@@ -20,7 +20,8 @@ from warpbags.cli.main import app
 from warpbags.data import SyntheticOptions, ensure_synthetic_scene
 from warpbags.data.colmap import read_model, write_model
 from warpbags.errors import WarpbagsError
-from warpbags.evaluation import FlipMetric, LpipsMetric, comparison_file_names, image_metrics, pose_accuracy
+from warpbags.evaluation import (FlipMetric, LpipsMetric, comparison_file_names, evaluate_run, image_metrics,
+                                 pose_accuracy)
 from warpbags.run_folder import load_run
 from warpbags.gaussians import read_ply, write_ply
 from warpbags.losses import load_lpips
@@ -913,4 +914,19 @@ def test_a_test_split_that_holds_a_training_view_of_the_run_is_one_error(finishe
     result = runner.invoke(app, ["eval", str(run), "--refine-iters", "0"])
     assert result.exit_code == 2 and len(_lines(result)) == 1, result.output
     assert "holds views the run trained on" in result.output and names[test[0]] in result.output
+    assert not (run / "eval.json").exists()
+
+
+def test_eval_json_is_written_last(finished_run, tmp_path, monkeypatch):
+    """A sweep takes eval.json as "evaluated": an evaluation stopped before its report (a kill, a full disk) must
+    leave none, or the sweep would skip the run without its report from then on."""
+    run = _copy_of(finished_run, tmp_path / "run")
+    (run / "eval.json").unlink(missing_ok=True)
+
+    def fail(*args, **kwargs):
+        raise OSError("disk full")
+
+    monkeypatch.setattr("warpbags.evaluation.write_run_report", fail)
+    with pytest.raises(OSError, match="disk full"):
+        evaluate_run(run, refine_iters=0, log=lambda message: None)
     assert not (run / "eval.json").exists()

@@ -142,3 +142,29 @@ def test_device_cuda_without_cuda_is_one_line_before_the_sweep_folder_is_made(sc
     lines = [line for line in result.output.splitlines() if line.strip()]
     assert result.exit_code == 2 and len(lines) == 1 and "no CUDA device" in lines[0], result.output
     assert not out.exists()
+
+
+@pytest.mark.parametrize("blocker, named", [
+    ("bags-4v-rot5-seed0/notes.txt", "bags-4v-rot5-seed0 is not empty (notes.txt) and holds no run to --resume"),
+    ("sweep.csv/", "sweep.csv is a folder, not a file for the sweep's tables and figures"),
+    ("curves.png/", "curves.png is a folder, not a file for the sweep's tables and figures"),
+])
+def test_a_folder_in_the_way_of_a_run_or_the_tables_is_one_line_before_anything_trains(scene, tmp_path, monkeypatch,
+                                                                                        blocker, named):
+    """A run's folder holding other files was refused when its turn came, after the runs before it had trained; a
+    folder named as a table or figure was a traceback after every run. Both are one line before any run trains."""
+
+    def train(*args, **kwargs):
+        raise AssertionError("a run trained")
+
+    monkeypatch.setattr("warpbags.sweep.start_or_resume", train)
+    out = tmp_path / "sweep"
+    path = out / blocker.rstrip("/")
+    if blocker.endswith("/"):
+        path.mkdir(parents=True)
+    else:
+        path.parent.mkdir(parents=True)
+        path.write_text("mine")
+    result = runner.invoke(app, ["sweep", str(scene), "--rot-noises", "5", "--views", "4", "--out", str(out)])
+    lines = [line for line in result.output.splitlines() if line.strip()]
+    assert result.exit_code == 2 and len(lines) == 1 and named in " ".join(result.output.split()), result.output

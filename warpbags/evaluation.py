@@ -359,8 +359,9 @@ def evaluate_run(path: str | Path, *, alignment: str = "procrustes", refine_iter
         stale.unlink()
     for file_name, target, image in zip(comparison_file_names(test.image_names), targets, images):
         _save_comparison(out / file_name, target, image)
+    write_run_report(run.path, result, alignment_for(len(run.poses_final), run.config.pose_alignment), records)
+    # last: a sweep takes eval.json as "evaluated", so a kill before it leaves the run to be evaluated again
     with atomic_output(run.path / "eval.json") as temporary:
         temporary.write_text(finite_json(result))
-    write_run_report(run.path, result, alignment_for(len(run.poses_final), run.config.pose_alignment), records)
     return result
 

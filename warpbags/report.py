@@ -26,6 +26,14 @@ def _pyplot():
     return plt
 
 
+def _save_figure(plt, figure, path: Path) -> None:
+    """`figure` as the PNG `path`, atomically (a kill mid-write leaves the earlier figure, not half a file)."""
+    figure.tight_layout()
+    with atomic_output(path) as temporary:
+        figure.savefig(temporary, dpi=110, format="png")
+    plt.close(figure)
+
+
 def plot_training_curves(records: list[dict], path: Path, alignment: str) -> None:
     """Total loss and pose errors over iterations (the report's Figs. 6 and 7 for one run), the errors as training
     logged them, after `alignment`; a dotted line marks the start of the repair stage."""
@@ -43,9 +51,7 @@ def plot_training_curves(records: list[dict], path: Path, alignment: str) -> Non
     if repair:  # where the repair stage starts
         for axis in (loss_axis, pose_axis):
             axis.axvline(repair[0], color="gray", linestyle=":", linewidth=1)
-    figure.tight_layout()
-    figure.savefig(path, dpi=110)
-    plt.close(figure)
+    _save_figure(plt, figure, path)
 
 
 def image_strip(paths: list[Path], out: Path, height: int = 128) -> list[Path]:
@@ -144,6 +150,10 @@ def write_run_report(run_dir: Path, result: dict, training_alignment: str, recor
     return path
 
 
+SWEEP_FIGURES = ("curves.png", "psnr_vs_noise.png", "pose_error_vs_noise.png")
+"""What `plot_sweep` writes into a sweep's folder."""
+
+
 def plot_sweep(rows: list[dict], out_dir: Path) -> list[Path]:
     """The report's figures for a sweep: PSNR against rotation noise for BAGS and the fixed-pose baseline (Fig. 5),
     final rotation error against noise, and per-run curves over iterations of the total loss (Fig. 6) and of the
@@ -164,9 +174,7 @@ def plot_sweep(rows: list[dict], out_dir: Path) -> list[Path]:
     pose_axis.set(xlabel="iteration", ylabel="rotation error (deg)", title="pose error (Fig. 7)")
     if pose_axis.lines:  # runs without a log (their rows read from eval.json alone) draw no curve to name
         pose_axis.legend(fontsize=7)
-    figure.tight_layout()
-    figure.savefig(out_dir / "curves.png", dpi=110)
-    plt.close(figure)
+    _save_figure(plt, figure, out_dir / "curves.png")
     written.append(out_dir / "curves.png")
     for key, ylabel, name in (("psnr", "held-out PSNR (dB)", "psnr_vs_noise.png"),
                               ("rot_err_final", "final rotation error (deg)", "pose_error_vs_noise.png")):
@@ -184,8 +192,6 @@ def plot_sweep(rows: list[dict], out_dir: Path) -> list[Path]:
                 axis.plot(noises, means, style, label=f"{method}, {views} views")
         axis.set(xlabel="rotation noise (deg)", ylabel=ylabel)
         axis.legend(fontsize=8)
-        figure.tight_layout()
-        figure.savefig(out_dir / name, dpi=110)
-        plt.close(figure)
+        _save_figure(plt, figure, out_dir / name)
         written.append(out_dir / name)
     return written

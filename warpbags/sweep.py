@@ -29,8 +29,8 @@ from warpbags.data.splits import evaluation_views
 from warpbags.devices import checked_device_name, torch_device
 from warpbags.errors import Stopped, WarpbagsError
 from warpbags.evaluation import evaluate_run
-from warpbags.files import atomic_output, finite_json, writable_folder
-from warpbags.report import plot_sweep
+from warpbags.files import atomic_output, finite_json, writable_file, writable_folder
+from warpbags.report import SWEEP_FIGURES, plot_sweep
 from warpbags.run_folder import RunFolder
 from warpbags.threads import limited_host_threads, usable_cores
 from warpbags.trainer import start_or_resume, training_scene
@@ -91,6 +91,8 @@ def run_sweep(spec: SweepSpec, data_root: Path | None = None, log: Log = print,
     executor = executor or LocalExecutor()
     executor.check(spec)
     writable_folder(spec.out, "to hold the sweep")
+    for name in (*SWEEP_TABLES, *SWEEP_FIGURES):  # written after every run: a folder in the way is said now
+        writable_file(spec.out / name, "for the sweep's tables and figures")
     scene = open_scene(spec.scene, root=data_root)
     for run in sweep_runs(spec):  # every run's settings checked before the first one trains
         try:
@@ -365,8 +367,11 @@ def _task_result(ray, ref, run: SweepRun) -> dict:
 def _check_earlier_run(run_dir: Path, config: TrainConfig, scene: Scene) -> None:
     """Raise WarpbagsError when `run_dir` holds a run (finished or not) of another scene folder or other settings than
     `config`: a resumed sweep skips finished runs and continues the others with their saved config, so its table
-    would mix settings. The render threads may differ (a machine's, not the run's)."""
+    would mix settings. The render threads may differ (a machine's, not the run's). A folder that holds no run but
+    other files is refused too."""
     folder = RunFolder(run_dir)
+    if not (_is_done(run_dir) or folder.has_checkpoint() or folder.holds_unfinished_start()):
+        folder.require_new()  # what its training asks when its turn comes: a folder holding something else
     if not (run_dir / "config.json").is_file():
         return
     info = folder.read_info()
@@ -446,10 +451,14 @@ def _lookup(report: object, path: Path, *keys: str) -> object:
     return value
 
 
+SWEEP_TABLES = ("sweep.json", "sweep.csv")
+"""The tables `run_sweep` writes into the sweep's folder, one row per run."""
+
+
 def _write_tables(rows: list[dict], out: Path) -> None:
-    with atomic_output(out / "sweep.json") as temporary:
+    with atomic_output(out / SWEEP_TABLES[0]) as temporary:
         temporary.write_text(finite_json(rows))
-    with atomic_output(out / "sweep.csv") as temporary, open(temporary, "w", newline="") as handle:
+    with atomic_output(out / SWEEP_TABLES[1]) as temporary, open(temporary, "w", newline="") as handle:
         writer = csv.DictWriter(handle, fieldnames=list(rows[0]))
         writer.writeheader()
         writer.writerows(rows)
