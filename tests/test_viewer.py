@@ -264,6 +264,40 @@ def test_view_address_it_cannot_listen_on_is_one_line_not_a_hang(run_dir, argume
     assert result.exit_code == 2 and len(lines) == 1 and message in lines[0], result.output
 
 
+def test_view_takes_the_next_free_port_and_says_when_none_is_free(run_dir, monkeypatch):
+    """Viser moves to the next port when one is busy, and hung forever (a traceback in its thread) when none it
+    tried could be bound: the port is found first, and a range with none free is one line."""
+    import socket
+
+    from warpbags.viewer import server
+
+    held = []
+    while len(held) < 2:  # two adjacent ports held by this test
+        first = socket.socket()
+        first.bind(("127.0.0.1", 0))
+        second = socket.socket()
+        try:
+            second.bind(("127.0.0.1", first.getsockname()[1] + 1))
+            held = [first, second]
+        except OSError:
+            first.close()
+            second.close()
+    port = held[0].getsockname()[1]
+    try:
+        for sock in held:
+            sock.listen()
+        monkeypatch.setattr(server, "PORTS_TRIED", 3)
+        assert server.listen_port("127.0.0.1", port) == port + 2
+        monkeypatch.setattr(server, "PORTS_TRIED", 2)
+        result = runner.invoke(app, ["view", str(run_dir), "--port", str(port)])
+        lines = [line for line in result.output.splitlines() if line.strip()]
+        assert result.exit_code == 2 and len(lines) == 1, result.output
+        assert f"--port {port}: no port from {port} to {port + 1} can be listened on at 127.0.0.1" in lines[0]
+    finally:
+        for sock in held:
+            sock.close()
+
+
 @pytest.mark.parametrize("case", ["missing", "no_ply", "not_ply"])
 def test_view_bad_input_is_one_line(run_dir, tmp_path, case):
     path = {"missing": tmp_path / "nowhere", "no_ply": tmp_path, "not_ply": run_dir / "config.json"}[case]

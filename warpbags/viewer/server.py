@@ -10,6 +10,7 @@ camera (`ClientRenderer`).
 from __future__ import annotations
 
 import contextlib
+import errno
 import io
 import socket
 import sys
@@ -28,12 +29,17 @@ FRUSTUM_LABELS = {"start": "start, red", "optimized": "optimized, blue", "refere
 FRUSTUM_SIZE = 0.08  # of the cameras' median distance to the object
 
 
-def check_listen_address(host: str, port: int) -> None:
-    """Raise WarpbagsError unless a server can listen on `host` from `port` on. Viser, given a port out of range or
-    an address it cannot bind, fails or retries in its server thread while its constructor waits for it forever.
+PORTS_TRIED = 100  # from --port upward, as viser moves to the next port when one is busy
+
+
+def listen_port(host: str, port: int) -> int:
+    """The first port from `port` on (at most `PORTS_TRIED` of them) that a server can listen on at `host`; 0 stays 0
+    (the system chooses). Viser, given a port out of range or an address it cannot bind, fails or retries in its
+    server thread while its constructor waits for it forever: so the port is found here and handed to it.
 
     Raises:
-        WarpbagsError: the port is not 0-65535, or the host is unknown or not an address of this machine.
+        WarpbagsError: the port is not 0-65535, the host is unknown or not an address of this machine, or no port
+            of the range can be listened on (all busy, or below 1024 without the right to).
     """
     if not 0 <= port <= 65535:
         raise WarpbagsError(f"--port must be 0-65535, got {port}")
@@ -41,11 +47,20 @@ def check_listen_address(host: str, port: int) -> None:
         family, kind, protocol, _, address = socket.getaddrinfo(host, 0, type=socket.SOCK_STREAM)[0]
     except socket.gaierror as error:
         raise WarpbagsError(f"--host {host!r}: unknown ({error.strerror})") from None
-    with socket.socket(family, kind, protocol) as probe:
-        try:
-            probe.bind(address)  # port 0: any free one; only the address is in question
-        except OSError as error:
-            raise WarpbagsError(f"--host {host!r}: cannot listen there ({error.strerror})") from None
+    last_error: OSError | None = None
+    for candidate in [0] if port == 0 else range(port, min(port + PORTS_TRIED, 65536)):
+        with socket.socket(family, kind, protocol) as probe:
+            try:
+                probe.bind((address[0], candidate, *address[2:]))
+            except OSError as error:
+                if error.errno == errno.EADDRNOTAVAIL:  # the address, not the port
+                    raise WarpbagsError(f"--host {host!r}: cannot listen there ({error.strerror})") from None
+                last_error = error
+                continue
+        return candidate
+    last = min(port + PORTS_TRIED, 65536) - 1
+    raise WarpbagsError(f"--port {port}: no port from {port} to {last} can be listened on at {host} "
+                        f"({last_error.strerror if last_error else 'none tried'})")
 
 
 class Viewer:
@@ -59,7 +74,7 @@ class Viewer:
     """
 
     def __init__(self, content: ViewerContent, host: str = "127.0.0.1", port: int = 8080, device: str | None = None):
-        check_listen_address(host, port)
+        port = listen_port(host, port)
         self.content = content
         self.gaussians = DeviceGaussians(content, device)
         with contextlib.redirect_stdout(io.StringIO()):  # viser's own URL panel; `warpbags view` prints one line
