@@ -127,6 +127,9 @@ def test_a_first_step_leaves_the_resting_cameras_moments_at_zero():
         state = cameras.optimizer.state[param]
         assert state["exp_avg"][0].abs().max() > 0 and torch.all(state["exp_avg"][1:] == 0)
         assert torch.all(state["exp_avg_sq"][1:] == 0) and torch.all(param.detach()[1:] == 0)
+    fresh = _optimizer(CameraOptimizerSettings(lr=1e-2))
+    fresh.step(torch.tensor([0]))  # no gradient at all: Adam makes no state, and none is restored (was a KeyError)
+    assert torch.all(fresh.params() == 0)
 
 
 def test_each_lbfgs_iteration_of_refine_counts():

@@ -327,17 +327,20 @@ def test_a_calibration_that_is_not_a_camera_is_refused_at_load(synthetic_dir, tm
                                     "camera's"))
 
 
-@pytest.mark.parametrize("content", [b"", b"0 1 2\n", np.array(["a"] * 17)])
+@pytest.mark.parametrize("content", [b"", b"0 1 2\n", np.array(["a"] * 17), "npz"])
 def test_an_llff_poses_file_that_is_not_an_array_of_numbers_is_named(synthetic_dir, tmp_path, content):
     """An empty .npy made numpy raise EOFError, which the command line printed as a bare "Aborted."; text asked
     the user to load it with allow_pickle."""
     folder = _strip_to_images(synthetic_dir, tmp_path / "llff")
     if isinstance(content, bytes):
         (folder / "poses_bounds.npy").write_bytes(content)
+    elif isinstance(content, str):  # an archive of arrays under the .npy name
+        with open(folder / "poses_bounds.npy", "wb") as handle:
+            np.savez(handle, poses=_llff_poses_bounds())
     else:
         np.save(folder / "poses_bounds.npy", content)
     _expect_error(folder, re.escape(f"LLFF poses {folder / 'poses_bounds.npy'} ")
-                  + "(is not a NumPy array file|holds <U1 values, expected real numbers)")
+                  + "(is not a NumPy array file|holds <U1 values, expected real numbers|is an archive of arrays)")
 
 
 def test_transforms_json_matches_exact_poses(synthetic_dir, tmp_path):
@@ -481,6 +484,23 @@ def test_a_text_colmap_model_directly_in_sparse_is_read(scene_copy, synthetic):
     shutil.rmtree(model)
     scene = load_scene(scene_copy)
     assert scene.num_views == synthetic.num_views and scene.layout == synthetic.layout
+
+
+@pytest.mark.parametrize("field, value", [("distortion", math.inf), ("cx", math.nan)])
+def test_a_colmap_calibration_that_is_not_finite_is_refused_by_name(scene_copy, synthetic, field, value):
+    """An infinite distortion coefficient loaded, and undistorted the view into an all-black image with an empty
+    mask; a NaN principal point was reported as bad focal lengths."""
+    Ks = synthetic.Ks.double().numpy().copy()
+    distortions = np.zeros((synthetic.num_views, 4))
+    if field == "cx":
+        Ks[3, 0, 2] = value
+    else:
+        distortions[3, 1] = value
+    shutil.rmtree(scene_copy / "sparse" / "0")
+    write_model(scene_copy / "sparse" / "0", synthetic.image_names, synthetic.viewmats.double().numpy(), Ks,
+                synthetic.width, synthetic.height, distortions=distortions)
+    _expect_error(scene_copy, "the calibration of view_003.png is not a camera's .*"
+                  + ("cx nan" if field == "cx" else r"distortion 0, inf, 0, 0"))
 
 
 # ---------------------------------------------------------------------------------------------------------------

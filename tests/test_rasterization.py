@@ -229,8 +229,10 @@ def test_spherical_harmonics_refuses_fewer_coefficients_than_its_degree_reads():
     from warpbags.wrapper import spherical_harmonics
 
     scene = random_scene(n=5, cams=1)
-    with pytest.raises(ValueError, match=r"degree 3 \(0-3\) needs coeffs \[N, K >= 16, 3\], got \[5, 1, 3\]"):
+    with pytest.raises(ValueError, match=r"degree 3 \(0-3\) needs coeffs \[N = 5, K >= 16, 3\], got \[5, 1, 3\]"):
         spherical_harmonics(scene["means"], torch.rand(5, 1, 3, dtype=torch.float64), scene["viewmats"], 3)
+    with pytest.raises(ValueError, match=r"needs coeffs \[N = 5, K >= 16, 3\], got \[2, 16, 3\]"):  # too few rows
+        spherical_harmonics(scene["means"], torch.rand(2, 16, 3, dtype=torch.float64), scene["viewmats"], 3)
     colors = spherical_harmonics(scene["means"], torch.zeros(5, 16, 3, dtype=torch.float64), scene["viewmats"], 3)
     assert torch.equal(colors, torch.full((1, 5, 3), 0.5, dtype=torch.float64))
 

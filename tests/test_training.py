@@ -484,6 +484,17 @@ def test_sigterm_is_left_to_a_handler_the_process_already_has(scene_dir, tmp_pat
         signal.signal(signal.SIGTERM, previous)
 
 
+def test_a_stop_by_signal_crosses_process_boundaries():
+    """Ray and multiprocessing pickle a task's exception: Stopped is rebuilt from its signal number (its args hold
+    the name, which `signal.Signals` does not take)."""
+    import pickle
+
+    from warpbags.errors import Stopped
+
+    stopped = pickle.loads(pickle.dumps(Stopped(signal.SIGTERM)))
+    assert isinstance(stopped, KeyboardInterrupt) and stopped.signum == signal.SIGTERM
+
+
 def test_train_stopped_by_sigterm_exits_143_and_keeps_its_checkpoint(scene_dir, tmp_path):
     """`warpbags train` stopped by SIGTERM exits with the shell's 128 + 15, which job schedulers read, not Ctrl-C's
     130, and says so; the checkpoint it saved is there to resume from."""

@@ -298,6 +298,25 @@ def test_view_takes_the_next_free_port_and_says_when_none_is_free(run_dir, monke
             sock.close()
 
 
+def test_view_takes_a_port_a_stopped_viewer_left_in_time_wait():
+    """A viewer stopped and started again on its port: the closed connection holds the port in TIME_WAIT, which
+    viser's server (SO_REUSEADDR) binds; the probe skipped it for the next port."""
+    import socket
+
+    from warpbags.viewer import server
+
+    listener = socket.socket()
+    listener.bind(("127.0.0.1", 0))
+    listener.listen()
+    port = listener.getsockname()[1]
+    client = socket.create_connection(("127.0.0.1", port))
+    connection, _ = listener.accept()
+    connection.close()  # the server's side closes first: its port goes to TIME_WAIT
+    client.close()
+    listener.close()
+    assert server.listen_port("127.0.0.1", port) == port
+
+
 @pytest.mark.parametrize("case", ["missing", "no_ply", "not_ply"])
 def test_view_bad_input_is_one_line(run_dir, tmp_path, case):
     path = {"missing": tmp_path / "nowhere", "no_ply": tmp_path, "not_ply": run_dir / "config.json"}[case]

@@ -296,7 +296,8 @@ class CameraOptimizer(torch.nn.Module):
                 param[resting] = values
                 state = self.optimizer.state[param]
                 for key, value in rows.items():
-                    state[key][resting] = value
+                    if key in state:  # a parameter without a gradient has no Adam state yet
+                        state[key][resting] = value
 
     def refine(self, loss_of: Callable[[torch.Tensor], torch.Tensor], iterations: int) -> None:
         """Minimize `loss_of(viewmats)` over the corrections by L-BFGS with a strong-Wolfe line search, for poses

@@ -25,3 +25,6 @@ class Stopped(KeyboardInterrupt):
     def __init__(self, signum: int):
         super().__init__(signal.Signals(signum).name)
         self.signum = signum
+
+    def __reduce__(self):  # rebuilt from the number, not the name its args hold (across Ray or multiprocessing)
+        return Stopped, (self.signum,)

@@ -106,6 +106,8 @@ def read_array(path: Path, what: str) -> np.ndarray:
         raise WarpbagsError(f"cannot read {what} {path}: {error.strerror or error}") from None
     except (ValueError, EOFError):
         raise WarpbagsError(f"{what} {path} is not a NumPy array file (empty, truncated, text or pickled)") from None
+    if not isinstance(array, np.ndarray):  # an .npz archive under this name
+        raise WarpbagsError(f"{what} {path} is an archive of arrays (.npz), not one NumPy array")
     if not (np.issubdtype(array.dtype, np.floating) or np.issubdtype(array.dtype, np.integer)):
         raise WarpbagsError(f"{what} {path} holds {array.dtype} values, expected real numbers")
     return array

@@ -532,10 +532,11 @@ def spherical_harmonics(means: torch.Tensor, coeffs: torch.Tensor, viewmats: tor
         [C, N, 3] colours; differentiable in means, coeffs and viewmats (the coefficients above the degree get a
         zero gradient, and so do means and viewmats at degree 0).
     """
-    if not 0 <= degree <= 3 or coeffs.ndim != 3 or coeffs.shape[1] < (degree + 1) ** 2 or coeffs.shape[2] != 3:
-        # the kernel reads coefficients up to the degree's: too few would be read past the tensor's end
-        raise ValueError(f"spherical_harmonics of degree {degree} (0-3) needs coeffs [N, K >= {(degree + 1) ** 2}, 3], "
-                         f"got {list(coeffs.shape)}")
+    if (not 0 <= degree <= 3 or coeffs.ndim != 3 or coeffs.shape[0] != means.shape[0]
+            or coeffs.shape[1] < (degree + 1) ** 2 or coeffs.shape[2] != 3):
+        # the kernel reads coefficients up to the degree's, one row per mean: fewer would be read past the tensor
+        raise ValueError(f"spherical_harmonics of degree {degree} (0-3) needs coeffs [N = {means.shape[0]}, "
+                         f"K >= {(degree + 1) ** 2}, 3], got {list(coeffs.shape)}")
     if torch.is_grad_enabled() and any(t.requires_grad for t in (means, coeffs, viewmats)):
         return _SHColors.apply(means, coeffs, viewmats, degree)
     cams, n = viewmats.shape[0], means.shape[0]

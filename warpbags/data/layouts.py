@@ -83,10 +83,14 @@ def _proper(cameras: LayoutCameras, source: Path) -> LayoutCameras:
     if improper:
         raise WarpbagsError(f"{source}: the pose of {cameras.image_names[improper[0]]} is not a rotation and a "
                             "translation (scaled, sheared, mirrored or not finite)")
-    for name, K, size in zip(cameras.image_names, cameras.Ks, cameras.calibration_sizes):
-        if not (np.isfinite(K).all() and K[0, 0] > 0 and K[1, 1] > 0 and np.isfinite(size).all() and (size > 0).all()):
-            raise WarpbagsError(f"{source}: the calibration of {name} is not a camera's (focal lengths {K[0, 0]:g}, "
-                                f"{K[1, 1]:g} and image size {size[0]:g} x {size[1]:g} must be finite and > 0)")
+    for name, K, size, distortion in zip(cameras.image_names, cameras.Ks, cameras.calibration_sizes,
+                                         cameras.distortions):
+        if not (np.isfinite(K).all() and np.isfinite(distortion).all() and np.isfinite(size).all()
+                and K[0, 0] > 0 and K[1, 1] > 0 and (size > 0).all()):
+            raise WarpbagsError(f"{source}: the calibration of {name} is not a camera's (its intrinsics and distortion "
+                                f"must be finite, its focal lengths and image size > 0; got fx {K[0, 0]:g}, fy "
+                                f"{K[1, 1]:g}, cx {K[0, 2]:g}, cy {K[1, 2]:g}, distortion "
+                                f"{', '.join(f'{value:g}' for value in distortion)}, {size[0]:g} x {size[1]:g})")
     return cameras
 
 

@@ -50,6 +50,8 @@ def listen_port(host: str, port: int) -> int:
     last_error: OSError | None = None
     for candidate in [0] if port == 0 else range(port, min(port + PORTS_TRIED, 65536)):
         with socket.socket(family, kind, protocol) as probe:
+            # as asyncio's server (viser's) binds: a port a stopped viewer left in TIME_WAIT is free to it
+            probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
             try:
                 probe.bind((address[0], candidate, *address[2:]))
             except OSError as error:
