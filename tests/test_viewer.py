@@ -306,6 +306,7 @@ def test_view_takes_a_port_a_stopped_viewer_left_in_time_wait():
     from warpbags.viewer import server
 
     listener = socket.socket()
+    listener.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # as viser's (asyncio's) server socket
     listener.bind(("127.0.0.1", 0))
     listener.listen()
     port = listener.getsockname()[1]
