@@ -311,7 +311,7 @@ class TrainConfig:
             hull carved with the current poses) while the poses carry over, so Gaussians that absorbed pose
             errors are discarded and the hull sharpens as the poses improve (1 = the paper's single run). Ignored
             without pose optimization: the baseline trains one round with all the iterations. Rounds that do not
-            divide the iterations differ by one iteration, the later ones longer.
+            divide the iterations differ by one iteration, the longer ones last.
         pose_opt: optimize per-camera pose deltas (False = GaussianObject's fixed-pose baseline).
         pose_opt_start: first iteration at which pose deltas are updated.
         pose_round_window: (start, end) shares of every round in which poses are updated; outside it only the

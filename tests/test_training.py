@@ -841,8 +841,8 @@ def test_pyramid_levels_train_early_rounds_at_lower_resolution(scene_dir, tmp_pa
 def test_every_configured_round_runs_and_their_lengths_differ_by_at_most_one():
     """Rounds that do not divide the iterations are balanced, the longer ones last: a ceil-length split ran 5 rounds
     of 10 iterations asked for 6, and left the last round (whose Gaussians are the result) 1 iteration of 4."""
-    for iters, rounds, lengths in [(10, 6, [1, 2, 2, 1, 2, 2]), (10, 4, [2, 3, 2, 3]), (20, 8, [2, 3, 2, 3, 2, 3, 2, 3]),
-                                   (600, 3, [200, 200, 200])]:
+    for iters, rounds, lengths in [(10, 6, [1, 1, 2, 2, 2, 2]), (10, 4, [2, 2, 3, 3]), (20, 8, [2, 2, 2, 2, 3, 3, 3, 3]),
+                                   (600, 3, [200, 200, 200]), (8, 3, [2, 3, 3])]:
         schedule = Schedule(load_preset("quick", iters=iters, rounds=rounds))
         starts = [i for i in range(iters) if i == 0 or schedule.starts_round(i)]
         assert schedule.rounds == rounds and [schedule.round_end(start) - start for start in starts] == lengths

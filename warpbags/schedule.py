@@ -68,9 +68,10 @@ class Schedule:
         # Rounds re-carve the hull with improved poses; with frozen poses (the baseline) they would only throw
         # trained Gaussians away, so the baseline trains one round with the whole budget.
         self.rounds = config.rounds if config.pose_opt else 1
-        # Round k is [k iters // rounds, (k + 1) iters // rounds): every configured round runs, their lengths differ
-        # by at most one iteration, and the later rounds (the last one's Gaussians are the result) are the longer.
-        self.round_starts = [k * config.iters // self.rounds for k in range(self.rounds)]
+        # Every configured round runs, their lengths differ by at most one iteration, and the longer ones come last
+        # (the last round's Gaussians are the result): the last iters % rounds rounds take one iteration more.
+        short, longer = divmod(config.iters, self.rounds)
+        self.round_starts = [k * short + max(0, k - (self.rounds - longer)) for k in range(self.rounds)]
         self.round_length = math.ceil(config.iters / self.rounds)  # the longest round: the repair stage's cycle
 
     def round_iteration(self, iteration: int) -> int:
@@ -121,8 +122,8 @@ class Schedule:
 
     def pose_window(self, iteration: int) -> tuple[int, int]:
         """[start, end) iterations of the current round in which poses are updated (the round's entry of
-        `pose_round_windows`, else `pose_round_window`, as shares of the round's own length, so that a shorter last
-        round has its window too; no earlier than `pose_opt_start`)."""
+        `pose_round_windows`, else `pose_round_window`, as shares of the round's own length, so that rounds of
+        unequal length each have theirs; no earlier than `pose_opt_start`)."""
         config = self.config
         round_start = self.round_starts[self.round_index(iteration)]
         length = max(self.round_end(iteration) - round_start, 1)  # (the repair stage's is not used)
