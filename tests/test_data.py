@@ -1009,7 +1009,9 @@ def test_downscaling_refuses_a_view_whose_object_vanishes(synthetic):
     masks[2] = 0
     masks[2, 10:12, 10:12] = 1  # 4 object pixels: none left at a quarter of the size
     with pytest.raises(WarpbagsError, match=f"object of view {synthetic.image_names[2]} covers under half a pixel"):
-        dataclasses.replace(synthetic, masks=masks).downscaled(synthetic.width // 4)
+        dataclasses.replace(synthetic, masks=masks).downscaled(synthetic.width // 4, keep_objects=True)
+    # evaluation downscales held-out views too: there an empty mask only leaves a white target
+    assert not dataclasses.replace(synthetic, masks=masks).downscaled(synthetic.width // 4).masks[2].any()
 
 
 def test_a_synthetic_scene_of_an_odd_size_warns_of_nothing(tmp_path):

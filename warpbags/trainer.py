@@ -128,7 +128,8 @@ class Trainer:
         level = self.schedule.pyramid_level(self.iteration) if level is None else level
         if level not in self._levels:
             full = self.full_scene
-            scene = full if level == 0 else full.downscaled(max(8, max(full.width, full.height) >> level))
+            scene = full if level == 0 else full.downscaled(max(8, max(full.width, full.height) >> level),
+                                                            keep_objects=True)
             self._levels[level] = TrainingViews.of(scene, self.config, self.device)
         return self._levels[level]
 
@@ -501,7 +502,8 @@ def training_scene(scene: Scene | str | Path, config: TrainConfig, data_root: st
     config that uses the feature matches' epipolar term gets the views' matches found here, before downscaling.
 
     Raises:
-        WarpbagsError: unknown scene, missing data, or fewer images than `config.views`.
+        WarpbagsError: unknown scene, missing data, fewer images than `config.views`, or a view whose object vanishes
+            at the training size.
     """
     if not isinstance(scene, Scene):
         scene = open_scene(scene, root=data_root, resolution=config.resolution)
@@ -516,7 +518,7 @@ def training_scene(scene: Scene | str | Path, config: TrainConfig, data_root: st
         if log is not None:
             log(f"feature matches between the training views: {len(scene.matches)} in "
                 f"{len(scene.matches.pairs)} of {len(views) * (len(views) - 1) // 2} pairs")
-    return scene.downscaled(config.max_image_size)
+    return scene.downscaled(config.max_image_size, keep_objects=True)
 
 
 def default_run_dir(scene_name: str, views: int, root: str | Path = "runs") -> Path:

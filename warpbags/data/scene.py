@@ -203,11 +203,15 @@ class Scene:
         )
 
 
-    def downscaled(self, max_size: int) -> Scene:
+    def downscaled(self, max_size: int, keep_objects: bool = False) -> Scene:
         """The scene with images, masks, depths and intrinsics downscaled so the longer side is <= `max_size`.
 
         Images use area averaging; masks area averaging then a 0.5 threshold; depths nearest neighbour (0 stays
         "no value"). Intrinsics scale with the image edges (pixel centres at +0.5 stay consistent).
+
+        Raises:
+            WarpbagsError: with `keep_objects` (training), a view whose object mask thresholds empty: it would have
+                no silhouette to fit.
         """
         if max_size <= 0 or max(self.width, self.height) <= max_size:
             return self
@@ -221,7 +225,7 @@ class Scene:
         Ks[:, 0, :] *= width / self.width
         Ks[:, 1, :] *= height / self.height
         masks = None if self.masks is None else (resize(self.masks, cv2.INTER_AREA) > 0.5).float()
-        if masks is not None:  # a view without object pixels has no silhouette to fit (its distances are unbounded)
+        if keep_objects and masks is not None:  # no silhouette to fit: its distances would be unbounded (1e37)
             vanished = [name for name, before, after in zip(self.image_names, self.masks, masks)
                         if (before > 0.5).any() and not after.any()]
             if vanished:
