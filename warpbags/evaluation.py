@@ -248,7 +248,8 @@ def ssim(image: np.ndarray, target: np.ndarray) -> float:
     window = side if side % 2 else side - 1
     if window < 3:
         return math.nan
-    return float(structural_similarity(target, image, channel_axis=-1, data_range=1.0, win_size=window))
+    return float(structural_similarity(target, image, channel_axis=-1, data_range=1.0, win_size=window,
+                                       use_sample_covariance=False))
 
 
 def image_metrics(images: torch.Tensor, targets: torch.Tensor, lpips_metric: LpipsMetric,

@@ -241,7 +241,8 @@ class RayExecutor:
             self._connect(ray)
         # Ray's core worker installs a native handler that prints a stack dump and exits 1 on SIGTERM: the sweep
         # stops as a local one does instead (its runs resume; Ray is shut down; exit 143)
-        takes_sigterm = started_here and threading.current_thread() is threading.main_thread()
+        takes_sigterm = (started_here and threading.current_thread() is threading.main_thread()
+                         and previous == signal.SIG_DFL)  # a handler of the caller's stays the caller's
         if takes_sigterm:
             signal.signal(signal.SIGTERM, _stop_on_signal)
         try:
