@@ -6,8 +6,8 @@ import pytest
 import torch
 from conftest import look_at
 
-from warpbags.cameras import project_points
-from warpbags.init import hull_or_random_points
+from warpbags.cameras import pixel_directions, project_points
+from warpbags.init import hull_or_random_points, visual_hull
 from warpbags.wrapper import mean_neighbour_distances
 
 WIDTH = HEIGHT = 32
@@ -78,3 +78,21 @@ def test_mean_neighbour_distances_rejects_what_it_cannot_measure():
     points[4, 1] = float("nan")
     with pytest.raises(ValueError, match="every point must be finite"):
         mean_neighbour_distances(points, 3)
+
+
+def test_a_two_view_hull_is_the_intersection_of_the_silhouettes():
+    """With 2 views the default one missed view kept every voxel inside either silhouette: the union, each view's
+    cone out to the cube's walls (85% of the hull outside a sphere). Two views must agree, as one holds no depth."""
+    eyes = torch.tensor([[4.0, 0.0, 0.0], [0.0, 4.0, 0.0]])
+    viewmats = torch.stack([look_at(eye, torch.zeros(3)) for eye in eyes])
+    Ks = torch.tensor([[60.0, 0.0, 32.0], [0.0, 60.0, 32.0], [0.0, 0.0, 1.0]]).expand(2, 3, 3)
+    ys, xs = torch.meshgrid(torch.arange(64.0) + 0.5, torch.arange(64.0) + 0.5, indexing="ij")
+    masks = []
+    for viewmat, K, eye in zip(viewmats, Ks, eyes):  # the unit sphere's silhouette: rays passing within 1 of the origin
+        rays = pixel_directions(torch.stack([xs, ys], -1).reshape(-1, 2), K) @ viewmat[:3, :3]
+        rays = rays / rays.norm(dim=-1, keepdim=True)
+        along = -(eye * rays).sum(-1)
+        masks.append(((eye + along[:, None] * rays).norm(dim=-1) < 1.0).float().reshape(64, 64))
+    voxels, edge = visual_hull(torch.stack(masks), viewmats, Ks, resolution=32, dilation_px=0, missed_views=1)
+    inside = (voxels.norm(dim=-1) < 1.0 + edge).float().mean()
+    assert len(voxels) > 100 and inside > 0.5, (len(voxels), float(inside))

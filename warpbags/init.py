@@ -76,7 +76,8 @@ def visual_hull(
         Ks: [C, 3, 3] intrinsics at the mask resolution.
         resolution: voxels per axis of the second (fine) pass; the first uses 1.5x that over the cube.
         dilation_px: masks are dilated by this many pixels first.
-        missed_views: a voxel may be outside the mask in this many views.
+        missed_views: a voxel may be outside the mask in this many views, but is always inside at least two
+            (with 2 views, both): a single view's silhouette is a cone to the cube's walls.
         bound: half edge of the first pass's cube around the origin (normalized scenes: orbit radius 4).
 
     Returns:
@@ -87,7 +88,7 @@ def visual_hull(
         kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * dilation_px + 1, 2 * dilation_px + 1))
         masks = torch.from_numpy(np.stack([cv2.dilate(m.numpy(), kernel) for m in masks]))
     viewmats, Ks = viewmats.detach().float().cpu(), Ks.detach().float().cpu()
-    missed_views = min(missed_views, max(len(masks) - 1, 0))
+    missed_views = min(missed_views, max(len(masks) - 2, 0))  # one view's silhouette holds no depth: two must agree
     lower = torch.full((3,), -bound, dtype=torch.float64)
     coarse, voxel = _carve(lower, -lower, int(resolution * 1.5), masks, viewmats, Ks, missed_views)
     if len(coarse) == 0:
