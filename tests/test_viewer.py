@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import shutil
 import threading
 import time
@@ -69,6 +70,27 @@ def test_pose_history_appends_and_follows_a_resume(tmp_path):
     assert sorted(path.name for path in tmp_path.iterdir()) == ["poses_history.npz"]  # no temporary left
     with pytest.raises(WarpbagsError, match="holds 3 cameras"):
         record_poses(tmp_path, 40, viewmats[:2])
+
+
+@pytest.mark.parametrize("damage", ["empty", "not a zip", "an .npy", "1-D viewmats", "scalar iterations"])
+def test_an_unreadable_pose_history_is_one_line(tmp_path, damage):
+    """An empty or foreign poses_history.npz raised EOFError, BadZipFile, IndexError or TypeError out of `warpbags
+    view` and a resumed training run."""
+    path = tmp_path / "poses_history.npz"
+    if damage == "empty":
+        path.write_bytes(b"")
+    elif damage == "not a zip":
+        path.write_bytes(b"PK not really a zip archive")
+    elif damage == "an .npy":
+        with open(path, "wb") as handle:
+            np.save(handle, np.zeros((2, 3, 4, 4)))
+    else:
+        with open(path, "wb") as handle:
+            np.savez(handle, iterations=np.array(10) if damage == "scalar iterations" else np.array([10]),
+                     viewmats=np.zeros(16) if damage == "1-D viewmats" else np.zeros((1, 3, 4, 4)))
+    with pytest.raises(WarpbagsError, match=f"^{re.escape(str(path))}: ") as error:
+        read_pose_history(tmp_path)
+    assert "\n" not in str(error.value)
 
 
 # ------------------------------------------------------------------------------------------------ PLY

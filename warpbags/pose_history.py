@@ -8,13 +8,14 @@ records stay small.
 
 from __future__ import annotations
 
+import zipfile
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import torch
 
-from warpbags.errors import WarpbagsError
+from warpbags.errors import WarpbagsError, one_line
 from warpbags.files import atomic_output
 
 HISTORY_FILE = "poses_history.npz"
@@ -49,10 +50,13 @@ def read_pose_history(run_dir: str | Path) -> PoseHistory | None:
     try:
         with np.load(path) as stored:
             history = PoseHistory(stored["iterations"].astype(np.int64), stored["viewmats"].astype(np.float32))
-    except (OSError, ValueError, KeyError) as error:
-        raise WarpbagsError(f"{path}: unreadable pose history ({error})") from None
-    if history.viewmats.shape != (len(history), history.viewmats.shape[1], 4, 4):
-        raise WarpbagsError(f"{path}: viewmats of shape {list(history.viewmats.shape)}, expected [T,C,4,4]")
+    except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile, AttributeError, TypeError) as error:
+        # empty, not a zip archive, not an .npz of arrays (an .npy under its name), scalars
+        raise WarpbagsError(f"{path}: unreadable pose history ({one_line(error)})") from None
+    shape = history.viewmats.shape
+    if history.iterations.ndim != 1 or len(shape) != 4 or shape != (len(history.iterations), shape[1], 4, 4):
+        raise WarpbagsError(f"{path}: iterations of shape {list(history.iterations.shape)} and viewmats of shape "
+                            f"{list(shape)}, expected [T] and [T,C,4,4]")
     return history
 
 
