@@ -8,7 +8,7 @@ import pytest
 import torch
 from random_poses import F64, generator, random_rotations, random_viewmats, skew_reference, twist_matrix, unit_vectors
 
-from warpbags.lie import rotation_error_deg, se3_exp, so3_exp, so3_log
+from warpbags.lie import rotation_between, rotation_error_deg, se3_exp, so3_exp, so3_log
 from warpbags.wrapper import apply_pose_deltas  # the one implementation (Warp), checked here against torch's maths
 
 
@@ -166,3 +166,12 @@ def test_rotation_error_deg_resolves_small_angles_in_float32():
     rotations = torch.linalg.matrix_exp(skew_reference(axes * math.radians(1e-3))).float()
     errors = rotation_error_deg(rotations, torch.eye(3).expand(10, 3, 3))
     torch.testing.assert_close(errors, torch.full((10,), 1e-3), rtol=1e-3, atol=0)
+
+
+def test_rotation_between_opposite_vectors_is_a_half_turn():
+    """The cross product of opposite vectors vanishes: the identity came back, silently, for (0, 0, 1) -> (0, 0, -1)."""
+    for source in ([0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.6, 0.8, 0.0]):
+        source = torch.tensor(source, dtype=torch.float64)
+        rotation = rotation_between(source, -source)
+        torch.testing.assert_close(rotation @ source, -source, rtol=0, atol=1e-12)
+        torch.testing.assert_close(rotation @ rotation.T, torch.eye(3, dtype=torch.float64), rtol=0, atol=1e-12)

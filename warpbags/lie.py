@@ -175,12 +175,19 @@ def se3_exp(xi: torch.Tensor) -> torch.Tensor:
 
 
 def rotation_between(source: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
-    """[..., 3, 3] the smallest rotations taking unit vectors `source` [..., 3] onto `target` [..., 3] (never
-    opposite: the axis of a half turn is undefined)."""
+    """[..., 3, 3] the smallest rotations taking unit vectors `source` [..., 3] onto `target` [..., 3]; for opposite
+    vectors, whose half turn has no one axis, a half turn about an axis perpendicular to `source`."""
     axis = torch.linalg.cross(source, target)
     sin_angle = axis.norm(dim=-1, keepdim=True)
     cos_angle = (source * target).sum(-1, keepdim=True)
     angle = torch.atan2(sin_angle, cos_angle)
+    # opposite (the cross product vanishes, the cosine is -1): any perpendicular axis; the source's cross product with
+    # the coordinate axis it is least aligned with is one
+    opposite = (sin_angle < 1e-6) & (cos_angle < 0)
+    least = torch.nn.functional.one_hot(source.abs().argmin(-1), 3).to(source)
+    perpendicular = torch.linalg.cross(source, least)
+    axis = torch.where(opposite, perpendicular, axis)
+    sin_angle = torch.where(opposite, perpendicular.norm(dim=-1, keepdim=True), sin_angle)
     return so3_exp(axis / sin_angle.clamp_min(1e-12) * angle)
 
 
