@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import torch
 from random_poses import F64
 
@@ -28,3 +30,20 @@ def test_interpolated_viewmats_walk_the_orbit_between_neighbouring_cameras():
     assert sorted(distances.argmin(dim=1).tolist()) == list(range(8))
     quarter = interpolated_viewmats(shuffled, torch.arange(8), torch.full((8,), 0.25, dtype=F64))
     torch.testing.assert_close(camera_centers(quarter).norm(dim=-1), torch.full((8,), 4.0, dtype=F64))
+
+
+def test_the_up_axis_of_cameras_on_one_side_of_the_object_is_level():
+    """Cameras on an arc of +-30 deg, looking down 30 deg at the object: their mean up leaned 28 deg towards them and
+    half of a turntable went under the object. The common up is world z; a lone camera keeps its own up."""
+    from conftest import look_at
+
+    from warpbags.camera_paths import mean_up_axis
+
+    eyes = [torch.tensor([4 * math.cos(math.radians(a)), 4 * math.sin(math.radians(a)), 4 * math.tan(math.radians(30))],
+                         dtype=F64) for a in (-30, -15, 0, 15, 30)]
+    viewmats = torch.stack([look_at(eye, torch.zeros(3, dtype=F64)) for eye in eyes])
+    torch.testing.assert_close(mean_up_axis(viewmats), torch.tensor([0.0, 0.0, 1.0], dtype=F64), rtol=0, atol=1e-9)
+    turntable = turntable_viewmats(viewmats, 8)
+    heights = camera_centers(turntable)[:, 2]
+    torch.testing.assert_close(heights, heights[:1].expand(8))  # the orbit stays at the cameras' height
+    torch.testing.assert_close(mean_up_axis(viewmats[:1]), -viewmats[0, 1, :3], rtol=0, atol=1e-12)

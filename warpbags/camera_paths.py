@@ -18,16 +18,27 @@ __all__ = ["azimuth_order", "interpolated_viewmats", "mean_up_axis", "turntable_
 
 
 def mean_up_axis(viewmats: torch.Tensor) -> torch.Tensor:
-    """[3] unit world direction of the cameras' mean "up" (-y of OpenCV axes; rows of R are the camera axes)."""
-    up = -viewmats[:, 1, :3].mean(0)
-    return up / up.norm().clamp_min(1e-12)
+    """[3] unit world direction of the cameras' common "up": the direction most nearly perpendicular to every
+    camera's x axis (rows of R are the camera axes), signed as their mean up (-y of OpenCV axes).
+
+    Cameras are seldom rolled, so their x axes are level whichever way they look, while their up axes lean towards
+    the object: averaged, those of cameras on one side of it (an arc of +-30 deg looking down 30 deg) tilt the mean
+    28 deg and the turntable goes under the object. Where the x axes do not single a direction out (one camera, or
+    all of them side by side), the mean up itself.
+    """
+    mean_up = -viewmats[:, 1, :3].mean(0)
+    x_axes = viewmats[:, 0, :3]
+    values, vectors = torch.linalg.eigh(x_axes.T @ x_axes)  # ascending
+    if values[1] < 0.01 * values[2]:  # the x axes within ~6 deg of one line: every normal to it is level
+        return mean_up / mean_up.norm().clamp_min(1e-12)
+    up = vectors[:, 0]
+    return up if up @ mean_up >= 0 else -up
 
 
 def turntable_viewmats(viewmats: torch.Tensor, frames: int) -> torch.Tensor:
     """A turntable of `frames` cameras: camera 0 of `viewmats` orbited about the cameras' mean up axis.
 
-    The up axis is the mean of the cameras' "up" directions (-y of OpenCV axes, in world coordinates); the
-    rotation is about the line through the origin.
+    The up axis is the cameras' common up (`mean_up_axis`); the rotation is about the line through the origin.
 
     Args:
         viewmats: [C, 4, 4] world-to-camera matrices (e.g. the training cameras).
