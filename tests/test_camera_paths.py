@@ -47,3 +47,18 @@ def test_the_up_axis_of_cameras_on_one_side_of_the_object_is_level():
     heights = camera_centers(turntable)[:, 2]
     torch.testing.assert_close(heights, heights[:1].expand(8))  # the orbit stays at the cameras' height
     torch.testing.assert_close(mean_up_axis(viewmats[:1]), -viewmats[0, 1, :3], rtol=0, atol=1e-12)
+
+
+def test_cameras_between_neighbours_on_a_ring_look_at_the_object():
+    """On a ring looking down at the object, the slerped orientation turns about one axis while the centre rises
+    along the great circle: the camera between two of 4 views looked 9 deg past the object, between 2 views 60."""
+    from conftest import look_at
+
+    for count in (2, 3, 4):
+        eyes = [torch.tensor([4 * math.cos(2 * math.pi * k / count), 4 * math.sin(2 * math.pi * k / count),
+                              4 * math.tan(math.radians(30))], dtype=F64) for k in range(count)]
+        viewmats = torch.stack([look_at(eye, torch.zeros(3, dtype=F64)) for eye in eyes])
+        between = interpolated_viewmats(viewmats, torch.arange(count), torch.full((count,), 0.5, dtype=F64))
+        to_object = (between[:, :3, :3] @ -camera_centers(between)[..., None])[..., 0]
+        off_axis = torch.rad2deg(torch.atan2(to_object[:, :2].norm(dim=-1), to_object[:, 2]))
+        assert off_axis.max() < 1e-6, (count, off_axis)
