@@ -10,8 +10,9 @@ image width), scales shrinking with N^(-1/3). Measured depth complexity (Gaussia
 pixel): 35 at 128^2 / 10k, 23 at 256^2 / 10k, 54 at 256^2 / 50k, denser than the ~14 of
 ../shared/NOTES-cpu-rasterizer.md. Each row prints the mean number of Gaussians a pixel visits in its tile's list
 (the work the rasterizer actually does). Forward, backward and forward+
-backward are medians over repeats; the dense reference (every pixel against every Gaussian, pixel-chunked, in
-tests/reference.py) runs only where it fits in time, and the last column is its time over ours.
+backward are medians over repeats (forward+backward: of each repeat's sum); the dense reference (every pixel
+against every Gaussian, pixel-chunked, in tests/reference.py, torch on one thread as the whole process is) runs only
+where it fits in time, and the last column is its time over ours.
 
 Targets (2-core CPU): 4 cameras, 128^2, 10k Gaussians, forward+backward <= 40 ms (issue 12; 60 ms in the first
 round); >= 100x the dense reference at 256^2 / 10k. With --blocks, 1x1 is one pixel per thread (the CUDA layout and
@@ -81,13 +82,14 @@ def _leaves(scene: dict) -> dict:
 
 def time_warpbags(scene: dict, repeats: int, tile_size: int | None,
                   blocks: list[tuple[int, int] | None] = (None,)) -> dict:
-    """Median forward, backward ms (and visits per pixel) for each CPU pixel block; the blocks take turns within
-    every repeat, so a machine shared with other work slows them alike."""
+    """Median forward, backward and forward + backward ms (the median of each repeat's sum) and visits per pixel,
+    for each CPU pixel block; the blocks take turns within every repeat, so a machine shared with other work slows
+    them alike."""
     from warpbags.wrapper import DEFAULT_PIXEL_BLOCK
 
     default = DEFAULT_PIXEL_BLOCK["cpu"]
     device = scene["means"].device
-    times = {block: ([], []) for block in blocks}
+    times = {block: ([], [], []) for block in blocks}
     try:
         for i in range(repeats + 1):  # the first run compiles / warms caches
             for block in blocks:
@@ -104,10 +106,12 @@ def time_warpbags(scene: dict, repeats: int, tile_size: int | None,
                 if i:
                     times[block][0].append(t1 - t0)
                     times[block][1].append(t2 - t1)
+                    times[block][2].append(t2 - t0)
     finally:
         DEFAULT_PIXEL_BLOCK["cpu"] = default
     visits = meta["bins"].isect_ids.numel() * meta["tile_size"] ** 2 / (out.shape[0] * out.shape[1] * out.shape[2])
-    return {block: (1e3 * statistics.median(f), 1e3 * statistics.median(b), visits) for block, (f, b) in times.items()}
+    return {block: (1e3 * statistics.median(f), 1e3 * statistics.median(b), 1e3 * statistics.median(fb), visits)
+            for block, (f, b, fb) in times.items()}
 
 
 def time_dense(scene: dict, chunk_elements: int = 2**25) -> float:
@@ -146,7 +150,7 @@ def _counts(text: str) -> list[int]:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--quick", action="store_true", help="only 128x128")
-    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--repeats", type=int, default=3, help="timed repeats (after one untimed)")
     parser.add_argument("--tile-size", type=int, default=None, help="default: warpbags' CPU/CUDA default")
     parser.add_argument("--dense-budget-s", type=float, default=210.0, help="skip dense runs expected to exceed this")
     parser.add_argument("--blocks", type=lambda text: [_block(b) for b in text.split(",")], default=None,
@@ -157,6 +161,8 @@ def main() -> None:
     parser.add_argument("--cameras", type=_counts, default="1,4", help="comma-separated C")
     parser.add_argument("--device", default="cpu", help="cpu or cuda (the dense reference runs on the CPU only)")
     args = parser.parse_args()
+    if args.repeats < 1:
+        raise WarpbagsError(f"--repeats must be >= 1, got {args.repeats}")
     device = torch_device(args.device)
     if args.blocks and device.type != "cpu":
         raise WarpbagsError("--blocks compares CPU pixel blocks: it needs --device cpu")
@@ -180,20 +186,20 @@ def main() -> None:
             for cams in args.cameras:
                 scene = bench_scene(n, cams, size, device=device)
                 results = time_warpbags(scene, args.repeats, args.tile_size, blocks)
-                visits = results[blocks[0]][2]
+                visits = results[blocks[0]][3]
                 if args.blocks:
-                    totals = [results[b][0] + results[b][1] for b in blocks]
+                    totals = [results[b][2] for b in blocks]
                     print(f"{size:>4}^2 {n:>6} {cams:>2} {visits:>9.1f} "
                           + " ".join(f"{results[b][0]:>10.1f} {results[b][1]:>10.1f} {t:>10.1f}" for b, t in zip(blocks, totals))
                           + "".join(f" {totals[0] / t:>9.2f}x" for t in totals[1:]), flush=True)
                     continue
-                fwd, bwd, _ = results[blocks[0]]
+                fwd, bwd, total, _ = results[blocks[0]]
                 # dense cost ~ pixels x Gaussians x cameras: ~300 ns per pixel-Gaussian pair for fwd+bwd here
                 dense_estimate_s = 300e-9 * size * size * n * cams
                 dense = (time_dense(scene) if device.type == "cpu" and cams == 1
                          and dense_estimate_s < args.dense_budget_s else None)
-                dense_text = f"{dense:13.0f} {dense / (fwd + bwd):6.0f}x" if dense else f"{'-':>13} {'-':>7}"
-                print(f"{size:>4}^2 {n:>6} {cams:>2} {visits:>9.1f} {fwd:>8.1f} {bwd:>8.1f} {fwd + bwd:>8.1f} {dense_text}",
+                dense_text = f"{dense:13.0f} {dense / total:6.0f}x" if dense else f"{'-':>13} {'-':>7}"
+                print(f"{size:>4}^2 {n:>6} {cams:>2} {visits:>9.1f} {fwd:>8.1f} {bwd:>8.1f} {total:>8.1f} {dense_text}",
                       flush=True)
 
 

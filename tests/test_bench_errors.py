@@ -55,6 +55,8 @@ def test_an_unknown_scene_is_one_error_line(script, tmp_path):
     ("view_matches.py", ["--ratio", "1.5"], "--ratio must be in (0, 1], got 1.5"),
     ("view_matches.py", ["--min-inliers", "7"], "--min-inliers must be at least 8, got 7"),
     ("train_step.py", ["--views", ","], "--views ','"),
+    ("train_step.py", ["--opensplat", "opensplat", "--sh-degree", "2"], "--opensplat runs OpenSplat at SH degree 0"),
+    ("rasterize.py", ["--repeats", "0"], "--repeats must be >= 1, got 0"),  # was a StatisticsError traceback
     ("train_step.py", ["--inits", "sphere"], "--inits 'sphere'"),
     ("train_step.py", ["--device", "cuda", "--pixel-blocks", "1x1"],
      "not with --device cuda" if torch.cuda.is_available() else "--device cuda: no CUDA device is available"),
@@ -63,7 +65,7 @@ def test_bad_input_is_one_error_line_before_any_work(script, arguments, message,
     """Checked before the scene is loaded (its name here is unknown too) and before any line of a table. Run in
     this process as `python bench/SCRIPT` runs it (`__main__`, its `clean_errors` entry point), which spares a
     process start per case; the test above starts each script as a process."""
-    scene = [] if script == "train_step.py" else ["nosuchscene"]
+    scene = [] if script in ("train_step.py", "rasterize.py") else ["nosuchscene"]
     monkeypatch.setattr(sys, "argv", [str(BENCH / script), *scene, *arguments])
     monkeypatch.syspath_prepend(str(BENCH))
     monkeypatch.chdir(tmp_path)
