@@ -127,7 +127,8 @@ def monocular_like_depths(depths: torch.Tensor, seed: int, shape_error: float = 
         seed: seeds a local generator (the global RNG is untouched).
 
     Returns:
-        [C, H, W] degraded depths, 0 where the input is 0.
+        [C, H, W] degraded depths, 0 where the input is 0, and where the shape error takes the disparity to 0 or
+        below (the far end of a deep view: under 1% of its pixels).
     """
     generator = torch.Generator().manual_seed(seed)
     valid = depths > 0
