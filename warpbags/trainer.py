@@ -427,7 +427,7 @@ class Trainer:
             self.save_checkpoint()
         if self._stop_signal is not None and can_checkpoint:
             self.save_checkpoint()
-            raise Stopped(self._stop_signal)
+            raise KeyboardInterrupt  # `train` says which signal (`Stopped`)
         return record
 
     def train(self, stop_at: int | None = None, callback: Callable[[dict], None] | None = None) -> dict:
@@ -469,7 +469,7 @@ class Trainer:
                         steps = self._search_view_hypotheses()
                         if steps is None:  # Ctrl-C during the search: back at the round's start
                             self.save_checkpoint()
-                            raise Stopped(self._stop_signal)
+                            raise KeyboardInterrupt
                         # Only the kept round's state is left, so only its last iteration can be checkpointed.
                         for index, (record, viewmats) in enumerate(steps):
                             record = self._finish_iteration(record, viewmats, write_log, callback, stop_at,
@@ -477,13 +477,12 @@ class Trainer:
                         continue
                     record = self._finish_iteration(self.train_step(), self.current_viewmats(), write_log, callback,
                                                     stop_at)
-        except KeyboardInterrupt as interrupt:
+        except BaseException as error:
             self.remove_if_unfinished()
-            if isinstance(interrupt, Stopped) or self._stop_signal is None:
-                raise
-            raise Stopped(self._stop_signal) from None  # the repair stage's pair building stops on the same request
-        except BaseException:
-            self.remove_if_unfinished()
+            # every stop a signal asked for (here, in the search over turns, in the repair stage's pair building)
+            # leaves as one Stopped that names it; a Ctrl-C no handler of ours took stays as it came
+            if isinstance(error, KeyboardInterrupt) and self._stop_signal is not None:
+                raise Stopped(self._stop_signal) from None
             raise
         finally:
             for stop_signal, handler in previous_handlers.items():
