@@ -132,10 +132,11 @@ def pose_agreement(runs: Sequence[TrainingRun], preferred: str = "procrustes") -
     pairs = list(itertools.combinations(range(len(runs)), 2))
     with_intrinsics = all(run.intrinsics is not None for run in runs)
     rotations, centres, pixels = [], [], []
+    orbit_radii = [_orbit_radius(run) for run in runs]
     for i, j in pairs:
         errors = _errors(runs[i].poses_final, runs[j].poses_final, alignment, f"{runs[i].path} against {runs[j].path}")
         rotations.append(errors["rotation_errors_deg"].numpy())
-        centres.append(100 * errors["translation_errors"].numpy() / _orbit_radius(runs[j]))
+        centres.append(100 * errors["translation_errors"].numpy() / orbit_radii[j])
         if with_intrinsics:
             points = errors["sim3"].apply(object_points(runs[i].params).double())  # run i's object in run j's frame
             pixels.append(reprojection_errors(runs[i].poses_final.double(), runs[j].poses_final.double(),

@@ -142,8 +142,8 @@ def _resolution(root: Path, cameras: LayoutCameras, asked: int | None) -> int:
         raise WarpbagsError(f"resolution must be 1, 2, 4 or 8, got {asked}")
     if not cameras.image_paths:
         raise WarpbagsError(f"no images in {root}: its {cameras.layout} cameras name none")
-    factor = asked or (1 if cameras.layout == "transforms" else default_resolution(root))
-    _require_image_folder(root, cameras, factor)
+    factor = checked = asked or (1 if cameras.layout == "transforms" else default_resolution(root))
+    _require_image_folder(root, cameras, checked)
     first = resolution_path(root, cameras.image_paths[0], factor)
     width, height = image_size(first)
     if first != cameras.image_paths[0]:  # read from images_{factor}/: the full size is factor times its own
@@ -160,7 +160,8 @@ def _resolution(root: Path, cameras: LayoutCameras, asked: int | None) -> int:
         raise WarpbagsError(f"{root}: {count} images of {width}x{height} px at resolution {factor} take "
                             f"{scene_bytes(count, width, height, factor) / 1024**3:.1f} GiB, more than this machine's "
                             f"{memory / 1024**3:.1f} GiB: choose a coarser --resolution (2, 4 or 8)")
-    _require_image_folder(root, cameras, factor)
+    if factor != checked:  # coarsened to fit the memory budget: that factor's folder too
+        _require_image_folder(root, cameras, factor)
     return factor
 
 

@@ -48,7 +48,8 @@ def listen_port(host: str, port: int) -> int:
     except socket.gaierror as error:
         raise WarpbagsError(f"--host {host!r}: unknown ({error.strerror})") from None
     last_error: OSError | None = None
-    for candidate in [0] if port == 0 else range(port, min(port + PORTS_TRIED, 65536)):
+    candidates = [0] if port == 0 else range(port, min(port + PORTS_TRIED, 65536))
+    for candidate in candidates:
         with socket.socket(family, kind, protocol) as probe:
             # as asyncio's server (viser's) binds: a port a stopped viewer left in TIME_WAIT is free to it
             probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
@@ -60,8 +61,7 @@ def listen_port(host: str, port: int) -> int:
                 last_error = error
                 continue
         return candidate
-    last = min(port + PORTS_TRIED, 65536) - 1
-    raise WarpbagsError(f"--port {port}: no port from {port} to {last} can be listened on at {host} "
+    raise WarpbagsError(f"--port {port}: no port from {port} to {candidates[-1]} can be listened on at {host} "
                         f"({last_error.strerror if last_error else 'none tried'})")
 
 
