@@ -32,8 +32,8 @@ A true-pose model (poses frozen at the truth) is trained once per scene, view co
 reaches. Per row, means over the seeds: the rotation noise as injected (no alignment) and the given poses' error
 after Procrustes on their noisy centres, the rotation error of the poses training starts from (after the
 mask-centroid start and the silhouette-coherence solve), mean rotation error (deg) at the end, each run's worst
-camera and the worst of all, mean translation error (% of the orbit radius), the share of cameras ending under 1 deg, the rotation error
-the camera centres alone force (the centre floor, at the given poses and at the end), how far the pose errors move the object in the images (RMS pixels at the
+camera and the worst of all, mean translation error (% of the orbit radius), the share of cameras ending under 1 deg,
+the rotation error the camera centres alone force (the centre floor, at the given poses and at the end), how far the pose errors move the object in the images (RMS pixels at the
 training resolution over the trained Gaussians' opaque centres, given poses -> end), held-out PSNR/SSIM (test cameras aligned by the same sim(3)) and
 PSNR* after 50 iterations of test-pose refinement, and minutes of training iterations per run (the start
 procedures and the evaluation not included). `--start-only` trains nothing and reports
@@ -187,7 +187,8 @@ def main() -> None:
                   f"{'per seed':<{per_seed_width}} {'t init %':>8} {'t start %':>9}")
     else:
         header = (f"{'scene':<20} {'views':>5} {'noise':>9} {'variant':<18} {'injected':>8} {'rot init':>8} {'start':>6} "
-                  f"{'rot mean':>8} {'per seed':<{per_seed_width}} {'rot max':>8} {'worst':>6} {'<1 deg':>6} {'floor':>13} {'t init %':>8} {'t %':>6} "
+                  f"{'rot mean':>8} {'per seed':<{per_seed_width}} {'rot max':>8} {'worst':>6} {'<1 deg':>6} {'floor':>13} "
+                  f"{'t init %':>8} {'t %':>6} "
                   f"{'px':>13} {'PSNR':>6} {'SSIM':>6} {'PSNR*':>6} {'true PSNR':>9} {'min':>5}")
     print(f"preset {args.preset}, overrides {overrides}, seeds {args.seeds}, translation noise {args.trans} "
           f"({100 * args.trans / ORBIT_RADIUS:.1f}% of the orbit radius per axis), depth maps: {args.depth}")

@@ -58,7 +58,8 @@ def evaluate(
                  "cameras that look at the object; px: how far the pose error moves the object in each image (RMS "
                  "pixels at the training resolution, mean over cameras)")
 
-    images = Table(title=f"held-out views ({result['test_views']}, {result['alignment']} alignment)", title_justify="left")
+    images = Table(title=f"held-out views ({result['test_views']}, {result['alignment']} alignment)",
+                   title_justify="left")
     for column in ("test poses", "PSNR", "SSIM", "FLIP", "LPIPS"):
         images.add_column(column)
     rows = [("aligned", result["images"])]

@@ -38,7 +38,8 @@ def export(
 def render(
     run_dir: Optional[Path] = typer.Argument(None, help="Run folder (default: the newest under runs/)."),
     frames: int = typer.Option(36, "--frames", help="Views on the orbit."),
-    video: bool = typer.Option(True, "--video/--no-video", help="Also write RUN_DIR/turntable.mp4 (--no-video removes an earlier one)."),
+    video: bool = typer.Option(True, "--video/--no-video",
+                               help="Also write RUN_DIR/turntable.mp4 (--no-video removes an earlier one)."),
 ) -> None:
     """Render a turntable of novel views around the object (PNG frames, and an MP4 through OpenCV)."""
     folder = render_turntable(run_dir or latest_run(), frames=frames, video=video)

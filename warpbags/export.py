@@ -183,8 +183,9 @@ def export_run(path: str | Path, out: str | Path | None = None, colmap: bool = T
 @torch_threads(1)
 def render_turntable(path: str | Path, frames: int = 36, video: bool = True) -> Path:
     """Novel views on a full orbit of the object: `<run>/turntable/frame_XXX.png` and, with `video`,
-    `<run>/turntable.mp4` (OpenCV, mp4v, 12 fps; without it, an earlier render's video is removed). The orbit starts at training camera 0 and turns about the
-    training cameras' mean up axis through the object centre. Returns the frame folder."""
+    `<run>/turntable.mp4` (OpenCV, mp4v, 12 fps; without it, an earlier render's video is removed). The orbit
+    starts at training camera 0 and turns about the training cameras' common up axis through the object centre.
+    Returns the frame folder."""
     if frames < 1:
         raise WarpbagsError(f"--frames must be >= 1, got {frames}")
     run = load_run(path)

@@ -168,7 +168,8 @@ def _resolution(root: Path, cameras: LayoutCameras, asked: int | None) -> int:
 def _require_image_folder(root: Path, cameras: LayoutCameras, factor: int) -> None:
     """An `images_{factor}/` or `images/` folder to read a COLMAP or LLFF scene at `factor` from (a transforms.json
     names its images' paths itself); said with the folders the scene has, not as the first image missing."""
-    if cameras.layout != "transforms" and not any((root / folder).is_dir() for folder in (f"images_{factor}", "images")):
+    wanted = (f"images_{factor}", "images")
+    if cameras.layout != "transforms" and not any((root / folder).is_dir() for folder in wanted):
         folders = sorted(f"{path.name}/" for path in root.glob("images*") if path.is_dir())
         raise WarpbagsError(f"no images_{factor}/ or images/ folder in {root} (resolution {factor}); it has "
                             f"{', '.join(folders) or 'no image folder'}")
