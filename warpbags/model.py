@@ -29,7 +29,7 @@ from warpbags.losses import depth_loss, mask_loss, photometric_loss
 from warpbags.schedule import StepSettings, exponential_lr
 from warpbags.silhouette import SilhouetteTargets
 from warpbags.strategy import DensifyStrategy
-from warpbags.threads import side_thread
+from warpbags.threads import beside_render
 
 
 class Diverged(WarpbagsError):
@@ -176,8 +176,9 @@ class GaussianModel:
         if data.silhouettes is not None and settings.silhouette and config.lambda_chamfer > 0:
             # It needs no render, so it runs on a side thread while the render's host threads leave a core idle
             # between their stages: on the CPU it is small torch operations on one thread (a paper-preset step at
-            # 108k Gaussians: 188-206 -> 177-193 ms). The same graph and values as computed in line.
-            chamfer = side_thread().submit(
+            # 108k Gaussians: 188-206 -> 177-193 ms). The same values as computed in line, and gradients summed in
+            # the same order in every process (`beside_render`).
+            chamfer = beside_render(
                 data.silhouettes.chamfer_loss, self.params["means"], torch.sigmoid(self.params["opacities"]),
                 viewmats, data.Ks[views], views.to(data.device))
         renders, alphas, meta = self.render(views, viewmats, settings.sh_degree, depth=with_depth)
@@ -204,7 +205,7 @@ class GaussianModel:
                 loss = loss + config.lambda_mask_distance * distance_term
                 terms["mask_distance"] = distance_term.item()
             if chamfer is not None:
-                chamfer_term = chamfer.result()
+                chamfer_term = chamfer()
                 loss = loss + config.lambda_chamfer * chamfer_term
                 terms["chamfer"] = chamfer_term.item()
         if with_depth:

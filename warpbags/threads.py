@@ -1,12 +1,12 @@
 """Host threads beside Warp's: how many torch may use while Warp renders, and one side thread for work that can run
-beside a render."""
+beside a render (`beside_render` for a differentiable term)."""
 
 from __future__ import annotations
 
 import os
 from concurrent.futures import ThreadPoolExecutor
 from contextlib import contextmanager
-from typing import Iterator
+from typing import Callable, Iterator
 
 import torch
 
@@ -77,3 +77,58 @@ def side_thread() -> ThreadPoolExecutor:
     """One extra host thread, for work that can run beside the render (whose host threads leave a core idle between
     their stages); apart from the render's pool, so that neither waits for the other's threads."""
     return thread_pool("warpbags-side", 1)
+
+
+def beside_render(function: Callable[..., torch.Tensor], *args) -> Callable[[], torch.Tensor]:
+    """Start `function(*args)`, a differentiable [] term, on the side thread; returns the call that waits for it
+    and gives its value joined to the calling thread's graph by one node, made on the calling thread.
+
+    Autograd walks a backward's ready nodes in the order of a sequence number that each thread counts for itself.
+    A term whose nodes were made on the side thread and fed into the main graph was walked early or late depending
+    on how many nodes each thread had made before, and a parameter that takes gradients from several paths (the
+    Gaussian centres: the render and the silhouette chamfer) summed them in that order: a run resumed in a new
+    process left the uninterrupted run at rounding level. Here the side thread differentiates detached copies of
+    the tensors that need a gradient, and one node on the calling thread passes the gradients on to the originals.
+    """
+    if not torch.is_grad_enabled():
+        future = side_thread().submit(_without_grad, function, *args)
+        return future.result
+    tracked = [i for i, arg in enumerate(args) if isinstance(arg, torch.Tensor) and arg.requires_grad]
+    side_args = list(args)
+    for i in tracked:
+        side_args[i] = args[i].detach().requires_grad_()
+    future = side_thread().submit(function, *side_args)
+
+    def joined() -> torch.Tensor:
+        value = future.result()
+        if not value.requires_grad:
+            return value
+        return _JoinedTerm.apply(_SideGraph(value, [side_args[i] for i in tracked]), *(args[i] for i in tracked))
+
+    return joined
+
+
+def _without_grad(function: Callable[..., torch.Tensor], *args) -> torch.Tensor:
+    with torch.no_grad():
+        return function(*args)
+
+
+class _SideGraph:
+    """A value and the leaves of the graph it was computed by (a plain holder: autograd does not follow it)."""
+
+    def __init__(self, value: torch.Tensor, leaves: list[torch.Tensor]):
+        self.value, self.leaves = value, leaves
+
+
+class _JoinedTerm(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, side: _SideGraph, *inputs: torch.Tensor) -> torch.Tensor:
+        ctx.side = side
+        return side.value.detach()
+
+    @staticmethod
+    def backward(ctx, grad: torch.Tensor):
+        side = ctx.side
+        gradients = torch.autograd.grad(side.value, side.leaves, grad, allow_unused=True)
+        ctx.side = None  # the side graph is freed with its one backward
+        return (None, *gradients)
