@@ -121,6 +121,8 @@ class _SideGraph:
 
 
 class _JoinedTerm(torch.autograd.Function):
+    """The side graph's value as one node of the calling thread's graph, its backward the side graph's."""
+
     @staticmethod
     def forward(ctx, side: _SideGraph, *inputs: torch.Tensor) -> torch.Tensor:
         ctx.side = side
