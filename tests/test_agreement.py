@@ -124,7 +124,8 @@ def test_runs_that_perturbed_the_truth_report_their_errors_and_whether_they_star
 
 def test_two_cameras_are_compared_after_the_pairwise_alignment():
     poses = orbit_viewmats(2)
-    result = pose_agreement([fake_run("a", poses, views=2), fake_run("b", poses, views=2)])
+    other = align_viewmats(poses, random_sim3(generator(4)))  # another gauge: the same relative pose
+    result = pose_agreement([fake_run("a", poses, views=2), fake_run("b", other, views=2)])
     assert result.alignment == "pairwise"
     np.testing.assert_allclose(result.rotation_deg, 0, atol=1e-6)
 

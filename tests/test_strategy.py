@@ -8,6 +8,7 @@ import math
 
 import pytest
 import torch
+from random_poses import skew_reference
 
 from warpbags.configs.train import DensifyConfig
 from warpbags.errors import WarpbagsError
@@ -53,13 +54,15 @@ def test_accumulate_is_independent_of_the_views_per_step():
 
 
 def _four_gaussians():
-    """G0 small with a large gradient (cloned), G1 large with a large gradient (split), G2 small gradient (kept),
-    G3 nearly transparent (pruned); Adam holds moments for all after one step."""
+    """G0 small with a large gradient (cloned), G1 large with a large gradient (split; turned 90 deg about z, so its
+    long axis lies along world y), G2 small gradient (kept), G3 nearly transparent (pruned); Adam holds moments for
+    all after one step."""
     logit = lambda p: math.log(p / (1 - p))  # noqa: E731
     params = {
         "means": torch.tensor([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]),
         "scales": torch.log(torch.tensor([[0.005] * 3, [0.1, 0.05, 0.05], [0.05] * 3, [0.05] * 3])),
-        "quats": torch.tensor([[1.0, 0.0, 0.0, 0.0]] * 4),
+        "quats": torch.tensor([[1.0, 0.0, 0.0, 0.0], [math.sqrt(0.5), 0.0, 0.0, math.sqrt(0.5)],
+                               [1.0, 0.0, 0.0, 0.0], [1.0, 0.0, 0.0, 0.0]]),
         "opacities": torch.tensor([logit(0.5), logit(0.6), logit(0.7), logit(0.01)]),
         "sh0": torch.arange(12.0).reshape(4, 1, 3),
     }
@@ -84,9 +87,13 @@ def test_clone_split_and_prune_change_the_rows_as_3dgs_does():
     assert len(params["means"]) == 5
     for name in params:
         torch.testing.assert_close(params[name][[0, 1, 2]].detach(), before[name][[0, 2, 0]])
-    children = params["means"][3:].detach()
-    assert not torch.equal(children[0], children[1])
-    assert ((children - before["means"][1]).abs().max(dim=0).values < 4 * before["scales"][1].exp()).all()
+    # the children are drawn from the parent's Gaussian: the draws scaled by its axes, turned by its rotation
+    # (about 90 deg about z: Adam's step moved the quaternion a little), as the axis-angle of its quaternion
+    draws = torch.randn(2, 3, generator=torch.Generator().manual_seed(0)) * before["scales"][1].exp()
+    w, vector = before["quats"][1, 0], before["quats"][1, 1:]
+    angle = 2 * torch.atan2(vector.norm(), w)
+    rotation = torch.linalg.matrix_exp(skew_reference(vector / vector.norm() * angle))
+    torch.testing.assert_close(params["means"][3:].detach(), before["means"][1] + draws @ rotation.T)
     torch.testing.assert_close(params["scales"][3:].detach(), (before["scales"][1].exp() / 1.6).log().expand(2, 3))
     torch.testing.assert_close(params["opacities"][3:].detach(), before["opacities"][1].expand(2))
     # Adam's moments follow their rows; new rows start at zero
@@ -94,6 +101,16 @@ def test_clone_split_and_prune_change_the_rows_as_3dgs_does():
         state = optimizer.state[value]["exp_avg"]
         torch.testing.assert_close(state[[0, 1]], moments[name][[0, 2]])
         assert not state[2:].any()
+
+
+def test_oversized_gaussians_are_pruned():
+    params, optimizer, strategy = _four_gaussians()
+    strategy.grad_sum = torch.zeros(4)  # nothing densified
+    strategy.config = dataclasses.replace(strategy.config, prune_scale=0.07)  # G1's 0.1 is above it, G2's 0.05 not
+    before = params["means"].detach().clone()
+    report = strategy.step(1, params, optimizer, torch.Generator().manual_seed(0))
+    assert report == {"cloned": 0, "split": 0, "pruned": 2}  # G1 by its size, G3 by its opacity
+    torch.testing.assert_close(params["means"].detach(), before[[0, 2]])
 
 
 def test_a_short_budget_keeps_the_largest_gradients():
@@ -105,9 +122,11 @@ def test_a_short_budget_keeps_the_largest_gradients():
 
 def test_the_opacity_reset_caps_opacities_and_zeroes_their_moments():
     params, optimizer, strategy = _four_gaussians()
+    with torch.no_grad():
+        params["opacities"][3] = math.log(0.001 / 0.999)  # below the cap: kept as it is
     strategy.config = dataclasses.replace(strategy.config, start=50, opacity_reset_every=1)
     report = strategy.step(1, params, optimizer, torch.Generator().manual_seed(0))
     assert report == {"opacity_reset": 1}
-    assert torch.sigmoid(params["opacities"]).max() <= 0.01 + 1e-6
+    torch.testing.assert_close(torch.sigmoid(params["opacities"]).detach(), torch.tensor([0.01, 0.01, 0.01, 0.001]))
     state = optimizer.state[params["opacities"]]
     assert not state["exp_avg"].any() and not state["exp_avg_sq"].any()
