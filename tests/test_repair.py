@@ -19,6 +19,7 @@ from warpbags.evaluation import evaluate_run, held_out_views
 from warpbags.run_folder import load_run
 from warpbags.gaussians import render_gaussians, sh_degree_of
 from warpbags.blur import gaussian_blur
+from warpbags.cameras import camera_centers
 from warpbags.repair import RepairPairs, UNetRepairer, make_repairer
 from warpbags.repair.pairs import LEAVE_ONE_OUT, NOISE, NOISY_PARAMETERS, NoiseStatistics, perturbed_gaussians
 from warpbags.repair.stage import RepairStage, distance_weights
@@ -53,8 +54,8 @@ def test_unfitted_repair_network_is_the_identity(scene_dir):
     images = object_images(scene_dir, 2)
     repairer = UNetRepairer(RepairConfig())
     torch.testing.assert_close(repairer.repair(images), images, rtol=0, atol=1e-6)
-    odd = images[:, :90, :93]  # sides that are not multiples of 4 are padded and cropped back
-    assert repairer.repair(odd).shape == odd.shape
+    odd = images[:, :90, :93]  # sides that are not multiples of 4 are padded and cropped back, in place
+    torch.testing.assert_close(repairer.repair(odd), odd, rtol=0, atol=1e-6)
 
 
 def test_repair_network_learns_to_undo_a_blur(scene_dir):
@@ -116,7 +117,10 @@ def test_perturbed_gaussians_follow_the_noise_statistics():
     full = perturbed_gaussians(params, noise, clamp_std=0.7, dropout=0.0, generator=generator)
     assert full["means"].mean().item() == pytest.approx(0.1, abs=0.01)
     assert full["means"].std().item() == pytest.approx(0.5, abs=0.01)
-    assert full["scales"].min().item() >= 0.1 - 0.35 - 1e-6 and full["scales"].max().item() <= 0.1 + 0.35 + 1e-6
+    for name in NOISY_PARAMETERS[1:]:  # the others clamped to mean +- 0.7 std, and every one of them perturbed
+        assert full[name].mean().item() == pytest.approx(0.1, abs=0.01), name
+        assert full[name].min().item() >= 0.1 - 0.35 - 1e-6 and full[name].max().item() <= 0.1 + 0.35 + 1e-6, name
+        assert full[name].std().item() > 0.2, name
     assert torch.equal(full["sh0"], params["sh0"])  # colours get no noise
     sparse = perturbed_gaussians(params, noise, clamp_std=0.7, dropout=0.75, generator=generator)
     assert (sparse["means"] != 0).float().mean().item() == pytest.approx(0.25, abs=0.01)
@@ -134,6 +138,15 @@ def test_distance_weights_favour_views_away_from_the_training_cameras():
     weights = distance_weights(orbit[[0, 1, 2]], train)
     assert weights[0].item() == pytest.approx(0.0, abs=1e-6)  # on a training camera
     assert 0 < weights[1] < weights[2] <= 1  # half-way between two is farthest
+    # Unevenly spaced: d_max is 1.2 x the largest distance from a training camera to its second-nearest other.
+    train = orbit[[0, 2, 3, 9]]
+    centres, pseudo = camera_centers(train), camera_centers(orbit[[1, 5, 6]])
+    second_nearest = max(sorted((centres[i] - centres[j]).norm().item() for j in range(4) if j != i)[1]
+                         for i in range(4))
+    nearest = [min((p - c).norm().item() for c in centres) for p in pseudo]
+    expected = [min(1.0, 2 * d / (1.2 * second_nearest)) for d in nearest]
+    torch.testing.assert_close(distance_weights(orbit[[1, 5, 6]], train), torch.tensor(expected, dtype=torch.float64))
+    assert 0 < min(expected) and max(expected) < 1
 
 
 # ------------------------------------------------------------------------------------------------ end to end

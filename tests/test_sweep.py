@@ -27,12 +27,14 @@ def scene(tmp_path_factory):
 
 
 def evaluation(psnr: float = 20.0, rot_final: float = 1.0) -> dict:
-    """The parts of an eval.json (`evaluate_run`) that a sweep's row reads."""
-    poses = {stage: {"rotation_deg_mean": rotation, "translation_mean": 0.01}
-             for stage, rotation in (("initial", 5.0), ("final", rot_final))}
+    """The parts of an eval.json (`evaluate_run`) that a sweep's row reads; each stage's and each row's numbers
+    differ, so that a row that read the wrong one would show it."""
+    poses = {stage: {"rotation_deg_mean": rotation, "translation_mean": translation}
+             for stage, rotation, translation in (("initial", 5.0, 0.05), ("final", rot_final, 0.01))}
     images = {"mean": {"psnr": psnr, "ssim": 0.9, "flip": 0.1, "lpips": None}, "per_view": []}
+    refined = {"mean": {**images["mean"], "psnr": psnr + 1.5}, "per_view": []}
     return {"alignment": "procrustes", "poses": {"procrustes": poses}, "images": images,
-            "images_after_test_pose_refinement": {"iters": 2, **images}}
+            "images_after_test_pose_refinement": {"iters": 2, **refined}}
 
 
 def write_evaluation(folder, report: dict) -> None:
@@ -76,7 +78,9 @@ def test_null_metrics_of_finished_runs_show_as_na_and_stay_out_of_the_plots(scen
     assert "skip baseline-4v-rot5-seed0 (done)" in result.output and result.output.count("n/a") == 3, result.output
     rows = json.loads((out / "sweep.json").read_text())
     assert [(row["psnr"], row["psnr_refined"], row["rot_err_final"]) for row in rows] == [(None, None, 1.0),
-                                                                                          (25.0, 25.0, None)]
+                                                                                          (25.0, 26.5, None)]
+    assert all((row["rot_err_initial"], row["trans_err_initial"], row["trans_err_final"]) == (5.0, 0.05, 0.01)
+               for row in rows)
     for name in ("psnr_vs_noise.png", "pose_error_vs_noise.png"):
         assert (out / name).stat().st_size > 100, name
 
