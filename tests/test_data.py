@@ -32,6 +32,7 @@ from warpbags.data import (
     open_scene,
 )
 from warpbags.data import loaders
+from warpbags.data.catalog import packaged_scene_dir
 from warpbags.data.colmap import read_model, write_model
 from warpbags.data.images import read_image, read_masks, scene_bytes
 from warpbags.data.synthetic import (LIGHT_DIRECTION, LIGHT_IN_CAMERA, OBJECT_CENTER, dome_viewmats, intrinsics,
@@ -402,6 +403,9 @@ def test_blender_test_views_are_never_chosen_for_training(synthetic_dir, tmp_pat
     ({"camera_angle_x": 0}, "camera_angle_x is 0, not between 0 and 3.14159"),  # ZeroDivisionError
     ({"camera_angle_y": "tall"}, "camera_angle_y is 'tall', not a finite number"),
     ({"k1": "barrel"}, "k1 is 'barrel', not a finite number"),
+    # a fisheye or equirectangular camera was taken for a distorted pinhole (its images undistorted as one)
+    ({"camera_model": "OPENCV_FISHEYE", "k1": 0.1}, "camera_model 'OPENCV_FISHEYE' is not one warpbags reads"),
+    ({"camera_model": "EQUIRECTANGULAR"}, "camera_model 'EQUIRECTANGULAR' is not one warpbags reads"),
 ])
 def test_transforms_json_intrinsics_that_are_no_numbers_are_one_line(synthetic_dir, tmp_path, fields, named):
     """A focal length, image size, principal point or distortion coefficient of a transforms.json frame that is no
@@ -435,15 +439,15 @@ def test_transforms_json_frames_that_name_no_image_or_one_twice_are_one_line(syn
 
 def test_transforms_json_null_intrinsics_are_absent_ones(synthetic_dir, tmp_path):
     """null for an optional field (principal point, distortion, image size) is read as its absence, as before the
-    fields were checked: the same cameras as without them."""
+    fields were checked: the same cameras as without them (each frame naming a pinhole camera model)."""
     folder = _strip_to_images(synthetic_dir, tmp_path / "nulls")
     opengl = np.linalg.inv(dome_viewmats(SYNTHETIC)) @ np.diag([1.0, -1.0, -1.0, 1.0])
     frames = [{"file_path": f"images/view_{i:03d}", "transform_matrix": opengl[i].tolist()} for i in range(12)]
     (folder / "transforms.json").write_text(json.dumps({"camera_angle_x": math.radians(SYNTHETIC.fov_deg),
                                                         "frames": frames}))
     plain = load_scene(folder, normalize=False)
-    for frame in frames:
-        frame.update({key: None for key in ("cx", "cy", "k1", "k3", "k4", "w", "h")})
+    for frame, model in zip(frames, ["PINHOLE", "SIMPLE_PINHOLE", "OPENCV"] * 4):  # the models that are pinholes
+        frame.update({key: None for key in ("cx", "cy", "k1", "k3", "k4", "w", "h")}, camera_model=model)
     (folder / "transforms.json").write_text(json.dumps({"camera_angle_x": math.radians(SYNTHETIC.fov_deg),
                                                         "frames": frames}))
     torch.testing.assert_close(load_scene(folder, normalize=False).Ks, plain.Ks, rtol=0, atol=0)
@@ -558,6 +562,42 @@ def test_jpeg_photographs_and_masks_are_decoded_reduced(synthetic_dir, tmp_path)
     read = read_masks(tmp_path, ["photo.jpg"], 64, 64, 4)[0]
     expected = cv2.resize(mask.astype(np.float32) / 255, (64, 64), interpolation=cv2.INTER_AREA) >= 0.5
     assert np.mean(read == expected) > 0.99
+
+
+def test_a_jpeg_cut_short_is_refused_by_name_as_image_and_as_mask(synthetic_dir, tmp_path):
+    """libjpeg decodes a JPEG whose data stops (a copy or download cut short), grey from there on, and only warns
+    on stderr: such an image trained as it was. It is refused by name, at every reduction; a whole one, also with
+    bytes after its end (as some cameras append), reads."""
+    image = cv2.imread(str(synthetic_dir / "images" / "view_000.png"))
+    whole = tmp_path / "whole.jpg"
+    cv2.imwrite(str(whole), image, [cv2.IMWRITE_JPEG_QUALITY, 95])
+    data = whole.read_bytes()
+    cut = tmp_path / "cut.jpg"
+    cut.write_bytes(data[: len(data) // 2])
+    for reduction in (1, 2):
+        with pytest.raises(WarpbagsError, match=f"image {re.escape(str(cut))} is cut short"):
+            read_image(cut, reduction)
+    trailed = tmp_path / "trailed.jpg"
+    trailed.write_bytes(data + b"camera trailer")
+    np.testing.assert_array_equal(read_image(trailed), read_image(whole))
+    masks = tmp_path / "masks"
+    masks.mkdir()
+    (masks / "cut.jpg").write_bytes(data[: len(data) // 2])
+    with pytest.raises(WarpbagsError, match="mask .*cut.jpg is cut short"):
+        read_masks(tmp_path, ["cut.jpg"], 64, 64, 1)
+
+
+def test_llff_images_are_listed_whatever_the_case_of_their_extension(tmp_path):
+    """An LLFF folder's image listing skipped IMG_x.Jpg: "69 poses but ... holds 68 images"."""
+    shipped = packaged_scene_dir("maryrose")
+    scene = tmp_path / "maryrose"
+    shutil.copytree(shipped, scene)
+    first = sorted((scene / "images_8").iterdir())[0]
+    first.rename(first.with_suffix(".Jpg"))  # shipped as .JPG
+    plain = load_scene(shipped, normalize=False)
+    renamed = load_scene(scene, normalize=False)
+    assert renamed.num_views == plain.num_views
+    torch.testing.assert_close(renamed.images, plain.images, rtol=0, atol=0)
 
 
 def test_an_exif_orientation_is_ignored_at_every_reduction_as_colmap_does(synthetic_dir, tmp_path):

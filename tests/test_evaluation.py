@@ -16,6 +16,7 @@ import pytest
 import torch
 from typer.testing import CliRunner
 
+from warpbags.alignment import centre_floor_errors
 from warpbags.cli.main import app
 from warpbags.data import SyntheticOptions, ensure_synthetic_scene
 from warpbags.data.colmap import read_model, write_model
@@ -52,12 +53,17 @@ def test_eval_writes_metrics_and_pictures(finished_run):
     # free gauge: all four cameras carry the injected noise (std 4 deg, so a mean |angle| of about 3.2 deg)
     initial = report["poses"]["procrustes"]["initial"]["rotation_deg"]
     assert 0.5 < float(np.mean(initial)) < 8.0
-    # the centre floor: what the centres alone force, per camera and as the mean shown in the table (Procrustes only)
-    for stage in ("initial", "final"):
+    # the centre floor: what the centres alone force, per camera and as the mean shown in the table (Procrustes only),
+    # each stage's of its own poses
+    run = load_run(finished_run)
+    for stage, poses in (("initial", run.poses_init), ("final", run.poses_final)):
         entry = report["poses"]["procrustes"][stage]
-        assert len(entry["rotation_deg_centre_floor"]) == 4
+        floor = centre_floor_errors(poses.double(), run.poses_true.double(), torch.zeros(3, dtype=torch.float64))
+        np.testing.assert_allclose(entry["rotation_deg_centre_floor"], floor.numpy(), rtol=1e-6, atol=1e-9)
         assert entry["rotation_deg_centre_floor_mean"] == pytest.approx(np.mean(entry["rotation_deg_centre_floor"]))
         assert "rotation_deg_centre_floor" not in report["poses"]["pairwise"][stage]
+    assert report["poses"]["procrustes"]["initial"]["rotation_deg_centre_floor"] != \
+        report["poses"]["procrustes"]["final"]["rotation_deg_centre_floor"]
     # how far the pose errors move the object, per camera, under every alignment; noisy poses move it by pixels
     for name in ("procrustes", "pairwise"):
         for stage in ("initial", "final"):
@@ -75,6 +81,9 @@ def test_eval_writes_metrics_and_pictures(finished_run):
         assert report["flip_unavailable"] is None and 0.0 < mean["flip"] < 1.0
         assert mean["flip"] == pytest.approx(np.mean([view["flip"] for view in report[key]["per_view"]]))
     assert "FLIP" in result.output
+    # the refined row renders the refined test poses: every view's picture changes
+    for before, after in zip(report["images"]["per_view"], report["images_after_test_pose_refinement"]["per_view"]):
+        assert before["psnr"] != after["psnr"]
     # LPIPS is a number exactly when its network loads here (offline: never, and never a made-up number).
     _, unavailable = load_lpips()
     assert report["lpips_unavailable"] == unavailable
@@ -305,6 +314,29 @@ def test_export_writes_the_training_cameras_with_the_inputs_calibration_as_a_col
     gaussians = read_ply(tmp_path / "export" / "gaussians.ply")
     assert len(model.points) == len(gaussians["means"])
     np.testing.assert_allclose(np.sort(model.points, axis=0), np.sort(gaussians["means"].numpy(), axis=0), atol=1e-5)
+
+
+def test_exported_image_names_with_spaces_are_kept_in_a_binary_model(finished_run, tmp_path):
+    """COLMAP's text format splits an image name at a space: "view 000.png" was read back as "view" for every image.
+    Such a model is written binary."""
+    info = json.loads((finished_run / "config.json").read_text())
+    scene = tmp_path / "scene"
+    shutil.copytree(info["scene_root"], scene)
+    source = read_model(scene / "sparse" / "0")
+    spaced = {name: name.replace("_", " ") for name in source.image_names}
+    for name, new_name in spaced.items():
+        (scene / "images" / name).rename(scene / "images" / new_name)
+    shutil.rmtree(scene / "sparse" / "0")
+    write_model(scene / "sparse" / "0", [spaced[name] for name in source.image_names], source.viewmats,
+                np.stack([camera.K for camera in source.cameras]), 64, 64)
+    run, _ = _run_on_scene(finished_run, tmp_path, scene, image_names=[spaced[name] for name in info["image_names"]])
+    result = runner.invoke(app, ["export", str(run), "--out", str(tmp_path / "export")])
+    assert result.exit_code == 0, result.output
+    written = {path.name for path in (tmp_path / "export" / "sparse" / "0").iterdir()}
+    assert {"cameras.bin", "images.bin", "points3D.bin"} <= written and all(name.endswith(".bin") for name in written)
+    assert read_model(tmp_path / "export" / "sparse" / "0").image_names == sorted(spaced[n] for n in info["image_names"])
+    result = runner.invoke(app, ["export", str(run), "--out", str(tmp_path / "export")])  # over the earlier export
+    assert result.exit_code == 0, result.output
 
 
 def test_exported_image_names_are_relative_to_one_image_folder_for_a_transforms_json_scene(finished_run, tmp_path):

@@ -17,7 +17,7 @@ from headless_browser import VISER_SHOWS_FULL_FRAME, find_chromium, initial_view
 from random_poses import generator, random_sim3, random_viewmats
 from typer.testing import CliRunner
 
-from warpbags.alignment import align_viewmats
+from warpbags.alignment import align_viewmats, pose_errors
 from warpbags.cameras import camera_centers
 from warpbags.cli.main import app
 from warpbags.configs.train import load_preset
@@ -111,9 +111,10 @@ def test_read_ply_of_another_tool_layout(run_dir, tmp_path):
     for name, array in columns.items():
         table[name] = array
     types = {"u1": "uchar", "f4": "float", "f8": "double"}
-    header = "ply\nformat binary_little_endian 1.0\ncomment another tool\nelement vertex {}\n{}end_header\n".format(
-        count, "".join(f"property {types[table.dtype[name].str[1:]]} {name}\n" for name in table.dtype.names))
-    (tmp_path / "other.ply").write_bytes(header.encode("ascii") + table.tobytes())
+    header = "ply\nformat binary_little_endian 1.0\ncomment another tool, café\nelement vertex {}\n{}end_header\n"
+    header = header.format(count, "".join(f"property {types[table.dtype[name].str[1:]]} {name}\n"
+                                          for name in table.dtype.names))
+    (tmp_path / "other.ply").write_bytes(header.encode("utf-8") + table.tobytes())  # a comment of any text
     again = read_ply(tmp_path / "other.ply")
     assert set(again) == set(params)
     for name in params:
@@ -124,6 +125,11 @@ def test_read_ply_of_another_tool_layout(run_dir, tmp_path):
     write_ply(tmp_path / "odd.ply", {**params, "shN": params["shN"][:, :2]})
     with pytest.raises(WarpbagsError, match="6 f_rest properties, where SH degrees 0-3 have 0, 9, 24 or 45"):
         read_ply(tmp_path / "odd.ply")
+    # numbered with a gap (f_rest_1 missing, f_rest_99 instead) was a ValueError traceback
+    data = (tmp_path / "ours.ply").read_bytes()
+    (tmp_path / "gap.ply").write_bytes(data.replace(b"property float f_rest_1\n", b"property float f_rest_99\n", 1))
+    with pytest.raises(WarpbagsError, match="not a 3DGS Gaussian PLY \\(missing f_rest_1; 9 f_rest properties"):
+        read_ply(tmp_path / "gap.ply")
 
 
 # ------------------------------------------------------------------------------------------------ cameras
@@ -252,6 +258,14 @@ def test_reference_cameras_are_aligned_as_eval_does(run_dir, tmp_path):
     # exact up to the float32 the run stores its poses in (rotations orthonormal to ~2e-7, scaled by the sim(3)):
     # 1.1e-6 measured on one run, while a wrong alignment is off by the sim(3) itself
     np.testing.assert_allclose(reference, final.numpy(), atol=1e-5)
+    # Reference poses that are not a sim(3) of the final ones: mapped by eval's alignment for this many cameras
+    # (Procrustes on the centres for 3 or more), which another alignment would not reproduce.
+    true = align_viewmats(final, random_sim3(generator(2)))
+    true[:, :3, 3] += 0.05 * torch.randn(len(true), 3, generator=generator(3), dtype=torch.float64)
+    np.save(run / "poses_true.npy", true.numpy())
+    reference = load_viewer_content(run, log=lambda message: None).cameras.reference
+    sim3 = pose_errors(final, true, alignment="procrustes")["sim3"]
+    np.testing.assert_allclose(reference, align_viewmats(true, sim3.inverse()).numpy(), atol=1e-5)
 
 
 def test_viewer_without_history_or_scene(run_dir, tmp_path):

@@ -97,11 +97,24 @@ def _decoded_reduced(path: Path, reduction: int) -> bool:
     return reduction in JPEG_REDUCED_FLAGS and path.suffix.lower() in JPEG_EXTENSIONS
 
 
+def _decoded(path: Path, flag: int, what: str) -> np.ndarray | None:
+    """OpenCV's decode of the file at `path` with `flag`, None where it cannot decode it.
+
+    Raises:
+        WarpbagsError: a JPEG cut short (a copy or download that stopped): libjpeg decodes one, grey where its data
+            ends, and only warns on stderr. Its end-of-image marker is missing after its last scan.
+    """
+    data = path.read_bytes()
+    if path.suffix.lower() in JPEG_EXTENSIONS and data.rfind(b"\xff\xd9") < data.rfind(b"\xff\xda"):
+        raise WarpbagsError(f"{what} {path} is cut short (its data ends inside the picture): copy it again")
+    return cv2.imdecode(np.frombuffer(data, dtype=np.uint8), flag)
+
+
 def read_image(path: Path, reduction: int = 1) -> np.ndarray:
     """The image at `path` as float32 RGB(A) in [0, 1]; a JPEG is decoded at 1/`reduction` (2, 4 or 8) of its size
     by libjpeg's own scaling, 8x faster than a full decode for 1/8."""
     flag = JPEG_REDUCED_FLAGS[reduction][0] if _decoded_reduced(path, reduction) else cv2.IMREAD_UNCHANGED
-    image = cv2.imread(str(path), flag) if path.is_file() else None
+    image = _decoded(path, flag, "image") if path.is_file() else None
     if image is None:
         if path.is_file():
             raise WarpbagsError(f"image {path} is unreadable")
@@ -188,8 +201,8 @@ def _read_mask(path: Path, width: int) -> np.ndarray | None:
     to 0 where it held 0 / 1); a JPEG at 2, 4 or 8 times `width` is decoded at that reduction."""
     reduction = round(image_size(path)[0] / width) if path.suffix.lower() in JPEG_EXTENSIONS else 1
     reduced = _decoded_reduced(path, reduction)
-    return cv2.imread(str(path), JPEG_REDUCED_FLAGS[reduction][1] if reduced else
-                      cv2.IMREAD_GRAYSCALE | cv2.IMREAD_ANYDEPTH | _AS_STORED)
+    return _decoded(path, JPEG_REDUCED_FLAGS[reduction][1] if reduced else
+                    cv2.IMREAD_GRAYSCALE | cv2.IMREAD_ANYDEPTH | _AS_STORED, "mask")
 
 
 def mask_folder(root: Path, resolution: int) -> Path | None:

@@ -118,7 +118,7 @@ def llff_cameras(root: Path) -> LayoutCameras:
     if poses_bounds.ndim != 2 or poses_bounds.shape[1] != 17:
         raise WarpbagsError(f"{path} has shape {poses_bounds.shape}, expected [N,17]")
     image_dir = first_existing_image_dir(root)
-    names = sorted(p.name for p in image_dir.iterdir() if p.suffix in IMAGE_EXTENSIONS)
+    names = sorted(p.name for p in image_dir.iterdir() if p.suffix.lower() in IMAGE_EXTENSIONS)
     if len(names) != len(poses_bounds):
         raise WarpbagsError(f"{path} has {len(poses_bounds)} poses but {image_dir} holds {len(names)} images")
     matrices = poses_bounds[:, :15].reshape(-1, 3, 5)
@@ -141,6 +141,11 @@ def llff_cameras(root: Path) -> LayoutCameras:
         calibration_sizes=np.stack([width, height], axis=1),
         distortions=np.zeros((len(names), 4)),
     )
+
+
+# The camera models of a transforms.json that warpbags reads: pinhole, with OPENCV's k1, k2, p1, p2 (fisheye and
+# equirectangular cameras project otherwise, and would be taken for a distorted pinhole).
+TRANSFORMS_CAMERA_MODELS = ("OPENCV", "PINHOLE", "SIMPLE_PINHOLE")
 
 
 def transforms_cameras(root: Path) -> LayoutCameras:
@@ -175,6 +180,10 @@ def transforms_cameras(root: Path) -> LayoutCameras:
             raise WarpbagsError(f"{path}: frame {name} transform_matrix has shape {camera_to_world.shape}")
         camera_to_world = np.vstack([camera_to_world[:3], [0, 0, 0, 1]]) @ OPENGL_TO_OPENCV
         number = functools.partial(_frame_number, path, name, merged)
+        model = merged.get("camera_model", "OPENCV")  # nerfstudio's default
+        if model not in TRANSFORMS_CAMERA_MODELS:
+            raise WarpbagsError(f"{path}: frame {name}: camera_model {model!r} is not one warpbags reads "
+                                f"({', '.join(TRANSFORMS_CAMERA_MODELS)}; undistort the images first)")
         if merged.get("w") is None or merged.get("h") is None:
             width, height = image_size(image_path)
         else:
