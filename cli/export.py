@@ -22,7 +22,8 @@ def export(
         "whose gaussians.ply, poses_final.npy and sparse/0/ are replaced; never the run folder, its scene folder or "
         "a folder that holds other files."),
     colmap: bool = typer.Option(True, "--colmap/--no-colmap",
-                                help="Also write sparse/0/, a COLMAP text model of the training cameras: the input's "
+                                help="Also write sparse/0/, a COLMAP model (text; binary where an image name holds a "
+                                     "space) of the training cameras: the input's "
                                      "calibration, read again from the scene folder, with the final poses."),
 ) -> None:
     """Write the Gaussians (standard 3DGS PLY) and final poses in the input scene's frame: poses_final.npy holds

@@ -89,7 +89,7 @@ EXPORT_MODEL_FOLDERS = ("0", "0.partial")
 
 def check_export_folder(out: Path, run: TrainingRun) -> None:
     """Check, before anything is written, that `out` may receive an export of `run`: a new or empty folder, or an
-    earlier export (gaussians.ply, and nothing but `EXPORT_FILES` and a sparse/ of text models), and neither the run
+    earlier export (gaussians.ply, and nothing but `EXPORT_FILES` and a sparse/ of COLMAP models), and neither the run
     folder nor its scene folder, nor a folder that holds either.
 
     Raises:
@@ -117,7 +117,7 @@ def check_export_folder(out: Path, run: TrainingRun) -> None:
         if entry.name == "sparse" and not entry.is_dir():
             raise WarpbagsError(f"{entry} is a file, where an export writes a folder (sparse/0/): {refusal}")
         if entry.name == "sparse" and not _export_models(entry):
-            raise WarpbagsError(f"{entry} holds more than the COLMAP text model sparse/0/ an export writes: {refusal}")
+            raise WarpbagsError(f"{entry} holds more than the COLMAP model sparse/0/ an export writes: {refusal}")
     foreign = [entry.name for entry in entries if entry.name not in (*EXPORT_FILES, "sparse")]
     if foreign:
         shown = ", ".join(foreign[:4]) + (f" and {len(foreign) - 4} more" if len(foreign) > 4 else "")
@@ -128,11 +128,12 @@ def check_export_folder(out: Path, run: TrainingRun) -> None:
 
 def _export_models(sparse: Path) -> bool:
     """Whether `sparse` holds only what an export writes there: 0/ (and a 0.partial/ left by a failed write), each
-    a COLMAP text model (plain *.txt files)."""
+    a COLMAP model (plain *.txt or *.bin files)."""
     for model in sparse.iterdir():
         if model.name not in EXPORT_MODEL_FOLDERS or model.is_symlink() or not model.is_dir():
             return False
-        if not all(file.is_file() and not file.is_symlink() and file.suffix == ".txt" for file in model.iterdir()):
+        if not all(file.is_file() and not file.is_symlink() and file.suffix in (".txt", ".bin")
+                   for file in model.iterdir()):
             return False
     return True
 
@@ -142,7 +143,7 @@ def export_run(path: str | Path, out: str | Path | None = None, colmap: bool = T
 
     Writes `<out>/gaussians.ply` (standard 3DGS PLY), `<out>/poses_final.npy` ([C,4,4] world-to-camera, OpenCV
     axes, the training views in `config.json`'s image order) and, with `colmap`, `<out>/sparse/0/` (a COLMAP text
-    model: the training views with the input's calibration, for the image files the scene folder holds, and their
+    model, binary where an image name holds a space, which the text format splits the name at: the training views with the input's calibration, for the image files the scene folder holds, and their
     final poses, one point per Gaussian at its centre in its base colour), which COLMAP-reading trainers take as
     they are with the scene's image folder. Default `out`: `<run>/export`. `out` must be a new or empty folder or
     an earlier export (`check_export_folder`), never the run folder or its scene folder: an export replaces the
@@ -172,7 +173,8 @@ def export_run(path: str | Path, out: str | Path | None = None, colmap: bool = T
         shutil.rmtree(staging, ignore_errors=True)
         write_model(staging, calibration.image_names, poses, calibration.Ks, calibration.sizes[:, 0],
                     calibration.sizes[:, 1], gaussians["means"].double().numpy(), np.round(colors * 255).astype(np.uint8),
-                    binary=False, distortions=calibration.distortions)
+                    binary=any(" " in name or "\t" in name for name in calibration.image_names),
+                    distortions=calibration.distortions)
         shutil.rmtree(model, ignore_errors=True)
         staging.rename(model)
         return out, Path(run.info["scene_root"]) / calibration.image_folder

@@ -93,7 +93,7 @@ def _read_vertex_table(path: Path) -> np.ndarray:
             if not line:
                 raise WarpbagsError(f"{path}: no PLY end_header")
             header += line
-        lines = header.decode("ascii").splitlines()
+        lines = header.decode("latin-1").splitlines()  # a comment may hold any bytes; the keywords are ASCII
         if "format binary_little_endian 1.0" not in lines:
             raise WarpbagsError(f"{path}: not a binary little-endian PLY")
         elements = [index for index, line in enumerate(lines) if line.startswith("element ")]
@@ -133,8 +133,10 @@ def read_ply(path: str | Path) -> dict[str, torch.Tensor]:
     if len(table) == 0:  # a valid header of no vertices: nothing to render, export or align
         raise WarpbagsError(f"{path}: the PLY holds no Gaussians (element vertex 0)")
     names = table.dtype.names
-    missing = [name for name in _REQUIRED_PROPERTIES if name not in names]
     rest_count = sum(name.startswith("f_rest_") for name in names)
+    # f_rest_0 .. f_rest_{n-1}, whatever their order in the header
+    missing = [name for name in (*_REQUIRED_PROPERTIES, *(f"f_rest_{i}" for i in range(rest_count)))
+               if name not in names]
     coefficients = 1 + rest_count // 3  # per colour channel: (degree + 1)^2 for degree 0-3
     if missing or rest_count % 3 or coefficients not in (1, 4, 9, 16):
         raise WarpbagsError(f"{path}: not a 3DGS Gaussian PLY (missing {', '.join(missing) or 'none'}; "
