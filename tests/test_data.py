@@ -680,6 +680,17 @@ def test_a_camera_model_it_cannot_undistort_is_refused(scene_copy):
         load_scene(scene_copy)
 
 
+def test_a_camera_no_posed_image_uses_is_not_read(scene_copy, synthetic):
+    """An extra camera of a model warpbags cannot read, which no image uses, stopped the whole scene."""
+    model = pycolmap.Reconstruction()
+    model.read(str(scene_copy / "sparse" / "0"))
+    unused = pycolmap.Camera(model="OPENCV_FISHEYE", width=64, height=64, params=[60.0, 60.0, 32.0, 32.0, 0.1, 0, 0, 0])
+    unused.camera_id = max(model.cameras) + 1
+    model.add_camera(unused)
+    model.write(str(scene_copy / "sparse" / "0"))
+    torch.testing.assert_close(load_scene(scene_copy).Ks, synthetic.Ks, rtol=0, atol=0)
+
+
 @pytest.mark.parametrize("model_name", ["SIMPLE_RADIAL", "RADIAL", "OPENCV"])
 def test_distorted_images_are_undistorted_to_the_pinhole_view(scene_copy, synthetic, model_name):
     """Distort the pinhole renders with OpenCV's forward model, declare the distortion in cameras.bin: the loader

@@ -136,9 +136,10 @@ def read_model(model_dir: Path) -> ColmapModel:
     if not registered:
         raise WarpbagsError(f"{model_dir / f'images.{extension}'} holds no posed images")
     registered.sort(key=lambda image: image.name)
+    used = {image.camera_id for image in registered}  # a camera no posed image uses is not read (nor refused)
     cameras = {
         camera_id: _camera_from_pycolmap(camera, model_dir / f"cameras.{extension}")
-        for camera_id, camera in reconstruction.cameras.items()
+        for camera_id, camera in reconstruction.cameras.items() if camera_id in used
     }
     viewmats = np.tile(np.eye(4), (len(registered), 1, 1))
     for index, image in enumerate(registered):
