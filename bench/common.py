@@ -19,7 +19,7 @@ from warpbags.devices import init_warp_quietly
 init_warp_quietly()  # the tables, not Warp's banner and module loads, as the CLI
 
 from warpbags.configs.scenes import TELEPHOTO_OPTICS  # noqa: E402
-from warpbags.configs.train import load_preset, parse_settings  # noqa: E402
+from warpbags.configs.train import DEFAULT_PRESET, load_preset, parse_settings  # noqa: E402
 from warpbags.data import SyntheticOptions, ensure_synthetic_scene, load_scene, open_scene  # noqa: E402
 from warpbags.data.noise import monocular_like_depths  # noqa: E402
 from warpbags.errors import WarpbagsError  # noqa: E402
@@ -78,7 +78,7 @@ def merge_settings(base: dict, extra: dict) -> dict:
 
 def add_training_options(parser: argparse.ArgumentParser, set_help: str, json_help: str | None = None) -> None:
     """Add `--preset`, `--set NAME=VALUE` (dest "settings", repeatable) and, with `json_help`, `--json PATH`."""
-    parser.add_argument("--preset", default="quick", help="the TrainConfig preset (default: quick)")
+    parser.add_argument("--preset", default=DEFAULT_PRESET, help=f"the TrainConfig preset (default: {DEFAULT_PRESET})")
     parser.add_argument("--set", dest="settings", action="append", default=[], metavar="NAME=VALUE", help=set_help)
     if json_help is not None:
         parser.add_argument("--json", type=Path, help=json_help)

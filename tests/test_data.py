@@ -818,6 +818,13 @@ def test_a_resolution_the_scene_does_not_ship_names_the_folders_it_has(maryrose)
         load_scene(maryrose.root, resolution=1)
 
 
+def test_a_resolution_of_0_is_refused_for_a_preset_as_for_its_folder(maryrose):
+    """`-r 0` loaded a preset at its own factor (0 read as "not given") and was refused for the same folder."""
+    for scene in ("maryrose", maryrose.root):
+        with pytest.raises(WarpbagsError, match="resolution must be 1, 2, 4 or 8, got 0"):
+            open_scene(scene, resolution=0)
+
+
 def test_missing_folder(tmp_path):
     _expect_error(tmp_path / "nowhere", "nowhere does not exist")
 

@@ -15,7 +15,7 @@ from warpbags.cli.main import app
 from warpbags.data import SyntheticOptions, ensure_synthetic_scene
 from warpbags.errors import WarpbagsError
 from warpbags.files import finite_json
-from warpbags.sweep import SweepSpec, run_sweep
+from warpbags.sweep import SweepSpec, make_executor, run_sweep
 
 runner = CliRunner()
 
@@ -172,3 +172,10 @@ def test_a_folder_in_the_way_of_a_run_or_the_tables_is_one_line_before_anything_
     result = runner.invoke(app, ["sweep", str(scene), "--rot-noises", "5", "--views", "4", "--out", str(out)])
     lines = [line for line in result.output.splitlines() if line.strip()]
     assert result.exit_code == 2 and len(lines) == 1 and named in " ".join(result.output.split()), result.output
+
+
+def test_ray_options_without_ray_are_named_in_one_line():
+    for options, message in ((dict(cpus_per_run=2), "--cpus-per-run needs --executor ray"),
+                             (dict(address="auto", gpus_per_run=1), "--address, --gpus-per-run need --executor ray")):
+        with pytest.raises(WarpbagsError, match=message):
+            make_executor("local", **options)

@@ -326,7 +326,7 @@ def make_executor(name: str, *, address: str | None = None, cpus_per_run: int | 
         given = [option for option, value in (("--address", address), ("--cpus-per-run", cpus_per_run),
                                               ("--gpus-per-run", gpus_per_run)) if value is not None]
         if given:
-            raise WarpbagsError(f"{', '.join(given)} need --executor ray")
+            raise WarpbagsError(f"{', '.join(given)} {'needs' if len(given) == 1 else 'need'} --executor ray")
         return LocalExecutor()
     on_gpu = device == "cuda"
     return RayExecutor(address=address,

@@ -77,7 +77,7 @@ def open_scene(
         return load_scene(folder, resolution=resolution, normalize=normalize)
     return load_scene(
         folder,
-        resolution=resolution or preset.resolution,
+        resolution=preset.resolution if resolution is None else resolution,
         name=preset.name,
         normalize=normalize,
         default_splits={key: list(value) for key, value in preset.default_splits.items()},
