@@ -85,6 +85,8 @@ def perspective_jacobian(p_cam: Any, fx: Any, fy: Any, cx: Any, cy: Any, width: 
     )
 
 
+# Warp's generated adjoint is kept (not enable_backward=False): training runs the hand-written backward below, and
+# tests/test_stages.py checks that against this adjoint.
 @wp.kernel
 def project_gaussians_kernel(
     means: wp.array(dtype=Any),

@@ -220,6 +220,8 @@ def offset_and_clamp_vjp(color: Any, v_color: Any):
     )
 
 
+# Warp's generated adjoint is kept (not enable_backward=False): training runs the hand-written backward below, and
+# tests/test_stages.py checks that against this adjoint.
 @wp.kernel
 def sh_to_colors_kernel(
     means: wp.array(dtype=Any),

@@ -156,8 +156,10 @@ def initial_view_frame(viewer):
     server's settings, so a full-resolution frame can come from the default camera."""
     initial = viewer.server.initial_camera.position
     for renderer in list(viewer.renderers.values()):
-        frame = renderer.frame_at_rest()
-        if frame is not None and np.allclose(np.linalg.inv(frame.viewmat)[:3, 3], initial):  # the camera centre
+        # at rest: full resolution, and showing the browser's current camera (no other follows until it moves)
+        frame = renderer.last_frame
+        at_rest = frame.full_resolution and frame.camera_time == renderer.client.camera.update_timestamp
+        if at_rest and np.allclose(np.linalg.inv(frame.viewmat)[:3, 3], initial):  # the camera centre
             return frame
     return None
 

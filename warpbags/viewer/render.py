@@ -135,12 +135,6 @@ class ClientRenderer:
     def stop(self) -> None:
         self._stopped.set()
 
-    def frame_at_rest(self) -> FrameStats | None:
-        """The last frame sent if it is full-resolution and shows the browser's current camera (no other follows
-        until the camera moves), else None."""
-        frame = self.last_frame
-        return frame if frame.full_resolution and frame.camera_time == self.client.camera.update_timestamp else None
-
     def _loop(self) -> None:
         while not self._stopped.is_set():
             try:
