@@ -38,7 +38,7 @@ def export(
 
 def render(
     run_dir: Optional[Path] = typer.Argument(None, help="Run folder (default: the newest under runs/)."),
-    frames: int = typer.Option(36, "--frames", help="Views on the orbit."),
+    frames: int = typer.Option(36, "--frames", help="Views on the orbit, 1 to 3600 (5 minutes of video)."),
     video: bool = typer.Option(True, "--video/--no-video",
                                help="Also write RUN_DIR/turntable.mp4 (--no-video removes an earlier one)."),
 ) -> None:

@@ -395,6 +395,36 @@ def test_turntable_frames_and_video(finished_run):
     assert not (finished_run / "turntable.mp4").exists()
 
 
+def test_a_turntable_render_stopped_partway_leaves_the_earlier_one_and_frames_are_bounded(finished_run, tmp_path,
+                                                                                          monkeypatch):
+    """The earlier frames were removed before anything was rendered, so Ctrl-C or a failure left none (and the
+    earlier video beside them); every frame was rendered in one batch, so a large --frames took the machine's memory."""
+    import warpbags.export
+
+    run = _copy_of(finished_run, tmp_path / "run")
+    assert runner.invoke(app, ["render", str(run), "--frames", "3"]).exit_code == 0
+    before = {path.name: path.read_bytes() for path in (run / "turntable").iterdir()}
+    video = (run / "turntable.mp4").read_bytes()
+    real_render, batches = warpbags.export.render_gaussians, []
+
+    def render_then_stop(params, viewmats, *args, **kwargs):
+        batches.append(len(viewmats))
+        if len(batches) == 2:
+            raise KeyboardInterrupt
+        return real_render(params, viewmats, *args, **kwargs)
+
+    monkeypatch.setattr(warpbags.export, "render_gaussians", render_then_stop)
+    result = runner.invoke(app, ["render", str(run), "--frames", "20"])
+    assert result.exit_code == 130 and batches == [warpbags.export.TURNTABLE_BATCH] * 2, result.output
+    assert {path.name: path.read_bytes() for path in (run / "turntable").iterdir()} == before
+    assert (run / "turntable.mp4").read_bytes() == video
+    assert not (run / warpbags.export.TURNTABLE_STAGING).exists() and not list(run.glob("*.tmp*"))
+    for frames in ("0", str(warpbags.export.MAX_TURNTABLE_FRAMES + 1)):
+        result = runner.invoke(app, ["render", str(run), "--frames", frames])
+        lines = [line for line in result.output.splitlines() if line.strip()]
+        assert result.exit_code == 2 and len(lines) == 1 and "--frames must be in [1, 3600]" in lines[0], result.output
+
+
 def test_a_turntable_of_an_odd_size_keeps_every_pixel_in_its_video(finished_run, tmp_path):
     """mp4v holds even sizes only: OpenCV wrote a 63 x 47 run's video at 62 x 46, its last column and row gone. The
     video is padded to 64 x 48 instead, the frames stay 63 x 47."""

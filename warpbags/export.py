@@ -7,6 +7,7 @@ a full orbit of the object as PNG frames and an mp4.
 
 from __future__ import annotations
 
+import contextlib
 import os
 import shutil
 from dataclasses import dataclass
@@ -182,14 +183,32 @@ def export_run(path: str | Path, out: str | Path | None = None, colmap: bool = T
     return out, None
 
 
+MAX_TURNTABLE_FRAMES = 3600  # 5 minutes of the video's 12 fps
+TURNTABLE_BATCH = 8  # frames rendered at once: a render's memory is that of 8 frames whatever --frames is
+TURNTABLE_STAGING = ".turntable.partial"  # in the run folder, where the frames wait until all are written
+
+
+def _video_writer(path: Path, width: int, height: int) -> cv2.VideoWriter:
+    """OpenCV's mp4v writer at 12 fps for frames of width x height (an odd side repeats its last row or column)."""
+    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"mp4v"), 12, (width + width % 2, height + height % 2))
+    if not writer.isOpened():
+        raise WarpbagsError(f"OpenCV cannot write an mp4v video to {path}: pass --no-video for the frames alone")
+    return writer
+
+
 @torch_threads(1)
 def render_turntable(path: str | Path, frames: int = 36, video: bool = True) -> Path:
     """Novel views on a full orbit of the object: `<run>/turntable/frame_XXX.png` and, with `video`,
     `<run>/turntable.mp4` (OpenCV, mp4v, 12 fps; without it, an earlier render's video is removed). The orbit
     starts at training camera 0 and turns about the training cameras' common up axis through the object centre.
-    Returns the frame folder."""
-    if frames < 1:
-        raise WarpbagsError(f"--frames must be >= 1, got {frames}")
+
+    The frames are rendered `TURNTABLE_BATCH` at a time into a staging folder and replace an earlier render's only
+    when all are written (the video likewise): a render stopped or failed leaves the earlier one as it was. Other
+    files in turntable/ are kept. Returns the frame folder.
+    """
+    if not 1 <= frames <= MAX_TURNTABLE_FRAMES:
+        raise WarpbagsError(f"--frames must be in [1, {MAX_TURNTABLE_FRAMES}] ({MAX_TURNTABLE_FRAMES // 12 // 60} "
+                            f"minutes of video at 12 fps), got {frames}")
     run = load_run(path)
     require_info(run, "width", "height")
     width, height = run.info["width"], run.info["height"]
@@ -202,33 +221,41 @@ def render_turntable(path: str | Path, frames: int = 36, video: bool = True) -> 
     video_path = run.path / "turntable.mp4"
     if video or video_path.exists():  # written, or removed as stale (an earlier render's shows other frames)
         writable_file(video_path, "to write the turntable video to")
-    camera_0 = run.intrinsics[0].float()
     viewmats = turntable_viewmats(run.poses_final, frames).float()
-    Ks = camera_0.expand(frames, 3, 3).contiguous()
+    Ks = run.intrinsics[0].float().expand(frames, 3, 3).contiguous()
+    backgrounds = torch.tensor(run.config.background_rgb).expand(frames, 3).contiguous()  # as trained and viewed
+    staging = run.path / TURNTABLE_STAGING
+    shutil.rmtree(staging, ignore_errors=True)  # a render killed before it could remove its own
+    staging.mkdir()
+    try:
+        with contextlib.ExitStack() as stack:
+            writer = None
+            if video:  # written beside, it replaces an earlier render's video when every frame is in it
+                writer = _video_writer(stack.enter_context(atomic_output(video_path)), width, height)
+                stack.callback(writer.release)
+            for start in range(0, frames, TURNTABLE_BATCH):
+                batch = slice(start, min(start + TURNTABLE_BATCH, frames))
+                with torch.no_grad():
+                    images, _, _ = render_gaussians(run.params, viewmats[batch], Ks[batch], width, height,
+                                                    sh_degree=sh_degree_of(run.params), backgrounds=backgrounds[batch])
+                pixels = (images.clamp(0, 1).numpy() * 255 + 0.5).astype(np.uint8)
+                for name, image in zip(names[batch], pixels):
+                    frame = staging / name
+                    if not cv2.imwrite(str(frame), cv2.cvtColor(image, cv2.COLOR_RGB2BGR)):
+                        raise WarpbagsError(f"could not write {frame}")
+                    if writer is not None:
+                        # mp4v holds even sizes only (OpenCV would drop an odd size's last row or column)
+                        padded = np.pad(image, ((0, height % 2), (0, width % 2), (0, 0)), mode="edge")
+                        writer.write(cv2.cvtColor(padded, cv2.COLOR_RGB2BGR))
+    except BaseException:
+        shutil.rmtree(staging, ignore_errors=True)
+        raise
+    if not video:
+        video_path.unlink(missing_ok=True)
     out.mkdir(exist_ok=True)
     for stale in out.glob("frame_*.png"):  # an earlier render of more frames must not leave its tail behind
         stale.unlink()
-    backgrounds = torch.tensor(run.config.background_rgb).expand(frames, 3).contiguous()  # as trained and viewed
-    with torch.no_grad():
-        images, _, _ = render_gaussians(run.params, viewmats, Ks, width, height, sh_degree=sh_degree_of(run.params),
-                                        backgrounds=backgrounds)
-    pixels = (images.clamp(0, 1).numpy() * 255 + 0.5).astype(np.uint8)
-    for name, image in zip(names, pixels):
-        frame = out / name
-        if not cv2.imwrite(str(frame), cv2.cvtColor(image, cv2.COLOR_RGB2BGR)):
-            raise WarpbagsError(f"could not write {frame}")
-    if not video:
-        video_path.unlink(missing_ok=True)
-    else:
-        # mp4v holds even sizes only (OpenCV would drop an odd size's last row or column): repeat it instead
-        pad = ((0, height % 2), (0, width % 2), (0, 0))
-        with atomic_output(video_path) as temporary:
-            writer = cv2.VideoWriter(str(temporary), cv2.VideoWriter_fourcc(*"mp4v"), 12,
-                                     (width + width % 2, height + height % 2))
-            if not writer.isOpened():
-                raise WarpbagsError(f"OpenCV cannot write an mp4v video to {temporary}: pass --no-video for the "
-                                    "frames alone")
-            for image in pixels:
-                writer.write(cv2.cvtColor(np.pad(image, pad, mode="edge"), cv2.COLOR_RGB2BGR))
-            writer.release()
+    for name in names:
+        os.replace(staging / name, out / name)
+    staging.rmdir()
     return out
