@@ -66,10 +66,10 @@ def synth(
                               "needs 5 or more."),
     size: int = typer.Option(SyntheticOptions.width, help="Image width and height in pixels."),
     seed: int = typer.Option(SyntheticOptions.seed, help="Seed for textures and sampled points."),
-    light_jitter_deg: float = typer.Option(0.0, help="Turn each view's light by up to this angle (lighting that "
-                                                     "changes between shots)."),
-    gain_jitter: float = typer.Option(0.0, help="Scale each view's colour channels by exp(N(0, this^2)) (exposure "
-                                                "and white balance changing between shots)."),
+    light_jitter_deg: float = typer.Option(0.0, help="Turn each view's light by up to this angle, 0-180 (lighting "
+                                                     "that changes between shots)."),
+    gain_jitter: float = typer.Option(0.0, help="Scale each view's colour channels by exp(N(0, this^2)), 0-1 "
+                                                "(exposure and white balance changing between shots)."),
     turntable_light: bool = typer.Option(False, help="The light turns with the camera, as on a turntable capture: "
                                                      "the object's shading changes with the side it is seen from."),
     object_name: str = typer.Option("excavator", "--object",

@@ -8,8 +8,10 @@ import json
 import math
 import re
 import shutil
+import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import cv2
@@ -998,7 +1000,9 @@ def test_synthetic_lighting_changes_the_images_and_nothing_else(tmp_path, settin
 
 
 @pytest.mark.parametrize("flags, message", [
-    (["--gain-jitter", "-1"], "gain jitter must be >= 0"),
+    (["--gain-jitter", "-1"], "gain jitter in [0, 1], got 0.0 and -1.0"),
+    (["--gain-jitter", "1e6"], "gain jitter in [0, 1], got 0.0 and 1000000.0"),  # images of 0 and 255 only
+    (["--light-jitter-deg", "720"], "light jitter must be in [0, 180] deg"),
     (["--object", "teapot"], "unknown synthetic object 'teapot'"),
     # NaN passes `>= 0` and wrote garbage images; a huge image ended in numpy's ArrayMemoryError, a negative seed in
     # numpy's ValueError
@@ -1014,6 +1018,38 @@ def test_synth_refuses_a_bad_setting_and_writes_nothing(tmp_path, flags, message
     lines = [line for line in result.output.splitlines() if line.strip()]
     assert result.exit_code == 2 and len(lines) == 1 and message in lines[0], result.output
     assert not (tmp_path / "bad").exists() and list(tmp_path.iterdir()) == []  # no staging folder left either
+
+
+def test_synth_into_the_current_folder_and_a_write_that_fails_are_one_line(tmp_path, monkeypatch):
+    """`synth .` was a ValueError traceback (a path with no name to stage beside), a full disk an OSError one."""
+    (tmp_path / "here").mkdir()
+    monkeypatch.chdir(tmp_path / "here")
+    result = CliRunner().invoke(app, ["synth", ".", "--views", "4", "--size", "16"])
+    assert result.exit_code == 0, result.output
+    assert load_scene(tmp_path / "here").num_views == 4
+
+    def disk_full(*args, **kwargs):
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(np, "save", disk_full)
+    result = CliRunner().invoke(app, ["synth", str(tmp_path / "full"), "--views", "4", "--size", "16"])
+    lines = [line for line in result.output.splitlines() if line.strip()]
+    assert result.exit_code == 2 and len(lines) == 1, result.output
+    assert f"cannot write the scene into {tmp_path / 'full'}: OSError: [Errno 28] No space left" in lines[0]
+    assert sorted(path.name for path in tmp_path.iterdir()) == ["here"]  # no scene, no staging folder
+
+
+def test_synth_stopped_by_sigterm_leaves_no_partial_scene(tmp_path):
+    """The staging folder was removed on Ctrl-C only: SIGTERM's default ended the process with it half-written."""
+    process = subprocess.Popen([sys.executable, "-m", "warpbags.cli.main", "synth", str(tmp_path / "scene"),
+                                "--views", "400", "--size", "96"], stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
+    deadline = time.monotonic() + 120
+    while not list(tmp_path.glob(".scene.partial-*/images/*.png")) and time.monotonic() < deadline:
+        time.sleep(0.05)
+    process.send_signal(signal.SIGTERM)
+    output = process.communicate(timeout=120)[0].decode()
+    assert process.returncode == 143 and "stopped by SIGTERM" in output, output
+    assert list(tmp_path.iterdir()) == []
 
 
 def test_synth_writes_the_tankard_as_its_own_scene(tmp_path):

@@ -1,6 +1,9 @@
 """The one exception type users see: bad input, described in a single line; and other exceptions in one line."""
 
 import signal
+import threading
+from contextlib import contextmanager
+from typing import Iterator
 
 
 class WarpbagsError(Exception):
@@ -28,3 +31,24 @@ class Stopped(KeyboardInterrupt):
 
     def __reduce__(self):  # rebuilt from the number, not the name its args hold (across Ray or multiprocessing)
         return Stopped, (self.signum,)
+
+
+@contextmanager
+def sigterm_stops() -> Iterator[None]:
+    """In the block, SIGTERM (`kill`, a job scheduler) raises Stopped as Ctrl-C raises KeyboardInterrupt, so that
+    the block's cleanup runs (its default ends the process at once); only where no other handler takes it, and on
+    the main thread, the one Python delivers signals to."""
+    takes_it = (threading.current_thread() is threading.main_thread()
+                and signal.getsignal(signal.SIGTERM) == signal.SIG_DFL)
+    if not takes_it:
+        yield
+        return
+
+    def stop(signum, frame):
+        raise Stopped(signum)
+
+    previous = signal.signal(signal.SIGTERM, stop)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)

@@ -35,13 +35,14 @@ import torch
 from warpbags.cameras import camera_centers
 from warpbags.data.colmap import write_model
 from warpbags.data.scene import DEFAULT_SPLIT_SIZES, farthest_views
-from warpbags.errors import WarpbagsError
+from warpbags.errors import WarpbagsError, one_line, sigterm_stops
 from warpbags.files import writable_folder
 from warpbags.lie import so3_exp
 
 GENERATOR_VERSION = 3  # bump whenever the geometry or rendering changes: cache folders are keyed on it
 MAX_SIZE = 2048  # pixels a side: a view is rendered at once, about 1 GB of memory per million pixels (supersample 2)
 MAX_VIEWS = 1000
+MAX_GAIN_JITTER = 1.0  # exp(N(0, 1)) scales a channel by 0.37-2.7 at one sigma: darker or brighter than any camera
 BACKGROUND = 1.0  # white
 LIGHT_DIRECTION = np.array([0.4, -0.3, 0.87]) / np.linalg.norm([0.4, -0.3, 0.87])
 LIGHT_IN_CAMERA = np.array([-0.7, -0.4, -0.6]) / np.linalg.norm([-0.7, -0.4, -0.6])
@@ -431,7 +432,7 @@ def generate_synthetic_scene(out_dir: str | Path, options: SyntheticOptions = Sy
         WarpbagsError: an option out of range or not finite, or an `out_dir` that cannot take the scene; before
             anything is written.
     """
-    out_dir = Path(out_dir)
+    out_dir = Path(out_dir).resolve()  # "." has no name to build the staging folder's from
     for field in fields(options):  # first: NaN passes every range check below
         value = getattr(options, field.name)
         if isinstance(value, float) and not math.isfinite(value):
@@ -451,63 +452,73 @@ def generate_synthetic_scene(out_dir: str | Path, options: SyntheticOptions = Sy
         raise WarpbagsError(f"synthetic scene seed must be >= 0, got {options.seed}")
     if options.object not in OBJECTS:
         raise WarpbagsError(f"unknown synthetic object {options.object!r}: choose one of {', '.join(OBJECTS)}")
-    if options.light_jitter_deg < 0 or options.gain_jitter < 0:
-        raise WarpbagsError(f"light jitter and gain jitter must be >= 0, got {options.light_jitter_deg} and "
-                            f"{options.gain_jitter}")
+    if not (0 <= options.light_jitter_deg <= 180 and 0 <= options.gain_jitter <= MAX_GAIN_JITTER):
+        raise WarpbagsError(f"light jitter must be in [0, 180] deg and gain jitter in [0, {MAX_GAIN_JITTER:g}], got "
+                            f"{options.light_jitter_deg} and {options.gain_jitter}")
     writable_folder(out_dir, "to write the scene into")
     if out_dir.exists() and any(out_dir.iterdir()):
         raise WarpbagsError(f"{out_dir} exists and is not empty")
     staging = out_dir.with_name(f".{out_dir.name}.partial-{os.getpid()}")
     shutil.rmtree(staging, ignore_errors=True)
-    for folder in ("images", "masks", "depths"):
-        (staging / folder).mkdir(parents=True)
     try:
-        primitives = OBJECTS[options.object](options.seed)
-        viewmats = dome_viewmats(options)
-        K = intrinsics(options)
-        names = [f"view_{index:03d}.png" for index in range(options.views)]
-        rng = np.random.default_rng(options.seed)
-        points, colors = [], []
-        per_view = max(1, options.num_points // options.views)
-        for name, viewmat, (light, gain) in zip(names, viewmats, view_lighting(options, viewmats)):
-            image, mask, depth = render_view(primitives, viewmat, K, options.width, options.height, options.supersample,
-                                             light, gain)
-            stem = Path(name).stem
-            image_bgr = cv2.cvtColor(np.round(image * 255).astype(np.uint8), cv2.COLOR_RGB2BGR)
-            cv2.imwrite(str(staging / "images" / name), image_bgr)
-            cv2.imwrite(str(staging / "masks" / name), (mask * 255).astype(np.uint8))
-            np.save(staging / "depths" / f"{stem}.npy", depth)
-            rows, cols = np.nonzero(mask > 0.5)
-            pick = rng.choice(len(rows), size=min(per_view, len(rows)), replace=False)
-            rows, cols = rows[pick], cols[pick]
-            camera = np.linalg.solve(K, np.stack([cols + 0.5, rows + 0.5, np.ones(len(rows))])) * depth[rows, cols]
-            points.append((viewmat[:3, :3].T @ (camera - viewmat[:3, 3:4])).T)
-            colors.append(np.round(image[rows, cols] * 255).astype(np.uint8))
-        write_model(
-            staging / "sparse" / "0", names, viewmats, np.tile(K, (options.views, 1, 1)), options.width, options.height,
-            np.concatenate(points), np.concatenate(colors),
-        )
-        centers = camera_centers(torch.from_numpy(viewmats)).numpy()
-        train = set()
-        for size in DEFAULT_SPLIT_SIZES:
-            if size < options.views:
-                chosen = sorted(farthest_views(centers, size))
-                train.update(chosen)
-                (staging / f"sparse_{size}.txt").write_text("".join(f"{index}\n" for index in chosen))
-        # Held-out views: about one in eight, never a training view of any split, at least two.
-        held_out = [index for index in range(options.views) if index not in train]
-        count = min(len(held_out), max(2, options.views // 8))
-        test = [held_out[round(k * len(held_out) / count)] for k in range(count)]
-        (staging / "sparse_test.txt").write_text("".join(f"{index}\n" for index in test))
-        record = {"generator_version": GENERATOR_VERSION, "object_center": OBJECT_CENTER.tolist(), **asdict(options)}
-        (staging / "synthetic.json").write_text(json.dumps(record, indent=2))
+        with sigterm_stops():
+            _write_scene(staging, options)
         out_dir.parent.mkdir(parents=True, exist_ok=True)
         if out_dir.exists():
             out_dir.rmdir()
         os.replace(staging, out_dir)
+    except OSError as error:  # a full disk, a folder root may not write into after all
+        raise WarpbagsError(f"cannot write the scene into {out_dir}: {one_line(error)}") from None
     finally:
         shutil.rmtree(staging, ignore_errors=True)
     return out_dir
+
+
+def _write_scene(staging: Path, options: SyntheticOptions) -> None:
+    """Render the scene of `options` and write its files into the new folder `staging`."""
+    for folder in ("images", "masks", "depths"):
+        (staging / folder).mkdir(parents=True)
+    primitives = OBJECTS[options.object](options.seed)
+    viewmats = dome_viewmats(options)
+    K = intrinsics(options)
+    names = [f"view_{index:03d}.png" for index in range(options.views)]
+    rng = np.random.default_rng(options.seed)
+    points, colors = [], []
+    per_view = max(1, options.num_points // options.views)
+    for name, viewmat, (light, gain) in zip(names, viewmats, view_lighting(options, viewmats)):
+        image, mask, depth = render_view(primitives, viewmat, K, options.width, options.height, options.supersample,
+                                         light, gain)
+        stem = Path(name).stem
+        image_bgr = cv2.cvtColor(np.round(image * 255).astype(np.uint8), cv2.COLOR_RGB2BGR)
+        for written, pixels in ((staging / "images" / name, image_bgr),
+                                (staging / "masks" / name, (mask * 255).astype(np.uint8))):
+            if not cv2.imwrite(str(written), pixels):
+                raise OSError(f"OpenCV could not write {written}")
+        np.save(staging / "depths" / f"{stem}.npy", depth)
+        rows, cols = np.nonzero(mask > 0.5)
+        pick = rng.choice(len(rows), size=min(per_view, len(rows)), replace=False)
+        rows, cols = rows[pick], cols[pick]
+        camera = np.linalg.solve(K, np.stack([cols + 0.5, rows + 0.5, np.ones(len(rows))])) * depth[rows, cols]
+        points.append((viewmat[:3, :3].T @ (camera - viewmat[:3, 3:4])).T)
+        colors.append(np.round(image[rows, cols] * 255).astype(np.uint8))
+    write_model(
+        staging / "sparse" / "0", names, viewmats, np.tile(K, (options.views, 1, 1)), options.width, options.height,
+        np.concatenate(points), np.concatenate(colors),
+    )
+    centers = camera_centers(torch.from_numpy(viewmats)).numpy()
+    train = set()
+    for size in DEFAULT_SPLIT_SIZES:
+        if size < options.views:
+            chosen = sorted(farthest_views(centers, size))
+            train.update(chosen)
+            (staging / f"sparse_{size}.txt").write_text("".join(f"{index}\n" for index in chosen))
+    # Held-out views: about one in eight, never a training view of any split, at least two.
+    held_out = [index for index in range(options.views) if index not in train]
+    count = min(len(held_out), max(2, options.views // 8))
+    test = [held_out[round(k * len(held_out) / count)] for k in range(count)]
+    (staging / "sparse_test.txt").write_text("".join(f"{index}\n" for index in test))
+    record = {"generator_version": GENERATOR_VERSION, "object_center": OBJECT_CENTER.tolist(), **asdict(options)}
+    (staging / "synthetic.json").write_text(json.dumps(record, indent=2))
 
 
 def default_cache_dir() -> Path:
