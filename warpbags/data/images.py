@@ -184,13 +184,16 @@ def _find_by_stem(folder: Path, name: str, extensions: tuple[str, ...]) -> Path 
 
 
 def _resize_to(array: np.ndarray, width: int, height: int, path: Path, what: str, nearest: bool) -> np.ndarray:
-    """Accept `array` at (width, height) or at an integer multiple of it (another resolution); else raise."""
+    """Accept `array` at (width, height), at an integer multiple of it (another resolution) or at a full size that
+    a downsampled read rounds to it (`read_images`: 33 px read at 1/2 is 16 px); else raise."""
     found_height, found_width = array.shape[:2]
     if (found_width, found_height) == (width, height):
         return array
     factor_x, factor_y = found_width / width, found_height / height
     same_aspect = abs(factor_x - factor_y) <= 0.02 * factor_x and factor_x >= 1.0
-    if not same_aspect or abs(factor_x - round(factor_x)) > 0.02:
+    rounded = any((round(found_width / factor), round(found_height / factor)) == (width, height)
+                  for factor in FACTORS[1:])
+    if not rounded and (not same_aspect or abs(factor_x - round(factor_x)) > 0.02):
         raise WarpbagsError(f"{what} {path} is {found_width}x{found_height}, its image is {width}x{height}")
     interpolation = cv2.INTER_NEAREST if nearest else cv2.INTER_AREA
     return cv2.resize(array, (width, height), interpolation=interpolation)
