@@ -831,6 +831,17 @@ def test_missing_folder(tmp_path):
     _expect_error(tmp_path / "nowhere", "nowhere does not exist")
 
 
+def test_a_scene_named_by_a_file_or_with_no_frames_says_so(synthetic_dir, tmp_path):
+    """A file named as a scene was "no folder ... and no preset of that name"; an empty frames list "has no
+    'frames' list"."""
+    (tmp_path / "a-file").write_text("")
+    with pytest.raises(WarpbagsError, match=f"{re.escape(str(tmp_path / 'a-file'))} is a file, not a scene folder"):
+        open_scene(str(tmp_path / "a-file"))
+    folder = _strip_to_images(synthetic_dir, tmp_path / "empty")
+    (folder / "transforms.json").write_text(json.dumps({"camera_angle_x": 0.5, "frames": []}))
+    _expect_error(folder, "transforms.json: its 'frames' list is empty")
+
+
 def test_no_cameras(tmp_path):
     (tmp_path / "images").mkdir()
     _expect_error(tmp_path, "no cameras in")
@@ -1018,6 +1029,17 @@ def test_synth_refuses_a_bad_setting_and_writes_nothing(tmp_path, flags, message
     lines = [line for line in result.output.splitlines() if line.strip()]
     assert result.exit_code == 2 and len(lines) == 1 and message in lines[0], result.output
     assert not (tmp_path / "bad").exists() and list(tmp_path.iterdir()) == []  # no staging folder left either
+
+
+def test_masks_of_an_odd_size_are_read_at_a_downsampled_resolution(tmp_path):
+    """A 33 px capture read at 1/2 has 16 px images (rounded as any downsampled read), and its 33 px masks were refused
+    as "33x33, its image is 16x16"."""
+    result = CliRunner().invoke(app, ["synth", str(tmp_path / "odd"), "--views", "4", "--size", "33"])
+    assert result.exit_code == 0, result.output
+    full, half = load_scene(tmp_path / "odd"), load_scene(tmp_path / "odd", resolution=2)
+    assert (half.width, half.height) == (16, 16) and half.masks.shape == (4, 16, 16)
+    resized = np.stack([cv2.resize(mask, (16, 16), interpolation=cv2.INTER_AREA) >= 0.5 for mask in full.masks.numpy()])
+    np.testing.assert_array_equal(half.masks.numpy(), resized)
 
 
 def test_synth_into_the_current_folder_and_a_write_that_fails_are_one_line(tmp_path, monkeypatch):

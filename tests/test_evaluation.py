@@ -836,6 +836,8 @@ def _not_finite(poses):
     ("poses_final", _zero_poses, "poses_final.npy: camera 0 is not a world-to-camera pose"),
     ("poses_init", _mirrored, "poses_init.npy: camera 1 is not a world-to-camera pose (its 3x3 part has determinant -1"),
     ("poses_start", _not_finite, "poses_start.npy: camera 2 holds a value that is not finite"),
+    # a focal length of 0 rendered a white picture
+    ("intrinsics", lambda K: K * np.array([1.0, 0.0, 1.0])[:, None], "intrinsics.npy: camera 0 has focal lengths"),
     ("poses_true", lambda P: P[0], "poses_true.npy: expected [C,4,4] world-to-camera poses, got an array of shape "
                                    "[4, 4]"),
     ("poses_true", lambda P: P[:3], "poses_true.npy holds 3 cameras, the run's poses 4 (poses_final.npy)"),
@@ -855,6 +857,27 @@ def test_malformed_camera_files_are_named_by_every_command_that_reads_them(finis
     result = runner.invoke(app, ["agree", str(finished_run), str(run)])  # all-zero poses were a 180 deg table
     assert result.exit_code == 2 and len(_lines(result)) == 1, result.output
     assert message in " ".join(result.output.split())
+
+
+def test_gaussians_that_are_not_finite_are_named_and_render_nothing(finished_run, tmp_path):
+    """A gaussians.ply with NaN centres rendered white frames and exited 0."""
+    run = _copy_of(finished_run, tmp_path / "run")
+    params = read_ply(run / "gaussians.ply")
+    params["means"][5, 0] = float("nan")
+    write_ply(run / "gaussians.ply", params)
+    result = runner.invoke(app, ["render", str(run), "--frames", "2"])
+    assert result.exit_code == 2 and len(_lines(result)) == 1, result.output
+    assert "gaussians.ply: x of Gaussian 5 is nan (1 of" in " ".join(result.output.split())
+    assert not (run / "turntable").exists()
+
+
+def test_a_config_json_that_is_no_runs_says_so(finished_run, tmp_path):
+    """A config.json of {} was "unreadable ('config')", a KeyError's text."""
+    run = _copy_of(finished_run, tmp_path / "run")
+    (run / "config.json").write_text("{}")
+    result = runner.invoke(app, ["eval", str(run), "--refine-iters", "0"])
+    assert result.exit_code == 2 and len(_lines(result)) == 1, result.output
+    assert "config.json holds no 'config' (not a run's config.json)" in " ".join(result.output.split())
 
 
 def test_a_malformed_saved_config_names_config_json(finished_run, tmp_path):

@@ -123,7 +123,8 @@ def read_ply(path: str | Path) -> dict[str, torch.Tensor]:
     (3DGS's channel-major order).
 
     Raises:
-        WarpbagsError: not a binary little-endian PLY with the 3DGS properties, or one of no Gaussians.
+        WarpbagsError: not a binary little-endian PLY with the 3DGS properties, one of no Gaussians, or one with a
+            value that is not finite (named with its property and Gaussian).
     """
     path = Path(path)
     try:
@@ -143,7 +144,13 @@ def read_ply(path: str | Path) -> dict[str, torch.Tensor]:
                             f"{rest_count} f_rest properties, where SH degrees 0-3 have 0, 9, 24 or 45)")
 
     def columns(*column_names: str) -> torch.Tensor:
-        return torch.from_numpy(np.stack([table[name].astype(np.float32) for name in column_names], axis=1))
+        arrays = [table[name].astype(np.float32) for name in column_names]
+        for name, values in zip(column_names, arrays):
+            bad = np.flatnonzero(~np.isfinite(values))
+            if len(bad):  # a NaN centre renders nothing: a picture of the background, not an error
+                raise WarpbagsError(f"{path}: {name} of Gaussian {bad[0]} is {values[bad[0]]} ({len(bad)} of "
+                                    f"{len(values)} not finite)")
+        return torch.from_numpy(np.stack(arrays, axis=1))
 
     count = len(table)
     params = {

@@ -107,6 +107,8 @@ class RunFolder:
                 range (named with the file).
         """
         info = self.read_info() if info is None else info
+        if not isinstance(info, dict) or "config" not in info:
+            raise WarpbagsError(f"{self.path / 'config.json'} holds no 'config' (not a run's config.json)")
         try:
             return TrainConfig.from_dict(info["config"]).validate()
         except (KeyError, TypeError, AttributeError) as error:
@@ -355,7 +357,8 @@ class RunFolder:
 
 def checked_cameras(path: Path, array: np.ndarray, intrinsics: bool = False) -> np.ndarray:
     """`array`, read from `path`, checked to be [C,4,4] world-to-camera poses (finite, a rotation and a translation
-    over the row [0, 0, 0, 1]: `cameras.improper_viewmats`) or, with `intrinsics`, [C,3,3] finite intrinsics, C >= 1.
+    over the row [0, 0, 0, 1]: `cameras.improper_viewmats`) or, with `intrinsics`, [C,3,3] finite intrinsics with
+    focal lengths above 0, C >= 1.
 
     Raises:
         WarpbagsError: it is not, naming `path` and the first camera that is not.
@@ -366,6 +369,12 @@ def checked_cameras(path: Path, array: np.ndarray, intrinsics: bool = False) -> 
     finite = np.isfinite(array).all(axis=(1, 2))
     if not finite.all():
         raise WarpbagsError(f"{path}: camera {int(np.argmin(finite))} holds a value that is not finite")
+    if intrinsics:
+        unfocused = np.flatnonzero((array[:, 0, 0] <= 0) | (array[:, 1, 1] <= 0))
+        if len(unfocused):
+            camera = int(unfocused[0])
+            raise WarpbagsError(f"{path}: camera {camera} has focal lengths {array[camera, 0, 0]:g} and "
+                                f"{array[camera, 1, 1]:g} px, not both above 0")
     improper = [] if intrinsics else improper_viewmats(torch.from_numpy(array)).tolist()
     if improper:
         camera = improper[0]

@@ -38,6 +38,8 @@ def resolve_scene(
     preset = SCENES.get(str(scene))
     if preset is None:
         folder = Path(scene)
+        if folder.is_file():
+            raise WarpbagsError(f"scene {scene!r}: {folder.resolve()} is a file, not a scene folder")
         if not folder.is_dir():
             raise WarpbagsError(
                 f"scene {scene!r}: no folder {folder.resolve()} and no preset of that name "

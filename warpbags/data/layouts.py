@@ -161,8 +161,10 @@ def transforms_cameras(root: Path) -> LayoutCameras:
             meta = json.loads(path.read_text())
         except (OSError, ValueError) as error:
             raise WarpbagsError(f"cannot read {path}: {error}") from None
-        if not isinstance(meta, dict) or not isinstance(meta.get("frames"), list) or not meta["frames"]:
+        if not isinstance(meta, dict) or not isinstance(meta.get("frames"), list):
             raise WarpbagsError(f"{path} has no 'frames' list")
+        if not meta["frames"]:
+            raise WarpbagsError(f"{path}: its 'frames' list is empty")
         for frame in meta["frames"]:
             frames.append((path, meta, frame))
             if path.name == "transforms_test.json":
