@@ -4,8 +4,10 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import io
 import json
 import math
+import os
 import re
 import shutil
 import signal
@@ -19,6 +21,7 @@ import numpy as np
 import pycolmap
 import pytest
 import torch
+from PIL import Image
 from conftest import look_at
 from typer.testing import CliRunner
 from warpbags.cli.main import app
@@ -441,14 +444,15 @@ def test_transforms_json_frames_that_name_no_image_or_one_twice_are_one_line(syn
 
 def test_transforms_json_null_intrinsics_are_absent_ones(synthetic_dir, tmp_path):
     """null for an optional field (principal point, distortion, image size) is read as its absence, as before the
-    fields were checked: the same cameras as without them (each frame naming a pinhole camera model)."""
+    fields were checked: the same cameras as without them (each frame naming one of nerfstudio's perspective camera
+    models, or null)."""
     folder = _strip_to_images(synthetic_dir, tmp_path / "nulls")
     opengl = np.linalg.inv(dome_viewmats(SYNTHETIC)) @ np.diag([1.0, -1.0, -1.0, 1.0])
     frames = [{"file_path": f"images/view_{i:03d}", "transform_matrix": opengl[i].tolist()} for i in range(12)]
     (folder / "transforms.json").write_text(json.dumps({"camera_angle_x": math.radians(SYNTHETIC.fov_deg),
                                                         "frames": frames}))
     plain = load_scene(folder, normalize=False)
-    for frame, model in zip(frames, ["PINHOLE", "SIMPLE_PINHOLE", "OPENCV"] * 4):  # the models that are pinholes
+    for frame, model in zip(frames, ["PINHOLE", "SIMPLE_PINHOLE", "OPENCV", "SIMPLE_RADIAL", "RADIAL", None] * 2):
         frame.update({key: None for key in ("cx", "cy", "k1", "k3", "k4", "w", "h")}, camera_model=model)
     (folder / "transforms.json").write_text(json.dumps({"camera_angle_x": math.radians(SYNTHETIC.fov_deg),
                                                         "frames": frames}))
@@ -579,14 +583,36 @@ def test_a_jpeg_cut_short_is_refused_by_name_as_image_and_as_mask(synthetic_dir,
     for reduction in (1, 2):
         with pytest.raises(WarpbagsError, match=f"image {re.escape(str(cut))} is cut short"):
             read_image(cut, reduction)
-    trailed = tmp_path / "trailed.jpg"
-    trailed.write_bytes(data + b"camera trailer")
+    trailed = tmp_path / "trailed.jpg"  # a motion photo's video after the picture: any bytes, markers among them
+    trailer = np.random.default_rng(0).integers(0, 256, 100_000, dtype=np.uint8).tobytes()
+    trailed.write_bytes(data + b"\xff\xda\x00\x08" + trailer)
     np.testing.assert_array_equal(read_image(trailed), read_image(whole))
+    progressive = io.BytesIO()  # several scans, each cut in turn
+    Image.fromarray(image[..., ::-1]).save(progressive, "JPEG", progressive=True, quality=90)
+    progressive = progressive.getvalue()
+    for end in range(len(progressive) // 8, len(progressive) - 2, len(progressive) // 8):
+        cut.write_bytes(progressive[:end])
+        with pytest.raises(WarpbagsError, match="is cut short"):
+            read_image(cut)
     masks = tmp_path / "masks"
     masks.mkdir()
     (masks / "cut.jpg").write_bytes(data[: len(data) // 2])
     with pytest.raises(WarpbagsError, match="mask .*cut.jpg is cut short"):
         read_masks(tmp_path, ["cut.jpg"], 64, 64, 1)
+
+
+def test_an_image_that_cannot_be_read_is_one_line(synthetic_dir, monkeypatch):
+    """A file the process may not read was a PermissionError traceback once images were read as bytes."""
+    real = Path.read_bytes
+
+    def refused(path):
+        if path.name == "view_000.png":
+            raise PermissionError(13, "Permission denied", str(path))
+        return real(path)
+
+    monkeypatch.setattr(Path, "read_bytes", refused)
+    with pytest.raises(WarpbagsError, match=r"image .*view_000.png is unreadable \(PermissionError: \[Errno 13\]"):
+        read_image(synthetic_dir / "images" / "view_000.png")
 
 
 def test_llff_images_are_listed_whatever_the_case_of_their_extension(tmp_path):
@@ -1040,15 +1066,22 @@ def test_masks_of_an_odd_size_are_read_at_a_downsampled_resolution(tmp_path):
     assert (half.width, half.height) == (16, 16) and half.masks.shape == (4, 16, 16)
     resized = np.stack([cv2.resize(mask, (16, 16), interpolation=cv2.INTER_AREA) >= 0.5 for mask in full.masks.numpy()])
     np.testing.assert_array_equal(half.masks.numpy(), resized)
+    # the same masks as JPEGs, which libjpeg would decode at 1/2 as 17 px: decoded whole instead
+    for mask in sorted((tmp_path / "odd" / "masks").glob("*.png")):
+        cv2.imwrite(str(mask.with_suffix(".jpg")), cv2.imread(str(mask), cv2.IMREAD_GRAYSCALE),
+                    [cv2.IMWRITE_JPEG_QUALITY, 100])
+        mask.unlink()
+    np.testing.assert_array_equal(load_scene(tmp_path / "odd", resolution=2).masks.numpy(), resized)
 
 
 def test_synth_into_the_current_folder_and_a_write_that_fails_are_one_line(tmp_path, monkeypatch):
     """`synth .` was a ValueError traceback (a path with no name to stage beside), a full disk an OSError one."""
     (tmp_path / "here").mkdir()
     monkeypatch.chdir(tmp_path / "here")
+    inode = os.stat(".").st_ino
     result = CliRunner().invoke(app, ["synth", ".", "--views", "4", "--size", "16"])
     assert result.exit_code == 0, result.output
-    assert load_scene(tmp_path / "here").num_views == 4
+    assert load_scene(Path(".")).num_views == 4 and os.stat(".").st_ino == inode  # filled, not replaced
 
     def disk_full(*args, **kwargs):
         raise OSError(28, "No space left on device")

@@ -9,13 +9,14 @@ from __future__ import annotations
 
 import math
 import os
+import re
 from pathlib import Path
 
 import cv2
 import numpy as np
 from PIL import Image
 
-from warpbags.errors import WarpbagsError
+from warpbags.errors import WarpbagsError, one_line
 from warpbags.files import read_array
 
 IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".PNG", ".JPG", ".JPEG")
@@ -97,15 +98,50 @@ def _decoded_reduced(path: Path, reduction: int) -> bool:
     return reduction in JPEG_REDUCED_FLAGS and path.suffix.lower() in JPEG_EXTENSIONS
 
 
+# After a JPEG marker 0xFF: the bytes that do not end its entropy-coded scan data (a stuffed 0x00, the restart
+# markers 0xD0-0xD7, fill bytes 0xFF)
+_SCAN_END = re.compile(rb"\xff[^\x00\xd0-\xd7\xff]")
+
+
+def _jpeg_cut_short(data: bytes) -> bool:
+    """Whether the JPEG `data` ends before its end-of-image marker: its marker segments walked from the start (each
+    skipped by its length, a scan's data to the next marker), so that what a camera appends after the picture (a
+    motion photo's video) is never read. Data that is no JPEG, or breaks the layout, is left to the decoder."""
+    if not data.startswith(b"\xff\xd8"):
+        return False
+    position = 2
+    while position + 1 < len(data):
+        if data[position] != 0xFF:
+            return False  # not where a marker should be: corrupt, which the decoder reports
+        marker = data[position + 1]
+        if marker == 0xD9:  # end of image
+            return False
+        if marker == 0xFF or 0xD0 <= marker <= 0xD8 or marker == 0x01:  # fill byte, or a marker without a length
+            position += 1 if marker == 0xFF else 2
+            continue
+        if position + 4 > len(data):
+            return True
+        position += 2 + int.from_bytes(data[position + 2:position + 4], "big")
+        if marker == 0xDA:  # start of scan: its entropy-coded data runs to the next marker
+            end = _SCAN_END.search(data, position)
+            if end is None:
+                return True
+            position = end.start()
+    return True
+
+
 def _decoded(path: Path, flag: int, what: str) -> np.ndarray | None:
     """OpenCV's decode of the file at `path` with `flag`, None where it cannot decode it.
 
     Raises:
-        WarpbagsError: a JPEG cut short (a copy or download that stopped): libjpeg decodes one, grey where its data
-            ends, and only warns on stderr. Its end-of-image marker is missing after its last scan.
+        WarpbagsError: the file cannot be read, or is a JPEG cut short (a copy or download that stopped): libjpeg
+            decodes one, grey where its data ends, and only warns on stderr.
     """
-    data = path.read_bytes()
-    if path.suffix.lower() in JPEG_EXTENSIONS and data.rfind(b"\xff\xd9") < data.rfind(b"\xff\xda"):
+    try:
+        data = path.read_bytes()
+    except OSError as error:
+        raise WarpbagsError(f"{what} {path} is unreadable ({one_line(error)})") from None
+    if path.suffix.lower() in JPEG_EXTENSIONS and _jpeg_cut_short(data):
         raise WarpbagsError(f"{what} {path} is cut short (its data ends inside the picture): copy it again")
     return cv2.imdecode(np.frombuffer(data, dtype=np.uint8), flag)
 
@@ -202,8 +238,14 @@ def _resize_to(array: np.ndarray, width: int, height: int, path: Path, what: str
 def _read_mask(path: Path, width: int) -> np.ndarray | None:
     """A mask file as grayscale of its own depth (uint8, or uint16 for a 16-bit PNG, which 8-bit decoding shifted
     to 0 where it held 0 / 1); a JPEG at 2, 4 or 8 times `width` is decoded at that reduction."""
-    reduction = round(image_size(path)[0] / width) if path.suffix.lower() in JPEG_EXTENSIONS else 1
-    reduced = _decoded_reduced(path, reduction)
+    reduction, reduced = 1, False
+    if path.suffix.lower() in JPEG_EXTENSIONS:
+        full_width, full_height = image_size(path)
+        reduction = round(full_width / width)
+        # libjpeg's reduced decode is ceil(size / reduction), the images round(size / reduction): a mask whose sides
+        # do not divide is decoded whole and resized as they are (`_resize_to`)
+        reduced = (_decoded_reduced(path, reduction) and full_width % reduction == 0
+                   and full_height % reduction == 0)
     return _decoded(path, JPEG_REDUCED_FLAGS[reduction][1] if reduced else
                     cv2.IMREAD_GRAYSCALE | cv2.IMREAD_ANYDEPTH | _AS_STORED, "mask")
 
