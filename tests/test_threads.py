@@ -7,6 +7,7 @@ import subprocess
 import sys
 import textwrap
 
+import pytest
 import torch
 
 from warpbags.threads import beside_render
@@ -64,3 +65,18 @@ def test_a_side_term_has_the_value_and_gradients_of_the_term_computed_in_line():
         torch.testing.assert_close(got, 3.0 * want, rtol=1e-14, atol=0)
     with torch.no_grad():
         assert beside_render(term, points, weights, scale)().grad_fn is None
+
+
+def test_a_side_term_refuses_what_it_cannot_differentiate():
+    """Tensors inside a container lost their gradients silently; a gradient made to be differentiated again held the
+    side term's part as a constant; a second backward raised an AttributeError."""
+    x = torch.tensor([1.0, 2.0], dtype=torch.float64, requires_grad=True)
+    with pytest.raises(TypeError, match="not inside containers"):
+        beside_render(lambda point, others: (point * others[0]).sum(), x, [x * 2])
+    term = beside_render(lambda point: (point ** 3).sum(), x)()
+    with pytest.raises(RuntimeError, match="first derivatives only"):
+        torch.autograd.grad(term + (x ** 2).sum(), x, create_graph=True)
+    term = beside_render(lambda point: (point ** 3).sum(), x)()
+    term.backward(retain_graph=True)
+    with pytest.raises(RuntimeError, match="differentiated once"):
+        term.backward()

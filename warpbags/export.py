@@ -185,7 +185,7 @@ def export_run(path: str | Path, out: str | Path | None = None, colmap: bool = T
 
 MAX_TURNTABLE_FRAMES = 3600  # 5 minutes of the video's 12 fps
 TURNTABLE_BATCH = 8  # frames rendered at once: a render's memory is that of 8 frames whatever --frames is
-TURNTABLE_STAGING = ".turntable.partial"  # in the run folder, where the frames wait until all are written
+TURNTABLE_STAGING = ".partial"  # in turntable/, where the frames wait until all are written
 
 
 def _video_writer(path: Path, width: int, height: int) -> cv2.VideoWriter:
@@ -224,7 +224,8 @@ def render_turntable(path: str | Path, frames: int = 36, video: bool = True) -> 
     viewmats = turntable_viewmats(run.poses_final, frames).float()
     Ks = run.intrinsics[0].float().expand(frames, 3, 3).contiguous()
     backgrounds = torch.tensor(run.config.background_rgb).expand(frames, 3).contiguous()  # as trained and viewed
-    staging = run.path / TURNTABLE_STAGING
+    out.mkdir(exist_ok=True)
+    staging = out / TURNTABLE_STAGING
     shutil.rmtree(staging, ignore_errors=True)  # a render killed before it could remove its own
     staging.mkdir()
     try:
@@ -252,7 +253,6 @@ def render_turntable(path: str | Path, frames: int = 36, video: bool = True) -> 
         raise
     if not video:
         video_path.unlink(missing_ok=True)
-    out.mkdir(exist_ok=True)
     for stale in out.glob("frame_*.png"):  # an earlier render of more frames must not leave its tail behind
         stale.unlink()
     for name in names:

@@ -89,7 +89,17 @@ def beside_render(function: Callable[..., torch.Tensor], *args) -> Callable[[], 
     Gaussian centres: the render and the silhouette chamfer) summed them in that order: a run resumed in a new
     process left the uninterrupted run at rounding level. Here the side thread differentiates detached copies of
     the tensors that need a gradient, and one node on the calling thread passes the gradients on to the originals.
+    Only tensors passed as arguments themselves are followed (not inside lists, nor captured by `function`), and
+    the term's gradient is first-order only.
+
+    Raises:
+        TypeError: a list, tuple or dict argument holds a tensor that needs a gradient (its gradient would be lost).
     """
+    for arg in args:
+        if isinstance(arg, (list, tuple, dict)) and any(
+                isinstance(item, torch.Tensor) and item.requires_grad
+                for item in (arg.values() if isinstance(arg, dict) else arg)):
+            raise TypeError("beside_render follows tensors passed as arguments themselves, not inside containers")
     if not torch.is_grad_enabled():
         future = side_thread().submit(_without_grad, function, *args)
         return future.result
@@ -131,6 +141,10 @@ class _JoinedTerm(torch.autograd.Function):
     @staticmethod
     def backward(ctx, grad: torch.Tensor):
         side = ctx.side
+        if torch.is_grad_enabled():  # a backward with create_graph: the side graph's gradients would be constants
+            raise RuntimeError("a term computed beside the render has first derivatives only")
+        if side is None:
+            raise RuntimeError("a term computed beside the render is differentiated once (its side graph is freed)")
         gradients = torch.autograd.grad(side.value, side.leaves, grad, allow_unused=True)
         ctx.side = None  # the side graph is freed with its one backward
         return (None, *gradients)

@@ -143,9 +143,9 @@ def llff_cameras(root: Path) -> LayoutCameras:
     )
 
 
-# The camera models of a transforms.json that warpbags reads: pinhole, with OPENCV's k1, k2, p1, p2 (fisheye and
-# equirectangular cameras project otherwise, and would be taken for a distorted pinhole).
-TRANSFORMS_CAMERA_MODELS = ("OPENCV", "PINHOLE", "SIMPLE_PINHOLE")
+# The camera models of a transforms.json that warpbags reads, nerfstudio's perspective ones: pinhole, with k1, k2,
+# p1, p2 (fisheye and equirectangular cameras project otherwise, and would be taken for a distorted pinhole).
+TRANSFORMS_CAMERA_MODELS = ("OPENCV", "PINHOLE", "SIMPLE_PINHOLE", "SIMPLE_RADIAL", "RADIAL")
 
 
 def transforms_cameras(root: Path) -> LayoutCameras:
@@ -182,7 +182,7 @@ def transforms_cameras(root: Path) -> LayoutCameras:
             raise WarpbagsError(f"{path}: frame {name} transform_matrix has shape {camera_to_world.shape}")
         camera_to_world = np.vstack([camera_to_world[:3], [0, 0, 0, 1]]) @ OPENGL_TO_OPENCV
         number = functools.partial(_frame_number, path, name, merged)
-        model = merged.get("camera_model", "OPENCV")  # nerfstudio's default
+        model = merged.get("camera_model") or "OPENCV"  # nerfstudio's default; null as absent, as for every field
         if model not in TRANSFORMS_CAMERA_MODELS:
             raise WarpbagsError(f"{path}: frame {name}: camera_model {model!r} is not one warpbags reads "
                                 f"({', '.join(TRANSFORMS_CAMERA_MODELS)}; undistort the images first)")

@@ -463,10 +463,12 @@ def generate_synthetic_scene(out_dir: str | Path, options: SyntheticOptions = Sy
     try:
         with sigterm_stops():
             _write_scene(staging, options)
-        out_dir.parent.mkdir(parents=True, exist_ok=True)
-        if out_dir.exists():
-            out_dir.rmdir()
-        os.replace(staging, out_dir)
+        if out_dir.exists():  # an empty folder, perhaps the caller's own: filled, not replaced
+            for entry in staging.iterdir():
+                os.replace(entry, out_dir / entry.name)
+        else:
+            out_dir.parent.mkdir(parents=True, exist_ok=True)
+            os.replace(staging, out_dir)
     except OSError as error:  # a full disk, a folder root may not write into after all
         raise WarpbagsError(f"cannot write the scene into {out_dir}: {one_line(error)}") from None
     finally:
