@@ -334,7 +334,8 @@ def test_exported_image_names_with_spaces_are_kept_in_a_binary_model(finished_ru
     assert result.exit_code == 0, result.output
     written = {path.name for path in (tmp_path / "export" / "sparse" / "0").iterdir()}
     assert {"cameras.bin", "images.bin", "points3D.bin"} <= written and all(name.endswith(".bin") for name in written)
-    assert read_model(tmp_path / "export" / "sparse" / "0").image_names == sorted(spaced[n] for n in info["image_names"])
+    names = read_model(tmp_path / "export" / "sparse" / "0").image_names
+    assert names == sorted(spaced[name] for name in info["image_names"])
     result = runner.invoke(app, ["export", str(run), "--out", str(tmp_path / "export")])  # over the earlier export
     assert result.exit_code == 0, result.output
 

@@ -144,8 +144,9 @@ def export_run(path: str | Path, out: str | Path | None = None, colmap: bool = T
 
     Writes `<out>/gaussians.ply` (standard 3DGS PLY), `<out>/poses_final.npy` ([C,4,4] world-to-camera, OpenCV
     axes, the training views in `config.json`'s image order) and, with `colmap`, `<out>/sparse/0/` (a COLMAP text
-    model, binary where an image name holds a space, which the text format splits the name at: the training views with the input's calibration, for the image files the scene folder holds, and their
-    final poses, one point per Gaussian at its centre in its base colour), which COLMAP-reading trainers take as
+    model, binary where an image name holds a space, at which the text format would split it: the training views
+    with the input's calibration, for the image files the scene folder holds, and their final poses, one point per
+    Gaussian at its centre in its base colour), which COLMAP-reading trainers take as
     they are with the scene's image folder. Default `out`: `<run>/export`. `out` must be a new or empty folder or
     an earlier export (`check_export_folder`), never the run folder or its scene folder: an export replaces the
     files of an earlier one and nothing else.
