@@ -871,6 +871,18 @@ def test_gaussians_that_are_not_finite_are_named_and_render_nothing(finished_run
     assert not (run / "turntable").exists()
 
 
+def test_run_files_named_wrongly_or_missing_from_a_finished_run_say_so(finished_run, tmp_path):
+    """A run's config.json given for the run said "not a training run (no config.json)"; a finished run missing a pose
+    file said it had not finished and to --resume it."""
+    result = runner.invoke(app, ["eval", str(finished_run / "config.json"), "--refine-iters", "0"])
+    assert result.exit_code == 2 and "config.json is a file: name the run's folder" in " ".join(result.output.split())
+    run = _copy_of(finished_run, tmp_path / "run")
+    (run / "poses_true.npy").unlink()
+    result = runner.invoke(app, ["eval", str(run), "--refine-iters", "0"])
+    assert result.exit_code == 2 and len(_lines(result)) == 1, result.output
+    assert "poses_true.npy is missing from the finished run" in " ".join(result.output.split())
+
+
 def test_a_config_json_that_is_no_runs_says_so(finished_run, tmp_path):
     """A config.json of {} was "unreadable ('config')", a KeyError's text."""
     run = _copy_of(finished_run, tmp_path / "run")
@@ -909,13 +921,16 @@ def test_export_refuses_the_run_its_scene_and_other_folders_and_checks_its_targe
     kept = {folder: contents(folder) for folder in (run, scene)}
     (tmp_path / "notes").mkdir()
     (tmp_path / "notes" / "todo.txt").write_text("mine")
+    other = _copy_of(finished_run, tmp_path / "other")  # another run: its export/ would take this run's model
+    kept[other] = contents(other)
     for out, message in [(run, "is the run folder"), (scene, "is the run's scene folder"),
                          (tmp_path, "is a folder that holds the run folder"),
-                         (tmp_path / "notes", "is not empty and not an earlier export (it holds todo.txt)")]:
+                         (tmp_path / "notes", "is not empty and not an earlier export (it holds todo.txt)"),
+                         (other / "export", f"is inside the run folder {other.resolve()}, another run than")]:
         result = runner.invoke(app, ["export", str(run), "--out", str(out)])
         assert result.exit_code == 2 and len(_lines(result)) == 1, result.output
         assert message in " ".join(result.output.split())
-    assert {folder: contents(folder) for folder in (run, scene)} == kept
+    assert {folder: contents(folder) for folder in (run, scene, other)} == kept
     assert (tmp_path / "notes" / "todo.txt").read_text() == "mine"
     # an earlier export is replaced
     export = tmp_path / "export"

@@ -91,7 +91,7 @@ EXPORT_MODEL_FOLDERS = ("0", "0.partial")
 def check_export_folder(out: Path, run: TrainingRun) -> None:
     """Check, before anything is written, that `out` may receive an export of `run`: a new or empty folder, or an
     earlier export (gaussians.ply, and nothing but `EXPORT_FILES` and a sparse/ of COLMAP models), and neither the run
-    folder nor its scene folder, nor a folder that holds either.
+    folder nor its scene folder, nor a folder that holds either, nor a folder inside another run's.
 
     Raises:
         WarpbagsError: it may not, or `out` is a file or cannot be written; the offending path named.
@@ -106,6 +106,13 @@ def check_export_folder(out: Path, run: TrainingRun) -> None:
         if resolved == folder or resolved in folder.parents:
             where = what if resolved == folder else f"a folder that holds {what} {folder}"
             raise WarpbagsError(f"--out {out} is {where}: an export would replace its files; choose a new folder")
+    own = run.path.resolve()
+    for folder in (resolved, *resolved.parents):  # another run's export/ would take this run's model in silence
+        if folder == own:
+            break
+        if (folder / "config.json").is_file():
+            raise WarpbagsError(f"--out {out} is inside the run folder {folder}, another run than {run.path}: export "
+                                "into this run's folder or one of no run")
     if not out.is_dir():
         return
     entries = sorted(out.iterdir())

@@ -462,14 +462,19 @@ def load_run(path: str | Path) -> TrainingRun:
         WarpbagsError: a missing, unreadable or malformed file (`RunFolder.read_cameras`, `read_ply`), named.
     """
     path = Path(path)
+    if path.is_file():
+        raise WarpbagsError(f"{path} is a file: name the run's folder")
     if not (path / "config.json").is_file():
         raise WarpbagsError(f"{path} is not a training run (no config.json)")
     folder = RunFolder(path)
     info = folder.read_info()
     config = folder.saved_config(info)
-    for name in ("gaussians.ply", "poses_true.npy", "poses_init.npy", "poses_final.npy"):
+    if not (path / "gaussians.ply").is_file():
+        raise WarpbagsError(f"{path / 'gaussians.ply'} is missing: the run has not finished (continue it with "
+                            "--resume)")
+    for name in ("poses_true.npy", "poses_init.npy", "poses_final.npy"):  # written at the start and with the result
         if not (path / name).is_file():
-            raise WarpbagsError(f"{path / name} is missing: the run has not finished (continue it with --resume)")
+            raise WarpbagsError(f"{path / name} is missing from the finished run")
     arrays = folder.read_cameras()  # all of them checked, poses_start.npy too: [C,4,4] poses, [C,3,3] intrinsics
     poses = {name: torch.from_numpy(arrays[name]) for name in ("poses_true", "poses_init", "poses_final")}
     intrinsics = arrays["intrinsics"]
