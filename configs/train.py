@@ -26,6 +26,8 @@ ALIGNMENTS = ("procrustes", "pairwise")  # how estimated cameras are mapped onto
 # the unit of the pose noise: 4.0 matches the NeRF-Synthetic (Blender) orbit (radius ~4.03), so BARF's pose-noise
 # magnitudes (se(3) sigma 0.15) mean the same thing here.
 ORBIT_RADIUS = 4.0
+MAX_INIT_POINTS = 5_000_000  # initial Gaussians: 50x the paper preset's 100k, about 1 GB of parameters and moments
+MAX_HULL_DILATION_PX = 100  # dilating every mask by more makes the hull the whole cube
 MAX_HULL_RESOLUTION = 256  # the carving's first pass holds (1.5 x this)^3 voxel centres: 57 million, ~3 GB, at 256
 # Host threads beyond a few per core only cost their start-up in every CPU render: 100000 took 17.5 s an iteration.
 MAX_RENDER_THREADS = 1024
@@ -286,7 +288,7 @@ class RepairConfig:
              f"repair.unet_channels must be a positive multiple of 4, got {self.unet_channels}"),
             (self.fit_steps >= 1, f"repair.fit_steps must be >= 1, got {self.fit_steps}"),
             (self.fit_lr > 0, f"repair.fit_lr must be > 0, got {self.fit_lr}"),
-            (self.fit_batch >= 1, f"repair.fit_batch must be >= 1, got {self.fit_batch}"),
+            (1 <= self.fit_batch <= 256, f"repair.fit_batch must be in [1, 256], got {self.fit_batch}"),
             (self.fit_crop >= 8, f"repair.fit_crop must be >= 8, got {self.fit_crop}"),
             (self.pseudo_views >= 1, f"repair.pseudo_views must be >= 1, got {self.pseudo_views}"),
             (self.refresh_every >= 1, f"repair.refresh_every must be >= 1, got {self.refresh_every}"),
@@ -470,10 +472,13 @@ class TrainConfig:
             (self.camera.lbfgs_every >= 1, f"camera.lbfgs_every must be >= 1, got {self.camera.lbfgs_every}"),
             (self.camera.hypotheses_round >= 0,
              f"camera.hypotheses_round must be >= 0, got {self.camera.hypotheses_round}"),
-            (len(self.camera.hypothesis_axes) > 0 and set(self.camera.hypothesis_axes) <= set("xyz"),
-             f"camera.hypothesis_axes must be letters of xyz, got {self.camera.hypothesis_axes!r}"),
-            (len(self.camera.hypothesis_angles) > 0 and all(angle > 0 for angle in self.camera.hypothesis_angles),
-             f"camera.hypothesis_angles must be positive degrees, got {list(self.camera.hypothesis_angles)}"),
+            (len(self.camera.hypothesis_axes) > 0 and set(self.camera.hypothesis_axes) <= set("xyz")
+             and len(set(self.camera.hypothesis_axes)) == len(self.camera.hypothesis_axes),
+             f"camera.hypothesis_axes must be different letters of xyz, got {self.camera.hypothesis_axes!r}"),
+            (len(self.camera.hypothesis_angles) > 0 and all(0 < angle <= 180 for angle in self.camera.hypothesis_angles)
+             and len(set(self.camera.hypothesis_angles)) == len(self.camera.hypothesis_angles),
+             f"camera.hypothesis_angles must be different degrees in (0, 180] (each turned both ways), got "
+             f"{list(self.camera.hypothesis_angles)}"),
             (0 <= self.camera.hypothesis_margin < 1,
              f"camera.hypothesis_margin must be in [0, 1), got {self.camera.hypothesis_margin}"),
             (0 <= self.camera.average_share <= 1,
@@ -484,6 +489,8 @@ class TrainConfig:
             (self.camera.coherence_continued_from_views >= 0,
              f"camera.coherence_continued_from_views must be >= 0, got {self.camera.coherence_continued_from_views}"),
             (self.pose_opt_start >= 0, f"--pose-opt-start must be >= 0, got {self.pose_opt_start}"),
+            (self.rot_noise_deg > 0 or not self.rot_noise_fixed,
+             "--rot-noise-fixed needs --rot-noise-deg > 0 (the angle every camera is turned by)"),
             (_is_window(self.pose_round_window),
              f"pose_round_window must be (start, end) with 0 <= start < end <= 1, got {self.pose_round_window}"),
             (all(_is_window(window) for window in self.pose_round_windows),
@@ -510,11 +517,13 @@ class TrainConfig:
             (0 <= self.sh_degree <= 3, f"sh_degree must be 0-3, got {self.sh_degree}"),
             (self.sh_degree_every >= 1, f"sh_degree_every must be >= 1, got {self.sh_degree_every}"),
             (self.init in ("hull", "sfm", "random"), f"--init must be hull, sfm or random, got {self.init!r}"),
-            (self.init_points >= 1, f"init_points must be >= 1, got {self.init_points}"),
+            (1 <= self.init_points <= MAX_INIT_POINTS,
+             f"init_points must be in [1, {MAX_INIT_POINTS}], got {self.init_points}"),
             (2 <= self.hull_resolution <= MAX_HULL_RESOLUTION,
              f"hull_resolution must be in [2, {MAX_HULL_RESOLUTION}] (its first pass carves (1.5 x this)^3 voxels), "
              f"got {self.hull_resolution}"),
-            (self.hull_dilation_px >= 0, f"hull_dilation_px must be >= 0, got {self.hull_dilation_px}"),
+            (0 <= self.hull_dilation_px <= MAX_HULL_DILATION_PX,
+             f"hull_dilation_px must be in [0, {MAX_HULL_DILATION_PX}], got {self.hull_dilation_px}"),
             (self.hull_missed_views >= 0, f"hull_missed_views must be >= 0, got {self.hull_missed_views}"),
             (self.checkpoint_every >= 1, f"checkpoint_every must be >= 1, got {self.checkpoint_every}"),
             (self.blur_sigma_px >= 0, f"--blur-px must be >= 0, got {self.blur_sigma_px}"),
@@ -540,6 +549,9 @@ class TrainConfig:
             *((getattr(self.lr, name) >= 0, f"lr.{name} must be >= 0, got {getattr(self.lr, name)}")
               for name in ("sh_dc", "sh_rest", "opacities", "scales", "quats", "pose_translation_scale")),
             (self.densify.every >= 1, f"densify.every must be >= 1, got {self.densify.every}"),
+            (0 <= self.densify.start <= self.densify.stop,
+             f"densify.start and densify.stop must be 0 <= start <= stop, got {self.densify.start} and "
+             f"{self.densify.stop}"),
             (self.densify.grad_threshold > 0,
              f"densify.grad_threshold must be > 0, got {self.densify.grad_threshold}"),
             (self.densify.percent_dense >= 0, f"densify.percent_dense must be >= 0, got {self.densify.percent_dense}"),

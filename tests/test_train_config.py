@@ -90,7 +90,7 @@ def test_a_field_declared_of_any_length_takes_a_list_of_any_length():
 
     assert load_preset("quick", camera={"hypothesis_angles": [20]}).camera.hypothesis_angles == (20,)
     assert load_preset("quick", camera={"hypothesis_angles": [10, 20, 30]}).camera.hypothesis_angles == (10, 20, 30)
-    with pytest.raises(WarpbagsError, match="hypothesis_angles must be positive"):
+    with pytest.raises(WarpbagsError, match="hypothesis_angles must be different degrees"):
         load_preset("quick", camera={"hypothesis_angles": []})
     with pytest.raises(WarpbagsError, match="pose_round_window must be like"):
         load_preset("quick", pose_round_window=[0.25])
@@ -192,7 +192,19 @@ def test_range_checks_that_training_needed():
             ({"hull_resolution": 0}, r"hull_resolution must be in \[2, 256\]"),
             ({"hull_resolution": 1000}, r"hull_resolution must be in \[2, 256\]"),
             ({"hull_missed_views": -1}, "hull_missed_views must be >= 0"),
-            ({"hull_dilation_px": -1}, "hull_dilation_px must be >= 0"),
+            ({"hull_dilation_px": -1}, r"hull_dilation_px must be in \[0, 100\]"),
+            # a traceback from OpenCV's allocator; numpy's for as many points
+            ({"hull_dilation_px": 1000000}, r"hull_dilation_px must be in \[0, 100\], got 1000000"),
+            ({"init_points": 10**13}, r"init_points must be in \[1, 5000000\]"),
+            ({"repair": {"fit_batch": 10**8}}, r"repair.fit_batch must be in \[1, 256\]"),  # the machine's memory
+            # a window of no iteration, where the Gaussians never densify
+            ({"densify": {"start": 10, "stop": 2}}, "densify.start and densify.stop must be 0 <= start <= stop"),
+            ({"densify": {"start": -100, "stop": -50}}, "densify.start and densify.stop must be 0 <= start <= stop"),
+            # turns trained twice, or a turn that is the camera unturned: whole rounds wasted
+            ({"camera": {"hypothesis_axes": "zz"}}, "camera.hypothesis_axes must be different letters of xyz"),
+            ({"camera": {"hypothesis_angles": [15, 15]}}, r"camera.hypothesis_angles must be different degrees"),
+            ({"camera": {"hypothesis_angles": [360]}}, r"degrees in \(0, 180\]"),
+            ({"rot_noise_fixed": True}, "--rot-noise-fixed needs --rot-noise-deg > 0"),  # did nothing
             ({"sh_degree_every": 0}, "sh_degree_every must be >= 1"),
             ({"views_per_step": 5}, r"views_per_step must be in \[0, views = 4\] \(0 = all\), got 5"),
             ({"views_per_step": -1}, r"views_per_step must be in \[0, views = 4\]"),
@@ -218,7 +230,10 @@ def test_range_checks_that_training_needed():
                       {"sh_degree_every": 1}, {"views_per_step": 4}, {"lambda_dssim": 1}, {"lambda_mask": 0},
                       {"max_image_size": 0}, {"max_image_size": 16}, {"seed": -1}, {"noise_seed": 2**63 - 1},
                       {"densify": {"max_gaussians": 0, "prune_opacity": 0, "floater_std_ratio": 0}},
-                      {"blur_sigma_px": 4.0, "blur_until": 1}, {"blur_sigma_px": 0.0, "blur_until": 0}]:
+                      {"blur_sigma_px": 4.0, "blur_until": 1}, {"blur_sigma_px": 0.0, "blur_until": 0},
+                      {"hull_dilation_px": 100}, {"init_points": 5_000_000}, {"repair": {"fit_batch": 256}},
+                      {"densify": {"start": 5, "stop": 5}}, {"camera": {"hypothesis_angles": [180]}},
+                      {"rot_noise_fixed": True, "rot_noise_deg": 10.0}]:
         load_preset("quick", **overrides)
 
 

@@ -429,6 +429,19 @@ def test_a_last_step_that_leaves_the_cameras_non_finite_is_reported_not_averaged
         trainer.train()
 
 
+def test_poses_thrown_out_of_any_alignment_are_a_divergence_and_a_late_pose_start_is_said(scene_dir, tmp_path):
+    """`--set lr.pose=1000` threw the cameras to ~1e30 and the step's logged pose error raised umeyama's ValueError
+    as a traceback; a pose start after the run's last iteration (the paper preset cut short) left the poses frozen
+    without a word."""
+    with pytest.raises(WarpbagsError, match="diverged at iteration [0-9]+: the poses cannot be aligned"):
+        make_trainer(scene_dir, tmp_path / "thrown", iters=12, pose_opt_start=0, rot_noise_deg=3.0,
+                     lr={"pose": 1e6, "pose_warmup": 0}).train()
+    notes = []
+    config = tiny_config(iters=8, pose_opt_start=10)
+    Trainer(training_scene(load_scene(scene_dir, name="tiny"), config), config, tmp_path / "late", log=notes.append)
+    assert any("pose optimization starts at iteration 10, after the run's 8" in note for note in notes), notes
+
+
 def test_a_log_record_describes_the_step_it_logs(scene_dir, tmp_path):
     """Record "iter" n is the n-th step (index n - 1): its pose flag and SH degree are that step's schedule's."""
     trainer = make_trainer(scene_dir, tmp_path, iters=6, pose_opt_start=3, sh_degree=1, sh_degree_every=2)

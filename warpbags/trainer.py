@@ -95,6 +95,9 @@ class Trainer:
         if self._pose_alignment() != config.pose_alignment:
             self.log(f"{self.num_cameras} training cameras: the logged pose error uses pairwise alignment "
                      "(procrustes needs 3 camera centres)")
+        if config.pose_opt and config.pose_opt_start >= config.iters:  # e.g. the paper preset cut to a short run
+            self.log(f"pose optimization starts at iteration {config.pose_opt_start}, after the run's {config.iters}: "
+                     "the poses stay where the start procedures put them (--pose-opt-start to move them)")
         self.generator = torch.Generator().manual_seed(config.seed)  # initialization, view sampling, densification
         self.iteration = 0
         self.model = self._fresh_model(self.viewmats_start)
@@ -266,9 +269,14 @@ class Trainer:
         """The log record of the step just taken: "iter" counts the steps done, the schedule's entries are those of
         the step itself (index iter - 1)."""
         schedule, iteration = self.schedule, self.iteration
+        with self._divergence_reported():
+            try:
+                pose_error = self.pose_error()
+            except ValueError as error:  # poses a step too large for them (lr.pose) threw out of any alignment
+                raise Diverged(f"the poses cannot be aligned to the reference any more ({error})") from None
         return {"iter": iteration, "stage": stage, "loss": loss.item(), **terms,
                 "num_gaussians": self.model.num_gaussians, "sh_degree": schedule.sh_degree(iteration - 1),
-                "pose_opt": schedule.poses_move(iteration - 1), **self.pose_error(),
+                "pose_opt": schedule.poses_move(iteration - 1), **pose_error,
                 "seconds": time.perf_counter() - started}
 
     # ----------------------------------------------------------------------------------------------- files
