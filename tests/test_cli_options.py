@@ -96,7 +96,8 @@ def test_each_table_option_is_in_the_help_with_its_field(option):
 
 
 # Options that are refused alone (`TrainConfig.validate`): what each is given beside it here.
-COMPANIONS = {"blur_sigma_px": ["--blur-until", "10"]}  # a blur shrinks to none over blur_until iterations
+# a blur shrinks to none over blur_until iterations; the fixed noise angle is --rot-noise-deg
+COMPANIONS = {"blur_sigma_px": ["--blur-until", "10"], "rot_noise_fixed": ["--rot-noise-deg", "10"]}
 
 
 @pytest.mark.parametrize("option", TRAIN_OPTIONS, ids=lambda option: option.flag)
