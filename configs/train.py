@@ -811,7 +811,7 @@ def parse_settings(settings: list[str]) -> dict[str, Any]:
     overrides: dict[str, Any] = {}
     for item in settings:
         key, separator, text = item.partition("=")
-        if not separator or not key:
+        if not separator or "" in key.split("."):  # no name, or a group or field of no name (".pose=1")
             raise WarpbagsError(f"--set {item!r}: expected name=value or group.name=value")
         if key == "preset":
             raise WarpbagsError(f"--set {item!r}: the preset is chosen by --preset, which sets every other field")

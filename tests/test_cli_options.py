@@ -125,6 +125,8 @@ def test_an_option_and_a_set_of_its_field_are_one_error_line(option):
     (["--no-repair", "--repair-iters", "5"], "--repair-iters 5 and --no-repair both set repair.iters; give one"),
     (["--set", "repair=3", "--no-repair"], "--no-repair and --set repair=3 both set repair; give one"),
     (["--set", "views"], "expected name=value"),
+    (["--set", ".pose=1"], "--set '.pose=1': expected name=value"),  # was "unknown training option(s): " and nothing
+    (["--set", "lr.=1"], "--set 'lr.=1': expected name=value"),
     (["--set", "nonsense=1"], "unknown training option(s): nonsense"),
     (["--set", "views=1"], "--views must be >= 2, got 1"),
     # the preset only relabelled the run; a top-level null was dropped as "the preset's value", silently
