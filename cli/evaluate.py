@@ -6,7 +6,6 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Optional
 
-import numpy as np
 import typer
 from rich.console import Console
 from rich.markup import escape
@@ -118,8 +117,7 @@ def agree(
     stdout.print(f"runs disagree by {result.rotation_deg.mean():.2f} deg (mean over pairs and cameras); each run's "
                  "mean disagreement with the others: " + ", ".join(
                      f"{escape(str(path))} {value:.2f}" for path, value in zip(result.runs, result.run_disagreement_deg())))
-    disagreements = result.run_disagreement_deg()
-    if len(result.runs) > 2 and np.sum(disagreements == disagreements.min()) == 1:  # two runs are always level
+    if result.central_run() is not None:
         stdout.print(f"closest to the others: {escape(str(result.runs[result.central_run()]))}")
     if not result.same_start:
         stdout.print("the runs started from different poses: their disagreement includes how far apart they started")

@@ -65,9 +65,12 @@ class PoseAgreement:
             totals[j] += angles.mean()
         return totals / (len(self.runs) - 1)
 
-    def central_run(self) -> int:
-        """The index of the run that disagrees least with the others: the one to keep if one is to be kept."""
-        return int(np.argmin(self.run_disagreement_deg()))
+    def central_run(self) -> int | None:
+        """The index of the run that disagrees least with the others: the one to keep if one is to be kept; None
+        where no one run does (two runs are always level with each other, and a tie names none)."""
+        disagreements = self.run_disagreement_deg()
+        least = np.flatnonzero(disagreements == disagreements.min())
+        return int(least[0]) if len(self.runs) > 2 and len(least) == 1 else None
 
     def per_camera(self) -> dict[str, np.ndarray]:
         """[C] summaries over the pairs: the median and largest rotation disagreement, the largest centre distance
@@ -94,7 +97,7 @@ class PoseAgreement:
             "per_camera": per_camera,
             "rotation_deg_mean": float(self.rotation_deg.mean()),
             "run_disagreement_deg": self.run_disagreement_deg().tolist(),
-            "central_run": str(self.runs[self.central_run()]),
+            "central_run": None if self.central_run() is None else str(self.runs[self.central_run()]),
             "same_start": self.same_start,
             "error_deg": None if self.error_deg is None else self.error_deg.tolist(),
         }

@@ -33,6 +33,11 @@ class Stopped(KeyboardInterrupt):
         return Stopped, (self.signum,)
 
 
+def raise_stopped(signum: int, frame) -> None:
+    """A signal handler: the signal as Stopped, as Ctrl-C is a KeyboardInterrupt."""
+    raise Stopped(signum)
+
+
 @contextmanager
 def sigterm_stops() -> Iterator[None]:
     """In the block, SIGTERM (`kill`, a job scheduler) raises Stopped as Ctrl-C raises KeyboardInterrupt, so that
@@ -44,10 +49,7 @@ def sigterm_stops() -> Iterator[None]:
         yield
         return
 
-    def stop(signum, frame):
-        raise Stopped(signum)
-
-    previous = signal.signal(signal.SIGTERM, stop)
+    previous = signal.signal(signal.SIGTERM, raise_stopped)
     try:
         yield
     finally:

@@ -27,7 +27,7 @@ from warpbags.configs.train import DEFAULT_PRESET, MAX_RENDER_THREADS, TrainConf
 from warpbags.data import Scene, open_scene
 from warpbags.data.splits import evaluation_views
 from warpbags.devices import checked_device_name, torch_device
-from warpbags.errors import Stopped, WarpbagsError
+from warpbags.errors import WarpbagsError, raise_stopped
 from warpbags.evaluation import evaluate_run
 from warpbags.files import atomic_output, finite_json, writable_file, writable_folder
 from warpbags.report import SWEEP_FIGURES, plot_sweep
@@ -244,7 +244,7 @@ class RayExecutor:
         takes_sigterm = (started_here and threading.current_thread() is threading.main_thread()
                          and previous == signal.SIG_DFL)  # a handler of the caller's stays the caller's
         if takes_sigterm:
-            signal.signal(signal.SIGTERM, _stop_on_signal)
+            signal.signal(signal.SIGTERM, raise_stopped)
         try:
             self._check_node_resources(ray)
             # Workers may run in another folder than this process: give them absolute paths.
@@ -306,10 +306,6 @@ class RayExecutor:
             rows[run] = _task_result(ray, ready, run)
             log(f"finished {run.name}")
         return rows
-
-
-def _stop_on_signal(signum, frame) -> None:
-    raise Stopped(signum)
 
 
 def make_executor(name: str, *, address: str | None = None, cpus_per_run: int | None = None,
