@@ -151,9 +151,9 @@ class CameraConfig:
             scene 0.79 -> 2.89 (its later rounds gain by the same kind of moves), so off by default.
         lbfgs_from_round: from this coarse round on (0-based), the poses no longer take an Adam step with every
             Gaussian step: in the pose window, at every iteration i with i + 1 a multiple of `lbfgs_every` (counted
-            from the start of training, not of the window), all training cameras are solved by
-            `lbfgs_iters` L-BFGS iterations of the training loss against the current Gaussians, held fixed during
-            the solve (`CameraOptimizer.refine`). Adam steps about its learning rate whatever the gradient's size
+            from the start of training, not of the window) and at the window's last iteration, all training cameras
+            are solved by `lbfgs_iters` L-BFGS iterations of the training loss against the current Gaussians, held
+            fixed during the solve (`CameraOptimizer.refine`). Adam steps about its learning rate whatever the gradient's size
             and so moves the cameras along the directions the images barely constrain (an orbit about the object
             with the matching image shift); a solve moves them only as far as the loss goes down. None = Adam in
             every round. The repair stage keeps Adam; `round_anchor` does not enter the solves. Measured at 0

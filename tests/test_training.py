@@ -440,6 +440,13 @@ def test_poses_thrown_out_of_any_alignment_are_a_divergence_and_a_late_pose_star
     config = tiny_config(iters=8, pose_opt_start=10)
     Trainer(training_scene(load_scene(scene_dir, name="tiny"), config), config, tmp_path / "late", log=notes.append)
     assert any("pose optimization starts at iteration 10, after the run's 8" in note for note in notes), notes
+    # a pose window that rounds to no iteration of its round: said too (rounds of 10 iterations, window 31-34%)
+    notes = []
+    config = tiny_config(iters=20, rounds=2, pose_opt_start=0, pose_round_windows=((0.0, 1.0), (0.31, 0.34)))
+    Trainer(training_scene(load_scene(scene_dir, name="tiny"), config), config, tmp_path / "narrow", log=notes.append)
+    assert any("pose window of round(s) 1 (0-based) holds no iteration" in note for note in notes), notes
+    assert not any(Schedule(config).poses_move(i) for i in range(10, 20))
+    assert Schedule(tiny_config(iters=20, rounds=2, pose_opt_start=0)).rounds_without_pose_window() == []
 
 
 def test_a_log_record_describes_the_step_it_logs(scene_dir, tmp_path):
@@ -967,6 +974,9 @@ def test_lbfgs_rounds_solve_the_poses_every_few_iterations_instead_of_adam_steps
     assert [i for i, s in enumerate(steps) if s.pose_solve] == [27, 31, 35, 39]  # solves in round 1's window
     assert not any(s.pose_solve for s in steps[:20]) and not any(s.pose_active for s in steps[20:])
     assert not any(s.pose_solve for s in map(Schedule(load_preset("quick", iters=40, rounds=2)).at, range(40)))
+    # a window shorter than lbfgs_every still ends with a solve (round 1's window: iterations 25-39)
+    longer = Schedule(load_preset("quick", iters=40, rounds=2, camera={"lbfgs_from_round": 1, "lbfgs_every": 100}))
+    assert [i for i in range(40) if longer.at(i).pose_solve] == [39]
     with pytest.raises(WarpbagsError, match="camera.lbfgs_every"):
         load_preset("quick", camera={"lbfgs_every": 0})
 

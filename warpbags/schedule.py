@@ -133,6 +133,20 @@ class Schedule:
         start = max(round_start + math.ceil(window_start * length), config.pose_opt_start)
         return start, min(round_start + math.ceil(window_end * length), config.iters)
 
+    def rounds_without_pose_window(self) -> list[int]:
+        """The coarse rounds whose pose window, as shares of the round, rounds to no iteration (whatever
+        `pose_opt_start` says): their poses hold still however the run is started."""
+        if not self.config.pose_opt:
+            return []
+        windows = self.config.pose_round_windows or (self.config.pose_round_window,)
+        empty = []
+        for index, round_start in enumerate(self.round_starts):
+            length = max(self.round_end(round_start) - round_start, 1)
+            window_start, window_end = windows[min(index, len(windows) - 1)]
+            if math.ceil(window_start * length) >= math.ceil(window_end * length):
+                empty.append(index)
+        return empty
+
     def poses_move(self, iteration: int) -> bool:
         """Poses are updated (by Adam steps or L-BFGS solves, `at`) from `pose_opt_start` on, inside each coarse
         round's pose window (and in the repair stage)."""
@@ -180,7 +194,9 @@ class Schedule:
             silhouette=config.silhouette_until <= 0 or silhouette_iteration < config.silhouette_until,
             depth=not in_repair and round_iteration < config.depth_until and config.lambda_depth > 0,
             pose_active=poses_move and not solves,
-            pose_solve=poses_move and solves and (iteration + 1) % config.camera.lbfgs_every == 0,
+            # the window's last iteration solves too: a window shorter than `lbfgs_every` would otherwise never
+            pose_solve=poses_move and solves and ((iteration + 1) % config.camera.lbfgs_every == 0
+                                                  or iteration == pose_end - 1),
             gaussian_lr_fraction=gaussian_fraction,
             pose_lr=exponential_lr(config.lr.pose, config.lr.pose_final, pose_fraction) * warmup,
             orbit_free=self.orbit_free(iteration),

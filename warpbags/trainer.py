@@ -98,6 +98,9 @@ class Trainer:
         if config.pose_opt and config.pose_opt_start >= config.iters:  # e.g. the paper preset cut to a short run
             self.log(f"pose optimization starts at iteration {config.pose_opt_start}, after the run's {config.iters}: "
                      "the poses stay where the start procedures put them (--pose-opt-start to move them)")
+        if empty_windows := self.schedule.rounds_without_pose_window():
+            self.log(f"the pose window of round(s) {', '.join(str(k) for k in empty_windows)} (0-based) holds no "
+                     "iteration of the round: poses hold still there (a wider pose_round_window(s) or fewer rounds)")
         self.generator = torch.Generator().manual_seed(config.seed)  # initialization, view sampling, densification
         self.iteration = 0
         self.model = self._fresh_model(self.viewmats_start)
