@@ -11,7 +11,9 @@ from rich.markup import escape
 from rich.table import Table
 
 from warpbags.cli.common import clean_errors, parse_numbers
+from warpbags.cli.train_options import config_overrides
 from warpbags.configs.train import DEFAULT_PRESET
+from warpbags.errors import WarpbagsError
 from warpbags.sweep import RAY_INSTALL, SweepSpec, make_executor, run_sweep
 
 stdout = Console(highlight=False)
@@ -26,6 +28,10 @@ def sweep(
     preset: str = typer.Option(DEFAULT_PRESET, "--preset", help="Training preset for every run."),
     iters: Optional[int] = typer.Option(None, "--iters", help="Coarse iterations per run (default: the preset's)."),
     repair_iters: Optional[int] = typer.Option(None, "--repair-iters", help="Repair iterations per run (default: the preset's)."),
+    settings: Optional[list[str]] = typer.Option(
+        None, "--set", help="Any TrainConfig field for every run: name=value or group.name=value, JSON values "
+        "(repeatable), e.g. --set lr.pose=0.005; not the fields the sweep sets per run (views, noise, seeds, "
+        "pose_opt)."),
     out: Optional[Path] = typer.Option(None, "--out", help="Sweep folder (default runs/sweep-<scene>)."),
     data_root: Optional[Path] = typer.Option(None, "--data-root", help="Folder holding datasets."),
     device: str = typer.Option("cpu", "--device", help="cpu or cuda, for every run."),
@@ -46,8 +52,7 @@ def sweep(
     """BAGS vs the fixed-pose baseline over noise, views and seeds; resumable; sweep.csv/json and plots."""
     sweep_executor = make_executor(executor, address=address, cpus_per_run=cpus_per_run,
                                    gpus_per_run=gpus_per_run, device=device)
-    overrides = {"iters": iters, "repair": None if repair_iters is None else {"iters": repair_iters}}
-    overrides = tuple((key, value) for key, value in overrides.items() if value is not None)
+    overrides = tuple(sweep_overrides(iters, repair_iters, settings or [], executor).items())
     spec = SweepSpec(scene=scene, out=out or Path("runs") / f"sweep-{Path(scene).name}",
                      rot_noises=tuple(parse_numbers(rot_noises, "--rot-noises", minimum=0, maximum=180)),
                      views=tuple(parse_numbers(views, "--views", int, minimum=2)),  # a visual hull needs two
@@ -62,6 +67,27 @@ def sweep(
                       *(_shown(r[key]) for key in ("rot_err_initial", "rot_err_final", "psnr", "psnr_refined")))
     stdout.print(table)
     stdout.print(f"wrote {spec.out / 'sweep.csv'}, {spec.out / 'sweep.json'} and plots in {spec.out}")
+
+
+# TrainConfig fields a sweep sets per run (or per Ray task), and the sweep option that gives them
+_SET_BY_THE_SWEEP = {"views": "--views", "rot_noise_deg": "--rot-noises", "trans_noise": "--trans-noise",
+                     "seed": "--seeds", "noise_seed": "--seeds", "pose_opt": "the sweep's two methods"}
+
+
+def sweep_overrides(iters: int | None, repair_iters: int | None, settings: list[str], executor: str) -> dict:
+    """The TrainConfig overrides every run of the sweep takes: --iters, --repair-iters and the `--set` items.
+
+    Raises:
+        WarpbagsError: a field given twice (--iters and --set iters=...), a `--set` of a field the sweep sets per
+            run, or of render_threads with the Ray executor (its tasks render on --cpus-per-run threads).
+    """
+    overrides = config_overrides({"iters": iters, "repair_iters": repair_iters}, settings)
+    for field, option in _SET_BY_THE_SWEEP.items():
+        if field in overrides:
+            raise WarpbagsError(f"--set {field}: a sweep sets it per run, by {option}")
+    if executor == "ray" and "render_threads" in overrides:
+        raise WarpbagsError("--set render_threads: a Ray sweep's runs render on --cpus-per-run threads")
+    return overrides
 
 
 def _shown(value: float | None) -> str:

@@ -15,7 +15,7 @@ from warpbags.cli.main import app
 from warpbags.data import SyntheticOptions, ensure_synthetic_scene
 from warpbags.errors import WarpbagsError
 from warpbags.files import finite_json
-from warpbags.sweep import SweepSpec, make_executor, run_sweep
+from warpbags.sweep import SweepSpec, combination_config, make_executor, run_sweep, sweep_runs
 
 runner = CliRunner()
 
@@ -179,3 +179,31 @@ def test_ray_options_without_ray_are_named_in_one_line():
                              (dict(address="auto", gpus_per_run=1), "--address, --gpus-per-run need --executor ray")):
         with pytest.raises(WarpbagsError, match=message):
             make_executor("local", **options)
+
+
+def test_set_reaches_every_run_and_fields_the_sweep_sets_are_refused(tmp_path, monkeypatch):
+    """`warpbags sweep` had no --set: a sweep could not vary a TrainConfig field that has no sweep option. Every run
+    takes the items (with --iters and --repair-iters); the fields a sweep sets per run are one line each."""
+    specs = []
+    monkeypatch.setattr("warpbags.cli.sweep.run_sweep", lambda spec, **kwargs: specs.append(spec) or [])
+    out = tmp_path / "s"
+    result = runner.invoke(app, ["sweep", "maryrose", "--rot-noises", "5,10", "--views", "4", "--iters", "30",
+                                 "--repair-iters", "4", "--set", "lr.pose=0.005", "--set", "repair.fit_steps=7",
+                                 "--set", "camera.coherence_iters=0", "--out", str(out)])
+    assert result.exit_code == 0, result.output
+    (spec,) = specs
+    configs = [combination_config(spec, run) for run in sweep_runs(spec)]
+    assert len(configs) == 4 and {config.pose_opt for config in configs} == {True, False}
+    for config in configs:
+        assert (config.iters, config.repair.iters, config.repair.fit_steps) == (30, 4, 7)
+        assert (config.lr.pose, config.camera.coherence_iters) == (0.005, 0)
+    for items, message in ((["--set", "views=6"], "--set views: a sweep sets it per run, by --views"),
+                           (["--set", "noise_seed=3"], "--set noise_seed: a sweep sets it per run, by --seeds"),
+                           (["--set", "pose_opt=false"], "--set pose_opt: a sweep sets it per run"),
+                           (["--iters", "30", "--set", "iters=40"], "--iters 30 and --set iters=40 both set iters"),
+                           (["--executor", "ray", "--set", "render_threads=1"], "render on --cpus-per-run threads"),
+                           (["--set", "lr.pose"], "expected name=value")):
+        result = runner.invoke(app, ["sweep", "maryrose", *items, "--out", str(out)])
+        lines = [line for line in result.output.splitlines() if line.strip()]
+        assert result.exit_code == 2 and len(lines) == 1 and message in lines[0], (items, result.output)
+    assert len(specs) == 1 and not out.exists()
