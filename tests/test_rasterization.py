@@ -330,6 +330,58 @@ def test_bad_arguments_are_named(override, message):
         warpbags.rasterization(**scene, **override)
 
 
+def test_tile_sizes_cameras_and_dtypes_the_kernels_cannot_take_are_named():
+    """A tile of 0 px was a ZeroDivisionError, of -4 a `max()` of nothing; no camera at all was a ZeroDivisionError
+    in the binning; int64 means blamed the quaternions ("quats is torch.float64; expected torch.int64")."""
+    scene = random_scene(n=5, cams=2)
+    for tile_size in (0, -4, 2.5, True):
+        with pytest.raises(ValueError, match=f"tile_size must be a positive int \\(pixels\\), got {tile_size!r}"):
+            warpbags.rasterization(**scene, tile_size=tile_size)
+    with pytest.raises(ValueError, match="viewmats must hold at least one camera"):
+        warpbags.rasterization(**{**scene, "viewmats": scene["viewmats"][:0], "Ks": scene["Ks"][:0]})
+    with pytest.raises(ValueError, match="^means must be float32 or float64, got torch.int64"):
+        warpbags.rasterization(**{**scene, "means": scene["means"].long()})
+
+
+@pytest.mark.parametrize("tile_size", [3, 6, 18])
+def test_tile_sizes_that_are_not_a_power_of_two_match_the_reference(tile_size):
+    """Every tile size divisible by 3 and not by 4 was refused on the CPU ("pixel block 3x3")."""
+    inputs = _inputs(random_scene(n=30, cams=2, width=23, height=19, seed=4), 2)
+    (ours_in, ours), (ref_in, ref) = _render_both(inputs, None, tile_size)
+    torch.testing.assert_close(ours, ref, rtol=1e-9, atol=1e-9)
+    ours.sum().backward()
+    ref.sum().backward()
+    assert_gradients_close(ours_in, ref_in)
+
+
+def test_cpu_threads_hold_every_stage_forward_and_backward(monkeypatch):
+    """`cpu_threads` reached the binning and the rasterizer only: the projection and SH stages, forward and
+    backward, were cut over every usable core (`render_threads=1` used two cores here)."""
+    import threading
+
+    import warpbags.wrapper as wrapper
+
+    monkeypatch.setattr(wrapper, "_default_cpu_threads", lambda: 4)  # as on a 4-core machine
+    monkeypatch.setattr(wrapper, "MIN_PAIRS_PER_THREAD", 4)  # a small scene cut as a large one would be
+    launched_from: dict[str, set[str]] = {}
+    launch = wrapper._Launcher.launch
+
+    def recording_launch(self, kernel, dim, /, **arguments):
+        launched_from.setdefault(kernel.key, set()).add(threading.current_thread().name)
+        return launch(self, kernel, dim, **arguments)
+
+    monkeypatch.setattr(wrapper._Launcher, "launch", recording_launch)
+    inputs = random_scene(n=60, cams=2, width=24, height=20, sh_degree=1, seed=3)
+    for threads, expect_pool in ((1, False), (None, True)):
+        launched_from.clear()
+        tensors, w, h = _split(inputs)
+        out, _, _ = warpbags.rasterization(**tensors, width=w, height=h, sh_degree=1, cpu_threads=threads)
+        out.sum().backward()
+        stages = [key for key in launched_from if key.startswith(("project_gaussians", "sh_to_colors"))]
+        assert len(stages) == 4, launched_from  # projection and SH, forward and backward
+        assert all((launched_from[key] != {"MainThread"}) is expect_pool for key in stages), launched_from
+
+
 def test_float32_refuses_more_gaussians_than_it_counts_exactly(monkeypatch):
     """The kernels count a pixel's place in its tile's list in the float type; float32 is exact below 2^24 entries,
     so more Gaussians per camera are refused by name (the limit lowered here to 5 to keep the scene small)."""
@@ -465,10 +517,13 @@ def test_pixel_block_fits_the_tile():
     cpu = torch.device("cpu")
     assert _pixel_block(cpu, 4, (4, 2)) == (4, 2)
     assert _pixel_block(cpu, 2, (4, 4)) == (2, 2)  # a block never spans two tiles
-    assert _pixel_block(cpu, 4, (3, 1)) == (2, 1)  # each side the largest divisor of the tile size
+    assert _pixel_block(cpu, 4, (3, 1)) == (2, 1)  # each side the largest power of two dividing the tile size
     assert _pixel_block(torch.device("cuda"), 16, None) == (1, 1)  # one pixel per thread on CUDA
     assert _pixel_block(cpu, 4, None) == (4, 4) and _pixel_block(cpu, 8, None) == (4, 4)  # the CPU default
     assert _pixel_block(cpu, 2, None) == (2, 2)
+    # a tile of 6 or 18 px (divisible by 3, not 4) gets 2 px sides: a 3x3 block has no kernel
+    assert _pixel_block(cpu, 6, None) == (2, 2) and _pixel_block(cpu, 18, None) == (2, 2)
+    assert _pixel_block(cpu, 9, None) == (1, 1) and _pixel_block(cpu, 12, None) == (4, 4)
     with pytest.raises(ValueError, match="pixel block"):
         _pixel_block(cpu, 16, (8, 4))  # 32 pixels per thread: not built
 

@@ -65,7 +65,8 @@ def rasterization(
         render_mode: "RGB", "D" (alpha-weighted depth), "ED" (expected depth, D / alpha), "RGB+D" or "RGB+ED".
         tile_size: tile edge in pixels; default 16 on CUDA, 4 on CPU.
         eps2d: low-pass added to the 2D covariance (pixels^2), as 3DGS.
-        cpu_threads: host threads for CPU tensors (default: all usable cores).
+        cpu_threads: host threads for CPU tensors, in every stage, forward and backward (default: every usable
+            core, or the limit of `threads.limited_host_threads` around the caller).
 
     Returns:
         render_colors: [C, H, W, D] with D = 3 (RGB), 1 (D, ED) or 4 (RGB+D, RGB+ED).
@@ -79,13 +80,15 @@ def rasterization(
         viewmats = apply_pose_deltas(viewmats, pose_deltas)
     if tile_size is None:
         tile_size = DEFAULT_TILE_SIZE["cuda" if means.is_cuda else "cpu"]
+    if isinstance(tile_size, bool) or not isinstance(tile_size, int) or tile_size < 1:
+        raise ValueError(f"tile_size must be a positive int (pixels), got {tile_size!r}")
 
     means2d, conics, depths, radii = project_gaussians(
-        means, quats, scales, opacities, viewmats, Ks, width, height, near_plane, far_plane, eps2d
+        means, quats, scales, opacities, viewmats, Ks, width, height, near_plane, far_plane, eps2d, cpu_threads
     )
     cams, n = depths.shape
     if sh_degree is not None:
-        rgb = spherical_harmonics(means, colors, viewmats, sh_degree)
+        rgb = spherical_harmonics(means, colors, viewmats, sh_degree, cpu_threads)
     elif colors.dim() == 2:
         rgb = colors.unsqueeze(0).expand(cams, n, 3)
     else:
@@ -112,7 +115,11 @@ def rasterization(
 
 
 def _check_inputs(means, quats, scales, opacities, colors, viewmats, Ks, sh_degree, backgrounds, pose_deltas, render_mode):
+    if means.dtype not in (torch.float32, torch.float64):  # first: the other tensors are checked against it
+        raise ValueError(f"means must be float32 or float64, got {means.dtype}")
     n, cams = means.shape[0], viewmats.shape[0]
+    if viewmats.dim() == 3 and cams == 0:
+        raise ValueError("viewmats must hold at least one camera, got [0, 4, 4]")
     expected = {
         "means": (means, (n, 3)),
         "quats": (quats, (n, 4)),
@@ -130,8 +137,6 @@ def _check_inputs(means, quats, scales, opacities, colors, viewmats, Ks, sh_degr
             raise ValueError(f"{name} must have shape {list(shape)}, got {list(tensor.shape)}")
         if tensor.dtype != means.dtype or tensor.device != means.device:
             raise ValueError(f"{name} is {tensor.dtype} on {tensor.device}; expected {means.dtype} on {means.device}")
-    if means.dtype not in (torch.float32, torch.float64):
-        raise ValueError(f"means must be float32 or float64, got {means.dtype}")
     if sh_degree is None:
         if tuple(colors.shape) not in ((n, 3), (cams, n, 3)):
             raise ValueError(f"colors must be [N, 3] or [C, N, 3] RGB (or set sh_degree), got {list(colors.shape)}")

@@ -235,11 +235,11 @@ class _GaussianRanges(NamedTuple):
     ranges: list[tuple[int, int]] | None
 
     @staticmethod
-    def of(stage: _Stage, dim, device: torch.device) -> _GaussianRanges:
+    def of(stage: _Stage, dim, device: torch.device, cpu_threads: int | None = None) -> _GaussianRanges:
         """A single Gaussian first (it runs alone: first-use compilation happens once), then one range per host
-        thread; one launch on CUDA, on one core, for stages that are not over Gaussians and below
-        `MIN_PAIRS_PER_THREAD` pairs per thread."""
-        workers = _default_cpu_threads() if device.type == "cpu" else 1
+        thread (`cpu_threads`, default `_default_cpu_threads`); one launch on CUDA, on one core, for stages that
+        are not over Gaussians and below `MIN_PAIRS_PER_THREAD` pairs per thread."""
+        workers = (cpu_threads or _default_cpu_threads()) if device.type == "cpu" else 1
         if not stage.gaussian_inputs or workers == 1 or dim[0] * dim[1] < MIN_PAIRS_PER_THREAD * workers:
             return _GaussianRanges(dim, None)
         return _GaussianRanges(dim, _first_alone_then_equal(dim[1], workers))
@@ -273,13 +273,15 @@ def _stage_arguments(stage: _Stage, args: Sequence, outputs: Sequence, cut, scal
     return arguments
 
 
-def _stage_forward(stage: _Stage, dim, shape: tuple, args: Sequence) -> tuple[torch.Tensor, ...]:
-    """Run the stage on `args` (its inputs in order); returns its output tensors."""
+def _stage_forward(stage: _Stage, dim, shape: tuple, args: Sequence,
+                   cpu_threads: int | None = None) -> tuple[torch.Tensor, ...]:
+    """Run the stage on `args` (its inputs in order), on `cpu_threads` host threads for CPU tensors (default
+    `_default_cpu_threads`); returns its output tensors."""
     device = _tensor_device(args)
     scalar = _floating_dtype(args)
     outputs = [_output_tensor(kind, shape, scalar, device) for kind in stage.outputs.values()]
     launcher = _launcher(device)
-    cuts = _GaussianRanges.of(stage, dim, device)
+    cuts = _GaussianRanges.of(stage, dim, device, cpu_threads)
 
     def work(_, cut):
         launcher.launch(stage.kernel, cuts.launch_dim(cut), **_stage_arguments(stage, args, outputs, cut, scalar))
@@ -385,7 +387,7 @@ def apply_object_deltas(viewmats: torch.Tensor, params: torch.Tensor, object_cen
 
 
 def _backward_over_ranges(stage: _Stage, kernel, *, gaussians: dict, cameras: dict, pairs: dict, cotangents: dict,
-                          **plain) -> dict[str, torch.Tensor]:
+                          cpu_threads: int | None, **plain) -> dict[str, torch.Tensor]:
     """Launch `kernel`, the hand-written backward of `stage` (a kernel over (cameras, Gaussians)), over the Gaussian
     ranges its forward ran in (`_GaussianRanges`), and return the gradients of `gaussians` and `cameras` by name.
 
@@ -393,6 +395,7 @@ def _backward_over_ranges(stage: _Stage, kernel, *, gaussians: dict, cameras: di
     with the range), `cameras` its per-camera inputs (whole), `pairs` saved outputs [C, N, ...] (cut along the
     Gaussians' axis 1), `cotangents` torch's gradients of outputs (passed as v_<output>, cut as `pairs`), `plain`
     the other arguments. The kernel accumulates the gradient of each of `gaussians` and `cameras` into v_<name>.
+    `cpu_threads`: the host threads the forward was given (None: `_default_cpu_threads`).
 
     A range's per-Gaussian gradients are slices of one buffer (the ranges are disjoint); its per-camera gradients
     go to a private buffer (CPU atomics are plain adds, so two host threads must not share one), summed in range
@@ -411,7 +414,7 @@ def _backward_over_ranges(stage: _Stage, kernel, *, gaussians: dict, cameras: di
     kinds.update(("v_" + name, kinds[name]) for name in cotangents)
     v_gaussians = {name: torch.empty_like(t) for name, t in gaussians.items()}  # each range zeroes its own slice
     some = next(iter(pairs.values()))
-    cuts = _GaussianRanges.of(stage, tuple(some.shape[:2]), some.device)
+    cuts = _GaussianRanges.of(stage, tuple(some.shape[:2]), some.device, cpu_threads)
     # The first range, which runs alone before the others start, shares the second one's camera gradients.
     v_cameras = [{name: torch.zeros_like(t) for name, t in cameras.items()}
                  for _ in range(1 if cuts.ranges is None else max(len(cuts.ranges) - 1, 1))]
@@ -440,13 +443,15 @@ class _ProjectGaussians(torch.autograd.Function):
     """
 
     @staticmethod
-    def forward(ctx, means, quats, scales, opacities, viewmats, Ks, width, height, near_plane, far_plane, eps2d):
+    def forward(ctx, means, quats, scales, opacities, viewmats, Ks, width, height, near_plane, far_plane, eps2d,
+                cpu_threads):
         cams, n = viewmats.shape[0], means.shape[0]
         outputs = _stage_forward(_PROJECTION, (cams, n), (cams, n), (means, quats, scales, opacities, viewmats, Ks,
-                                                                       width, height, near_plane, far_plane, eps2d))
+                                                                       width, height, near_plane, far_plane, eps2d),
+                                 cpu_threads)
         radii = outputs[3]
         ctx.save_for_backward(means, quats, scales, viewmats, Ks, radii)
-        ctx.width, ctx.height, ctx.eps2d = width, height, eps2d
+        ctx.width, ctx.height, ctx.eps2d, ctx.cpu_threads = width, height, eps2d, cpu_threads
         ctx.mark_non_differentiable(radii)
         return outputs
 
@@ -456,10 +461,10 @@ class _ProjectGaussians(torch.autograd.Function):
         grads = _backward_over_ranges(
             _PROJECTION, project_gaussians_backward_kernel, gaussians=dict(means=means, quats=quats, scales=scales),
             cameras=dict(viewmats=viewmats, Ks=Ks), pairs=dict(radii=radii),
-            cotangents=dict(means2d=v_means2d, conics=v_conics, depths=v_depths), width=ctx.width,
-            height=ctx.height, eps2d=_WP_SCALARS[means.dtype](ctx.eps2d))
+            cotangents=dict(means2d=v_means2d, conics=v_conics, depths=v_depths), cpu_threads=ctx.cpu_threads,
+            width=ctx.width, height=ctx.height, eps2d=_WP_SCALARS[means.dtype](ctx.eps2d))
         grads = (grads["means"], grads["quats"], grads["scales"], None, grads["viewmats"], grads["Ks"])
-        return (*(g if needed else None for g, needed in zip(grads, ctx.needs_input_grad)), *[None] * 5)
+        return (*(g if needed else None for g, needed in zip(grads, ctx.needs_input_grad)), *[None] * 6)
 
 
 def project_gaussians(
@@ -474,6 +479,7 @@ def project_gaussians(
     near_plane: float = 0.01,
     far_plane: float = 1e10,
     eps2d: float = 0.3,
+    cpu_threads: int | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
     """EWA projection of N Gaussians into C cameras.
 
@@ -481,7 +487,8 @@ def project_gaussians(
         means: [N, 3] centres. quats: [N, 4] (w, x, y, z), any norm. scales: [N, 3] linear.
         opacities: [N] in [0, 1] (only for the opacity-aware radius). viewmats: [C, 4, 4] world-to-camera.
         Ks: [C, 3, 3] pinhole intrinsics. near_plane, far_plane: depth culling. eps2d: low-pass added to the 2D
-        covariance, in pixels^2.
+        covariance, in pixels^2. cpu_threads: host threads for CPU tensors, forward and backward (default: every
+        usable core, or the limit of `threads.limited_host_threads` around the caller).
 
     Returns:
         means2d [C, N, 2] pixels, conics [C, N, 3] (upper triangle of the inverse 2D covariance), depths [C, N]
@@ -489,9 +496,9 @@ def project_gaussians(
     """
     args = (means, quats, scales, opacities, viewmats, Ks, width, height, near_plane, far_plane, eps2d)
     if torch.is_grad_enabled() and any(t.requires_grad for t in (means, quats, scales, viewmats, Ks)):
-        return _ProjectGaussians.apply(*args)
+        return _ProjectGaussians.apply(*args, cpu_threads)
     cams, n = viewmats.shape[0], means.shape[0]
-    return _stage_forward(_PROJECTION, (cams, n), (cams, n), args)
+    return _stage_forward(_PROJECTION, (cams, n), (cams, n), args, cpu_threads)
 
 
 class _SHColors(torch.autograd.Function):
@@ -503,11 +510,11 @@ class _SHColors(torch.autograd.Function):
     """
 
     @staticmethod
-    def forward(ctx, means, coeffs, viewmats, degree):
+    def forward(ctx, means, coeffs, viewmats, degree, cpu_threads):
         cams, n = viewmats.shape[0], means.shape[0]
-        (colors,) = _stage_forward(_SH_COLORS, (cams, n), (cams, n), (means, coeffs, viewmats, degree))
+        (colors,) = _stage_forward(_SH_COLORS, (cams, n), (cams, n), (means, coeffs, viewmats, degree), cpu_threads)
         ctx.save_for_backward(means, coeffs, viewmats, colors)
-        ctx.degree = degree
+        ctx.degree, ctx.cpu_threads = degree, cpu_threads
         return colors
 
     @staticmethod
@@ -516,17 +523,19 @@ class _SHColors(torch.autograd.Function):
         grads = _backward_over_ranges(
             _SH_COLORS, sh_to_colors_backward_kernel, gaussians=dict(means=means, coeffs=coeffs),
             cameras=dict(viewmats=viewmats), pairs=dict(colors=colors), cotangents=dict(colors=v_colors),
-            degree=ctx.degree)
+            cpu_threads=ctx.cpu_threads, degree=ctx.degree)
         grads = (grads["means"], grads["coeffs"], grads["viewmats"])
-        return (*(g if needed else None for g, needed in zip(grads, ctx.needs_input_grad)), None)
+        return (*(g if needed else None for g, needed in zip(grads, ctx.needs_input_grad)), None, None)
 
 
-def spherical_harmonics(means: torch.Tensor, coeffs: torch.Tensor, viewmats: torch.Tensor, degree: int) -> torch.Tensor:
+def spherical_harmonics(means: torch.Tensor, coeffs: torch.Tensor, viewmats: torch.Tensor, degree: int,
+                        cpu_threads: int | None = None) -> torch.Tensor:
     """View-dependent colour max(SH(dir) + 0.5, 0) with dir from each camera centre to each Gaussian.
 
     Args:
         means: [N, 3]. coeffs: [N, K, 3] with K >= (degree + 1)^2. viewmats: [C, 4, 4] world-to-camera.
         degree: active SH degree, 0-3.
+        cpu_threads: host threads for CPU tensors, forward and backward (as `project_gaussians`).
 
     Returns:
         [C, N, 3] colours; differentiable in means, coeffs and viewmats (the coefficients above the degree get a
@@ -538,9 +547,9 @@ def spherical_harmonics(means: torch.Tensor, coeffs: torch.Tensor, viewmats: tor
         raise ValueError(f"spherical_harmonics of degree {degree} (0-3) needs coeffs [N = {means.shape[0]}, "
                          f"K >= {(degree + 1) ** 2}, 3], got {list(coeffs.shape)}")
     if torch.is_grad_enabled() and any(t.requires_grad for t in (means, coeffs, viewmats)):
-        return _SHColors.apply(means, coeffs, viewmats, degree)
+        return _SHColors.apply(means, coeffs, viewmats, degree, cpu_threads)
     cams, n = viewmats.shape[0], means.shape[0]
-    (colors,) = _stage_forward(_SH_COLORS, (cams, n), (cams, n), (means, coeffs, viewmats, degree))
+    (colors,) = _stage_forward(_SH_COLORS, (cams, n), (cams, n), (means, coeffs, viewmats, degree), cpu_threads)
     return colors
 
 
@@ -1091,11 +1100,12 @@ DEFAULT_PIXEL_BLOCK: dict[str, tuple[int, int]] = {"cuda": (1, 1), "cpu": (4, 4)
 
 
 def _pixel_block(device: torch.device, tile_size: int, block: tuple[int, int] | None) -> tuple[int, int]:
-    """The block for this device and tile: each side the largest divisor of the tile size not above the asked one
-    (a block never spans two tiles), and a pixel count the kernels are built for."""
+    """The block for this device and tile: each side the largest power of two that divides the tile size and is
+    not above the asked side (a block never spans two tiles, and a tile of 6 or 18 px gets 2 px sides, not 3: the
+    kernels are built for power-of-two pixel counts)."""
     block_w, block_h = block or DEFAULT_PIXEL_BLOCK["cuda" if device.type == "cuda" else "cpu"]
-    block_w = max(d for d in range(1, min(block_w, tile_size) + 1) if tile_size % d == 0)
-    block_h = max(d for d in range(1, min(block_h, tile_size) + 1) if tile_size % d == 0)
+    block_w, block_h = (max(d for d in (1, 2, 4, 8, 16) if d <= max(side, 1) and tile_size % d == 0)
+                        for side in (block_w, block_h))
     if block_w * block_h not in FORWARD_KERNELS:
         raise ValueError(f"pixel block {block_w}x{block_h}: the rasterizer is built for {sorted(FORWARD_KERNELS)} pixels per thread")
     return block_w, block_h
