@@ -8,9 +8,9 @@ import pytest
 import torch
 from random_poses import F64, generator, random_sim3, random_viewmats, unit_vectors
 
-from warpbags.alignment import (Sim3, align_viewmats, alignment_for, centre_floor_errors, pose_errors,
+from warpbags.alignment import (Sim3, align_viewmats, alignment_for, centre_floor_errors, pose_errors, procrustes_unfit,
                                 reprojection_errors, umeyama)
-from warpbags.cameras import camera_centers, moved_keeping_target
+from warpbags.cameras import camera_centers, moved_keeping_target, viewmats_from_centers
 from warpbags.data.noise import perturb_viewmats
 from warpbags.lie import so3_exp
 
@@ -266,6 +266,30 @@ def test_reprojection_errors_tell_a_turn_about_the_camera_from_one_about_the_obj
 
 
 def test_alignment_for_falls_back_to_pairwise_only_where_procrustes_cannot_fit():
-    assert alignment_for(3) == "procrustes" and alignment_for(2) == "pairwise"
-    assert alignment_for(2, "pairwise") == "pairwise" and alignment_for(9, "pairwise") == "pairwise"
-    assert alignment_for(2, "none") == "none"
+    gen = generator(5)
+    three, two, nine = random_viewmats(3, gen), random_viewmats(2, gen), random_viewmats(9, gen)
+    assert alignment_for(three) == "procrustes" and alignment_for(two) == "pairwise"
+    assert alignment_for(two, "pairwise") == "pairwise" and alignment_for(nine, "pairwise") == "pairwise"
+    assert alignment_for(two, "none") == "none"
+    assert procrustes_unfit(two) == "2 cameras: Procrustes needs at least 3 camera centres"
+
+
+def test_cameras_along_one_line_are_aligned_pairwise_and_non_finite_poses_are_named():
+    """Centres on one line (a slider capture) passed Procrustes, whose turn about the line was then fitted to
+    rounding: exact poses stored in float32 read 14.5 deg off. Pairwise, which the orientations fix, reads 0; and
+    pairwise alignment called NaN poses "all estimated camera centres coincide"."""
+    gen = generator(6)
+    rotations = random_viewmats(5, gen)[:, :3, :3]
+    line = torch.linspace(-2, 2, 5, dtype=F64)[:, None] * torch.tensor([0.6, 0.0, 0.8], dtype=F64)
+    truth = viewmats_from_centers(rotations, line)
+    estimate = truth.float().double()  # the poses_*.npy rounding
+    assert procrustes_unfit(truth) == "the camera centres lie on one line: Procrustes cannot fix the turn about it"
+    assert alignment_for(truth) == "pairwise"
+    assert pose_errors(estimate, truth, alignment_for(truth))["rotation_error_deg_mean"] < 1e-4
+    bent = viewmats_from_centers(rotations, line + 0.05 * torch.randn(5, 3, generator=gen, dtype=F64))
+    assert alignment_for(bent) == "procrustes"  # a capture off the line by 1% of its length keeps Procrustes
+    broken = estimate.clone()
+    broken[1, 0, 3] = math.nan
+    for alignment in ("pairwise", "procrustes", "none"):
+        with pytest.raises(ValueError, match=f"^{alignment} alignment failed: non-finite"):
+            pose_errors(broken, truth, alignment)

@@ -570,7 +570,7 @@ def test_eval_of_two_cameras_falls_back_to_the_pairwise_alignment(finished_run, 
     two = _two_camera_copy(finished_run, tmp_path / "two")
     result = runner.invoke(app, ["eval", str(two), "--procrustes", "--refine-iters", "0"])
     assert result.exit_code == 0, result.output
-    assert "pairwise alignment (Procrustes needs at least 3)" in " ".join(result.output.split())
+    assert "pairwise alignment: 2 cameras: Procrustes needs at least 3 camera centres" in " ".join(result.output.split())
     assert json.loads((two / "eval.json").read_text())["alignment"] == "pairwise"
 
 

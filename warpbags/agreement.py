@@ -131,7 +131,7 @@ def pose_agreement(runs: Sequence[TrainingRun], preferred: str = "procrustes") -
         if (run.info["width"], run.info["height"]) != (first.info["width"], first.info["height"]):
             raise WarpbagsError(f"{run.path} trained at {run.info['width']}x{run.info['height']} px, {first.path} at "
                                 f"{first.info['width']}x{first.info['height']}: compare runs of one resolution")
-    alignment = alignment_for(len(first.info["image_names"]), preferred)
+    alignment = alignment_for(first.poses_true, preferred)  # the views are the same, and so are their references
     pairs = list(itertools.combinations(range(len(runs)), 2))
     with_intrinsics = all(run.intrinsics is not None for run in runs)
     rotations, centres, pixels = [], [], []

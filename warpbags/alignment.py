@@ -15,8 +15,8 @@ import torch
 from warpbags.cameras import camera_centers, moved_keeping_target, project_points, viewmats_from_centers
 from warpbags.lie import rotation_error_deg
 
-__all__ = ["Sim3", "align_viewmats", "alignment_for", "centre_floor_errors", "pose_errors", "reprojection_errors",
-           "umeyama"]
+__all__ = ["Sim3", "align_viewmats", "alignment_for", "centre_floor_errors", "pose_errors", "procrustes_unfit",
+           "reprojection_errors", "umeyama"]
 
 
 @dataclass(frozen=True)
@@ -188,9 +188,29 @@ def _pairwise_sim3(viewmats_est: torch.Tensor, viewmats_ref: torch.Tensor) -> Si
     return best_sim3
 
 
-def alignment_for(num_cameras: int, preferred: str = "procrustes") -> str:
-    """`preferred`, or "pairwise" where procrustes cannot be fitted (fewer than 3 camera centres)."""
-    return "pairwise" if preferred == "procrustes" and num_cameras < 3 else preferred
+# Reference centres whose spread across their main line is below this share of their spread along it count as on
+# one line: Procrustes' turn about that line is then fitted to the estimate's noise (centres 1e-6 of their extent
+# off a line, poses otherwise exact, read 75 deg off), while the cameras' orientations still fix it (pairwise).
+COLLINEAR_SPREAD = 1e-3
+
+
+def procrustes_unfit(viewmats_ref: torch.Tensor) -> str | None:
+    """Why Procrustes on the centres of these reference cameras ([C, 4, 4]) cannot fix the alignment, or None: fewer
+    than 3 centres, or centres on one line (`COLLINEAR_SPREAD`; a capture along a slider or a dolly track)."""
+    if len(viewmats_ref) < 3:
+        return f"{len(viewmats_ref)} cameras: Procrustes needs at least 3 camera centres"
+    centres = camera_centers(viewmats_ref.double())
+    spread = torch.linalg.svdvals(centres - centres.mean(dim=0))
+    if not torch.isfinite(spread).all():
+        return None  # pose_errors names the non-finite poses
+    if spread[0] == 0 or spread[1] <= COLLINEAR_SPREAD * spread[0]:
+        return "the camera centres lie on one line: Procrustes cannot fix the turn about it"
+    return None
+
+
+def alignment_for(viewmats_ref: torch.Tensor, preferred: str = "procrustes") -> str:
+    """`preferred`, or "pairwise" where Procrustes cannot be fitted to these reference cameras (`procrustes_unfit`)."""
+    return "pairwise" if preferred == "procrustes" and procrustes_unfit(viewmats_ref) else preferred
 
 
 def pose_errors(
@@ -237,6 +257,8 @@ def pose_errors(
             f"and {list(viewmats_ref.shape)}"
         )
     viewmats_ref = viewmats_ref.to(viewmats_est)
+    if not (torch.isfinite(viewmats_est).all() and torch.isfinite(viewmats_ref).all()):
+        raise ValueError(f"{alignment} alignment failed: non-finite (NaN or inf) poses")
     with torch.no_grad():
         if alignment == "procrustes":
             try:

@@ -29,7 +29,8 @@ import numpy as np
 import torch
 from skimage.metrics import peak_signal_noise_ratio, structural_similarity
 
-from warpbags.alignment import align_viewmats, alignment_for, centre_floor_errors, pose_errors, reprojection_errors
+from warpbags.alignment import (align_viewmats, alignment_for, centre_floor_errors, pose_errors, procrustes_unfit,
+                                 reprojection_errors)
 from warpbags.camera_optimizer import CameraOptimizer, CameraOptimizerSettings
 from warpbags.configs.train import ALIGNMENTS
 from warpbags.data import ORBIT_RADIUS, Scene, load_scene
@@ -132,6 +133,9 @@ def pose_accuracy(run: TrainingRun, log=print) -> dict:
     points = object_points(run.params).double()  # where the final poses put the object
     for alignment in ALIGNMENTS:
         poses_by_stage = {"initial": run.poses_init, "final": run.poses_final}
+        if alignment == "procrustes" and (reason := procrustes_unfit(run.poses_true)):
+            log(f"pose errors: procrustes left out: {reason}")
+            continue
         try:
             errors_by_stage = {stage: pose_errors(poses, run.poses_true, alignment=alignment)
                                for stage, poses in poses_by_stage.items()}
@@ -310,8 +314,8 @@ def evaluate_run(path: str | Path, *, alignment: str = "procrustes", refine_iter
     # is a folder is one line, not a traceback after half the outputs
     records = RunFolder(run.path).read_log()
     _check_outputs(run, comparison_file_names(test.image_names))
-    if alignment_for(len(run.poses_final), alignment) != alignment:  # as the trainer's pose errors do
-        log(f"{len(run.poses_final)} training cameras: pairwise alignment (Procrustes needs at least 3)")
+    if alignment_for(run.poses_true, alignment) != alignment:  # as the trainer's pose errors do
+        log(f"pairwise alignment: {procrustes_unfit(run.poses_true)}")
         alignment = "pairwise"
     test_viewmats = test_cameras_in_model_frame(run, test, alignment)
     poses = pose_accuracy(run, log)
@@ -360,7 +364,7 @@ def evaluate_run(path: str | Path, *, alignment: str = "procrustes", refine_iter
         stale.unlink()
     for file_name, target, image in zip(comparison_file_names(test.image_names), targets, images):
         _save_comparison(out / file_name, target, image)
-    write_run_report(run.path, result, alignment_for(len(run.poses_final), run.config.pose_alignment), records)
+    write_run_report(run.path, result, alignment_for(run.poses_true, run.config.pose_alignment), records)
     # last: a sweep takes eval.json as "evaluated", so a kill before it leaves the run to be evaluated again
     with atomic_output(run.path / "eval.json") as temporary:
         temporary.write_text(finite_json(result))

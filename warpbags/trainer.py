@@ -30,7 +30,7 @@ from pathlib import Path
 
 import torch
 
-from warpbags.alignment import alignment_for, pose_errors
+from warpbags.alignment import alignment_for, pose_errors, procrustes_unfit
 from warpbags.camera_optimizer import hypothesis_turns
 from warpbags.camera_setup import coherent_start, given_viewmats, starting_poses, training_cameras
 from warpbags.configs.scenes import SCENES
@@ -93,8 +93,7 @@ class Trainer:
                 "; poses are corrected from the images and masks alone, which recovers far less from large pose "
                 "noise (zoe_depth/*.png or depths/*.npy per image give the depth prior)" if config.pose_opt else ""))
         if self._pose_alignment() != config.pose_alignment:
-            self.log(f"{self.num_cameras} training cameras: the logged pose error uses pairwise alignment "
-                     "(procrustes needs 3 camera centres)")
+            self.log(f"the logged pose error uses pairwise alignment ({procrustes_unfit(self.viewmats_true.cpu())})")
         if config.pose_opt and config.pose_opt_start >= config.iters:  # e.g. the paper preset cut to a short run
             self.log(f"pose optimization starts at iteration {config.pose_opt_start}, after the run's {config.iters}: "
                      "the poses stay where the start procedures put them (--pose-opt-start to move them)")
@@ -182,9 +181,9 @@ class Trainer:
         return {"rot_err_deg": errors["rotation_error_deg_mean"], "trans_err": errors["translation_error_mean"]}
 
     def _pose_alignment(self) -> str:
-        """The logged pose error's alignment: the configured one, pairwise where procrustes cannot fit (< 3 cameras;
-        said once, when the trainer is made)."""
-        return alignment_for(self.num_cameras, self.config.pose_alignment)
+        """The logged pose error's alignment: the configured one, pairwise where procrustes cannot fit the reference
+        cameras (`alignment.procrustes_unfit`; said once, when the trainer is made)."""
+        return alignment_for(self.viewmats_true.cpu(), self.config.pose_alignment)
 
     # ----------------------------------------------------------------------------------------------- step
     def train_step(self) -> dict:

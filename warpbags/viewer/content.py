@@ -157,7 +157,7 @@ def _aligned_reference(final: np.ndarray, true: np.ndarray | None, log: Callable
         return None
     final_t, true_t = torch.from_numpy(final), torch.from_numpy(true)
     try:
-        sim3 = pose_errors(final_t, true_t, alignment=alignment_for(len(final)))["sim3"]
+        sim3 = pose_errors(final_t, true_t, alignment=alignment_for(true_t))["sim3"]
     except ValueError as error:
         log(f"reference cameras left out: {error}")
         return None
