@@ -72,6 +72,21 @@ def test_camera_parameterization_is_the_left_se3_exponential():
                                rtol=0, atol=1e-12)
 
 
+def _latent_moments(parameterization, viewmats, Ks, points, centers, matrix):
+    """J^T J / n of the projected points (image sizes) against latent parameters mapped by `matrix` ([C, 6, 6]), by
+    central differences of the real pose transform."""
+    columns = []
+    for k in range(6):
+        latent = torch.zeros(len(viewmats), 6, dtype=F64)
+        latent[:, k] = 1e-5
+        step = (matrix @ latent[..., None])[..., 0]
+        plus, _ = project_points(corrected_viewmats(parameterization, viewmats, step, centers), Ks, points)
+        minus, _ = project_points(corrected_viewmats(parameterization, viewmats, -step, centers), Ks, points)
+        columns.append(((plus - minus) / (2e-5 * 64)).reshape(len(viewmats), -1))
+    jacobian = torch.stack(columns, -1)
+    return jacobian.transpose(1, 2) @ jacobian / jacobian.shape[1]
+
+
 @pytest.mark.parametrize("parameterization", ["camera", "object"])
 def test_preconditioner_whitens_the_image_motion(parameterization):
     viewmats, Ks = orbit_cameras()
@@ -79,17 +94,33 @@ def test_preconditioner_whitens_the_image_motion(parameterization):
     centers = torch.tensor([[0.1, -0.2, 0.05]], dtype=F64).expand(3, 3).contiguous()
     matrix = preconditioner(parameterization, viewmats, Ks, 64, 64, points, centers, regularization=1e-6)
     # The Jacobian of the projected points with respect to the latent parameters, J P, has J^T J / n close to I.
-    columns = []
-    for k in range(6):
-        latent = torch.zeros(3, 6, dtype=F64)
-        latent[:, k] = 1e-5
-        step = (matrix @ latent[..., None])[..., 0]
-        plus, _ = project_points(corrected_viewmats(parameterization, viewmats, step, centers), Ks, points)
-        minus, _ = project_points(corrected_viewmats(parameterization, viewmats, -step, centers), Ks, points)
-        columns.append(((plus - minus) / (2e-5 * 64)).reshape(3, -1))
-    jacobian = torch.stack(columns, -1)
-    moments = jacobian.transpose(1, 2) @ jacobian / jacobian.shape[1]
+    moments = _latent_moments(parameterization, viewmats, Ks, points, centers, matrix)
     torch.testing.assert_close(moments, torch.eye(6, dtype=F64).expand(3, 6, 6), rtol=0, atol=1e-3)
+
+
+@pytest.mark.parametrize("parameterization", ["camera", "object"])
+def test_preconditioner_damping_and_points_behind_a_camera(parameterization):
+    """The default damping r = 0.1 (`camera.precondition_reg`) went untested (the test above runs at 1e-6: a P that
+    ignored r passed): with A = M + r diag(M), the latent moments are A^-1/2 M A^-1/2. Points behind a camera are
+    left out of its M: adding some changes no P."""
+    viewmats, Ks = orbit_cameras()
+    points = 0.5 * torch.randn(400, 3, generator=torch.Generator().manual_seed(2), dtype=F64)
+    centers = torch.tensor([[0.1, -0.2, 0.05]], dtype=F64).expand(3, 3).contiguous()
+    identity = torch.eye(6, dtype=F64).expand(3, 6, 6)
+    plain = _latent_moments(parameterization, viewmats, Ks, points, centers, identity)  # M
+    damped = plain + torch.diag_embed(0.1 * torch.diagonal(plain, dim1=1, dim2=2))
+    eigenvalues, eigenvectors = torch.linalg.eigh(damped)
+    inverse_root = (eigenvectors * eigenvalues.rsqrt()[:, None, :]) @ eigenvectors.transpose(1, 2)
+    matrix = preconditioner(parameterization, viewmats, Ks, 64, 64, points, centers, regularization=0.1)
+    moments = _latent_moments(parameterization, viewmats, Ks, points, centers, matrix)
+    torch.testing.assert_close(moments, inverse_root @ plain @ inverse_root, rtol=0, atol=1e-6)
+    assert (torch.linalg.eigvalsh(moments) < 1 - 0.02).any()  # damped: not whitened
+    # points behind camera 0 (past its centre, away from the object): camera 0's P is unchanged
+    centre = torch.linalg.inv(viewmats[0])[:3, 3]
+    behind = centre + (centre - centers[0]) * torch.linspace(0.1, 0.5, 20, dtype=F64)[:, None]
+    with_behind = preconditioner(parameterization, viewmats, Ks, 64, 64, torch.cat([points, behind]), centers,
+                                 regularization=0.1)
+    torch.testing.assert_close(with_behind[0], matrix[0], rtol=1e-12, atol=1e-12)
 
 
 def _optimizer(settings: CameraOptimizerSettings, dtype=torch.float32) -> CameraOptimizer:
@@ -111,6 +142,12 @@ def test_unrendered_cameras_do_not_move(parameterization):
         cameras.zero_grad()
         if step > 0 and step % 2 == 0:  # camera 1 has stepped before and rests now
             assert torch.equal(cameras.params().detach()[1], resting)
+            for param in (cameras.rotations, cameras.translations):  # and keeps its moments (they decayed)
+                state = cameras.optimizer.state[param]
+                assert all(torch.equal(state[key][1], moments[param, key]) for key in ("exp_avg", "exp_avg_sq"))
+        if step % 2 == 1:  # camera 1 stepped: its moments, to be kept through its next rest
+            moments = {(param, key): cameras.optimizer.state[param][key][1].clone()
+                       for param in (cameras.rotations, cameras.translations) for key in ("exp_avg", "exp_avg_sq")}
     params = cameras.params().detach()
     assert params[:2].abs().max() > 1e-3
     assert torch.all(params[2:] == 0)
