@@ -775,6 +775,18 @@ def test_a_ply_of_no_gaussians_is_one_line_and_no_command_writes_anything(finish
     assert sorted(path.name for path in run.iterdir()) == before and not (tmp_path / "export").exists()
 
 
+def test_a_ply_header_claiming_more_gaussians_than_the_file_holds_is_a_truncated_ply(finished_run, tmp_path):
+    """`element vertex 1000000000` in a small file was read as that many bytes: a MemoryError traceback from
+    eval, render, export and view."""
+    run = _copy_of(finished_run, tmp_path / "run")
+    data = (run / "gaussians.ply").read_bytes()
+    (run / "gaussians.ply").write_bytes(re.sub(rb"element vertex \d+", b"element vertex 1000000000000", data))
+    with pytest.raises(WarpbagsError, match=re.escape(f"{run / 'gaussians.ply'}: truncated PLY (")):
+        read_ply(run / "gaussians.ply")
+    result = runner.invoke(app, ["eval", str(run), "--refine-iters", "0"])
+    assert result.exit_code == 2 and len(_lines(result)) == 1 and "truncated PLY" in result.output, result.output
+
+
 def test_a_log_cut_short_is_named_by_line_and_eval_writes_nothing(finished_run, tmp_path):
     from warpbags.run_folder import RunFolder
 

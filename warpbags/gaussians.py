@@ -8,6 +8,7 @@ Raw parameters (what the optimizer sees), N Gaussians:
 from __future__ import annotations
 
 import math
+import os
 from pathlib import Path
 
 import numpy as np
@@ -109,7 +110,9 @@ def _read_vertex_table(path: Path) -> np.ndarray:
                     raise WarpbagsError(f"{path}: unsupported vertex property {line!r}")
                 fields.append((words[2], _PLY_TYPES[words[1]]))
         dtype = np.dtype(fields)
-        data = handle.read(count * dtype.itemsize)  # later elements (faces of a mesh PLY) are not needed
+        # a header claiming more vertices than the file holds is cut short, not a read of that many bytes
+        available = os.fstat(handle.fileno()).st_size - handle.tell()
+        data = handle.read(min(count * dtype.itemsize, max(available, 0)))  # later elements (faces) are not needed
     if len(data) != count * dtype.itemsize:
         raise WarpbagsError(f"{path}: truncated PLY ({len(data)} of {count * dtype.itemsize} vertex bytes)")
     return np.frombuffer(data, dtype=dtype, count=count)
