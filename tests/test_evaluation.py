@@ -151,28 +151,48 @@ def test_image_metrics_are_psnr_of_the_clamped_render_and_the_literatures_ssim()
     assert metrics["mean"]["psnr"] == pytest.approx(float((-10 * torch.log10(mse)).mean()), rel=1e-9)
 
 
-def test_ssim_of_images_smaller_than_its_window_is_scored_not_refused():
-    """scikit-image refuses an image smaller than the 11 x 11 window (a ValueError out of `warpbags eval`): such an
-    image is scored with the largest odd uniform window it holds, and one under 3 pixels is NaN (null in eval.json)."""
+def test_ssim_of_images_smaller_than_its_window_is_scored():
+    """An image smaller than the 11 x 11 window is scored as 3DGS scores it (zero-padded), not refused."""
     from warpbags.evaluation import ssim
 
     target = np.random.default_rng(0).random((8, 9, 3))
     assert ssim(target, target) == pytest.approx(1.0)
     assert 0.0 < ssim(0.8 * target + 0.1, target) < 1.0
-    assert math.isnan(ssim(target[:2], target[:2]))
+    assert ssim(target[:2], target[:2]) == pytest.approx(1.0)
+    assert ssim(target[:8, :8], target[:8, :8]) == pytest.approx(_gaussian_window_ssim(target[:8, :8], target[:8, :8]))
+
+
+def test_ssim_counts_the_border_as_gaussianobject_does():
+    """GaussianObject scores with 3DGS's ssim, whose window is zero-padded at the border and averaged over every
+    pixel; scikit-image's leaves the 5-pixel border out. On an object amid white background the two differ (the
+    border is where the images agree), and eval reported scikit-image's while its docs said GaussianObject's."""
+    from skimage.metrics import structural_similarity
+
+    from warpbags.evaluation import ssim
+
+    rng = np.random.default_rng(1)
+    target = np.ones((40, 48, 3))
+    target[12:28, 14:34] = rng.random((16, 20, 3))  # an object on white
+    image = np.clip(target + 0.3 * rng.standard_normal(target.shape) * (target < 1), 0, 1)
+    ours = ssim(image, target)
+    assert ours == pytest.approx(_gaussian_window_ssim(image, target), rel=1e-12)
+    cropped = structural_similarity(target, image, channel_axis=-1, data_range=1.0, gaussian_weights=True, sigma=1.5,
+                                    use_sample_covariance=False)
+    assert ours > cropped + 0.01
 
 
 def _gaussian_window_ssim(image: np.ndarray, target: np.ndarray) -> float:
-    """Wang et al.'s SSIM as 3DGS and nerfstudio report it, written out: 11 x 11 Gaussian window of sigma 1.5,
-    population statistics, C1 = 0.01^2, C2 = 0.03^2, averaged over the pixels the whole window fits in and the
-    channels."""
+    """3DGS's SSIM (utils/loss_utils.py), written out: an 11 x 11 Gaussian window of sigma 1.5 over the images
+    zero-padded by 5 pixels, population statistics, C1 = 0.01^2, C2 = 0.03^2, averaged over every pixel and
+    channel."""
     offsets = np.arange(11) - 5
     window = np.exp(-offsets ** 2 / (2 * 1.5 ** 2))
     window = np.outer(window, window) / np.outer(window, window).sum()
 
-    def blurred(x):  # the window's weighted mean at every position where it fits
+    def blurred(x):  # the window's weighted sum around every pixel, zeros beyond the border
         h, w = x.shape
-        return np.array([[(window * x[r:r + 11, c:c + 11]).sum() for c in range(w - 10)] for r in range(h - 10)])
+        padded = np.pad(x, 5)
+        return np.array([[(window * padded[r:r + 11, c:c + 11]).sum() for c in range(w)] for r in range(h)])
 
     maps = []
     for channel in range(3):

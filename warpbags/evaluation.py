@@ -1,9 +1,9 @@
 """Evaluation of a training run: novel-view image metrics and camera-pose accuracy, measured as the field does.
 
 Image metrics (GaussianObject's protocol): held-out views (`sparse_test` split) rendered on a white background and
-compared with the ground truth masked onto white: PSNR, SSIM (scikit-image), FLIP (NVIDIA's LDR-FLIP through the
-`flip-evaluator` package: a perceptual error in [0, 1], lower is better, no learned weights, so it works offline)
-and LPIPS-VGG (the `lpips` package) when it and its weights are available offline. A metric that cannot be had
+compared with the ground truth masked onto white: PSNR, SSIM (3DGS's, which GaussianObject scores with), FLIP
+(NVIDIA's LDR-FLIP through the `flip-evaluator` package: a perceptual error in [0, 1], lower is better, no learned
+weights, so it works offline) and LPIPS-VGG (the `lpips` package) when it and its weights are available offline. A metric that cannot be had
 (LPIPS without its weights, FLIP if its package fails to import) is reported as null with the reason, never guessed.
 
 The held-out poses are true poses, while the Gaussians live in the frame of the optimized training poses. The
@@ -27,7 +27,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from skimage.metrics import peak_signal_noise_ratio, structural_similarity
+from skimage.metrics import peak_signal_noise_ratio
 
 from warpbags.alignment import (align_viewmats, alignment_for, centre_floor_errors, pose_errors, procrustes_unfit,
                                  reprojection_errors)
@@ -237,23 +237,33 @@ def psnr(image: np.ndarray, target: np.ndarray) -> float:
     return float(peak_signal_noise_ratio(target, image, data_range=1.0))
 
 
-SSIM_WINDOW = 11  # pixels: the Gaussian window of sigma 1.5, truncated at 3.5 sigma
+SSIM_WINDOW = 11  # pixels, of a Gaussian of sigma 1.5 (3DGS's window)
 
 
 def ssim(image: np.ndarray, target: np.ndarray) -> float:
-    """SSIM of an [H,W,3] image in [0, 1] against its target as 3DGS, GaussianObject and nerfstudio report it (Wang et
-    al.: an 11 x 11 Gaussian window of sigma 1.5, population statistics; scikit-image's, which keeps the pixels the
-    window fits in). scikit-image's default, a 7 x 7 uniform window, reads about 0.015 higher. An image under 11
-    pixels a side is scored with the largest odd uniform window it holds (NaN under 3 pixels) instead of refused."""
-    side = min(image.shape[:2])
-    if side >= SSIM_WINDOW:
-        return float(structural_similarity(target, image, channel_axis=-1, data_range=1.0, gaussian_weights=True,
-                                           sigma=1.5, use_sample_covariance=False))
-    window = side if side % 2 else side - 1
-    if window < 3:
-        return math.nan
-    return float(structural_similarity(target, image, channel_axis=-1, data_range=1.0, win_size=window,
-                                       use_sample_covariance=False))
+    """SSIM of an [H,W,3] image in [0, 1] against its target as GaussianObject reports it: 3DGS's `ssim`
+    (utils/loss_utils.py, which GaussianObject's render.py scores with). Wang et al.'s statistics in an 11 x 11
+    Gaussian window of sigma 1.5 (population statistics, C1 = 0.01^2, C2 = 0.03^2), the images zero-padded where
+    the window passes the border, averaged over every pixel and channel; in float64. scikit-image's (as torchmetrics'
+    and nerfstudio's) leaves the 5-pixel border out instead, and reads lower where the border is background (at 128
+    px about 0.02-0.07 on maryrose)."""
+    offsets = torch.arange(SSIM_WINDOW, dtype=torch.float64) - SSIM_WINDOW // 2
+    weights = torch.exp(-offsets ** 2 / (2 * 1.5 ** 2))
+    weights = weights / weights.sum()
+    window = (weights[:, None] * weights[None, :])[None, None]  # [1, 1, 11, 11]
+
+    def local_mean(x: torch.Tensor) -> torch.Tensor:  # [3, 1, H, W], each channel alone
+        return torch.nn.functional.conv2d(x, window, padding=SSIM_WINDOW // 2)
+
+    x = torch.from_numpy(np.ascontiguousarray(image, dtype=np.float64)).permute(2, 0, 1)[:, None]
+    y = torch.from_numpy(np.ascontiguousarray(target, dtype=np.float64)).permute(2, 0, 1)[:, None]
+    mean_x, mean_y = local_mean(x), local_mean(y)
+    var_x, var_y = local_mean(x * x) - mean_x ** 2, local_mean(y * y) - mean_y ** 2
+    covariance = local_mean(x * y) - mean_x * mean_y
+    c1, c2 = 0.01 ** 2, 0.03 ** 2
+    ssim_map = ((2 * mean_x * mean_y + c1) * (2 * covariance + c2)
+                / ((mean_x ** 2 + mean_y ** 2 + c1) * (var_x + var_y + c2)))
+    return float(ssim_map.mean())
 
 
 def image_metrics(images: torch.Tensor, targets: torch.Tensor, lpips_metric: LpipsMetric,
