@@ -96,3 +96,20 @@ def test_a_two_view_hull_is_the_intersection_of_the_silhouettes():
     voxels, edge = visual_hull(torch.stack(masks), viewmats, Ks, resolution=32, dilation_px=0, missed_views=1)
     inside = (voxels.norm(dim=-1) < 1.0 + edge).float().mean()
     assert len(voxels) > 100 and inside > 0.5, (len(voxels), float(inside))
+
+
+def test_silhouettes_that_share_no_volume_give_random_points_and_say_so():
+    """Masks that no point is inside in both views (each the opposite half of its image) carve an empty hull:
+    random points, with the note saying how many voxels the hull had (the empty hull's early return was untested;
+    without it the fine pass took the bounds of no voxels, an IndexError)."""
+    eyes = torch.tensor([[4.0, 0.0, 0.0], [-4.0, 0.0, 0.0]])  # facing each other: left in one is right in the other
+    viewmats = torch.stack([look_at(eye, torch.zeros(3)) for eye in eyes])
+    masks = torch.zeros(2, HEIGHT, WIDTH)
+    masks[:, :, : WIDTH // 2 - 2] = 1.0  # the left part of both images: disjoint half-spaces of the world
+    voxels, _ = visual_hull(masks, viewmats, KS, resolution=16, dilation_px=0, missed_views=0)
+    assert len(voxels) == 0
+    points, colors, note = hull_or_random_points(torch.zeros(2, HEIGHT, WIDTH, 3), masks, viewmats, KS, method="hull",
+                                                 count=150, resolution=16, dilation_px=0, missed_views=0,
+                                                 generator=torch.Generator().manual_seed(0))
+    assert note.startswith("visual hull had only 0 voxels; random points instead (150)") and points.shape == (150, 3)
+    assert colors.shape == (150, 3)

@@ -293,3 +293,12 @@ def test_no_repair_writes_no_repair_files(scene_dir, tmp_path):
     assert json.loads((tmp_path / "config.json").read_text())["config"]["repair"]["iters"] == 0
     assert not (tmp_path / "repair").exists() and not (tmp_path / "coarse").exists()
     assert (tmp_path / "gaussians.ply").is_file()
+
+
+def test_the_pseudo_view_ratio_ramps_linearly_then_stops():
+    """r goes linearly from pseudo_ratio_start to pseudo_ratio_end over the first pseudo_until of the repair
+    iterations, then 0 (the end-to-end test checks only the first and last value: r held at its start passed)."""
+    from warpbags.repair.stage import pseudo_ratio
+
+    config = RepairConfig(iters=10, pseudo_until=0.5, pseudo_ratio_start=1.0, pseudo_ratio_end=0.5)
+    assert [pseudo_ratio(config, i) for i in range(10)] == pytest.approx([1.0, 0.875, 0.75, 0.625, 0.5, 0, 0, 0, 0, 0])

@@ -130,3 +130,31 @@ def test_the_opacity_reset_caps_opacities_and_zeroes_their_moments():
     torch.testing.assert_close(torch.sigmoid(params["opacities"]).detach(), torch.tensor([0.01, 0.01, 0.01, 0.001]))
     state = optimizer.state[params["opacities"]]
     assert not state["exp_avg"].any() and not state["exp_avg_sq"].any()
+
+
+def test_a_step_that_no_step_follows_neither_grows_nor_resets():
+    """`grows=False` (the coarse stage's last iteration): no clone, split, prune or opacity reset is scheduled."""
+    params, optimizer, strategy = _four_gaussians()
+    strategy.config = dataclasses.replace(strategy.config, start=1, stop=10, every=1, grad_threshold=1e-12,
+                                          opacity_reset_every=1)
+    strategy.grad_sum, strategy.grad_count = torch.ones(4), torch.ones(4)
+    before = {name: param.detach().clone() for name, param in params.items()}
+    assert strategy.step(1, params, optimizer, torch.Generator().manual_seed(0), grows=False) == {}
+    assert all(torch.equal(params[name].detach(), value) for name, value in before.items())
+    assert {"cloned", "opacity_reset"} <= strategy.step(1, params, optimizer, torch.Generator().manual_seed(0)).keys()
+
+
+def test_pruning_keeps_the_most_opaque_gaussian_of_all_transparent_ones_and_no_reset_comes_at_or_after_stop():
+    """Two guards no test reached (each removed, the tests passed): a prune of every Gaussian keeps the most opaque
+    one, and the opacity reset happens only before `stop`."""
+    params, optimizer, strategy = _four_gaussians()
+    with torch.no_grad():
+        params["opacities"].copy_(torch.logit(torch.tensor([0.001, 0.003, 0.002, 0.0005])))
+    strategy.grad_sum = torch.zeros(4)  # nothing cloned or split
+    report = strategy.step(1, params, optimizer, torch.Generator().manual_seed(0))
+    assert report["pruned"] == 3 and len(params["means"]) == 1
+    torch.testing.assert_close(torch.sigmoid(params["opacities"]).detach(), torch.tensor([0.003]))
+    params, optimizer, strategy = _four_gaussians()
+    strategy.config = dataclasses.replace(strategy.config, start=1000, stop=20, opacity_reset_every=10)
+    assert [("opacity_reset" in strategy.step(i, params, optimizer, torch.Generator())) for i in (10, 20, 30)] == [
+        True, False, False]

@@ -249,7 +249,8 @@ class GaussianModel:
             terms["epipolar"] = epipolar.item()
         self.optimize(loss, cameras, views if settings.pose_active else None, settings.pose_anchor,
                       after_backward=lambda: self.strategy.accumulate(settings.round_iteration, meta))
-        densified = self.strategy.step(settings.round_iteration + 1, self.params, self.optimizer, self.generator)
+        densified = self.strategy.step(settings.round_iteration + 1, self.params, self.optimizer, self.generator,
+                                       grows=settings.densify)
         return loss, {**terms, **densified}
 
     def optimize(self, loss: torch.Tensor, cameras: CameraOptimizer, pose_views: torch.Tensor | None,

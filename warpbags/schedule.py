@@ -44,6 +44,8 @@ class StepSettings:
             coarse stage's final poses when those are an average, else 0).
         pose_average: the poses after this step join the average that becomes the final poses
             (`camera.average_share`).
+        densify: the densification strategy may add Gaussians or reset opacities after this step; not at the coarse
+            stage's last iteration, after which no step trains what they would add before the model is saved.
     """
 
     round_iteration: int
@@ -58,6 +60,7 @@ class StepSettings:
     orbit_free: bool
     pose_anchor: float
     pose_average: bool
+    densify: bool = True
 
 
 class Schedule:
@@ -202,4 +205,5 @@ class Schedule:
             orbit_free=self.orbit_free(iteration),
             pose_anchor=config.camera.round_anchor if in_repair or self.round_index(iteration) > 0 else 0.0,
             pose_average=self.averages_poses(iteration),
+            densify=iteration != config.iters - 1,
         )

@@ -112,22 +112,25 @@ class DensifyStrategy:
 
     @torch.no_grad()
     def step(self, iteration: int, params: dict[str, torch.nn.Parameter], optimizer: torch.optim.Optimizer,
-             generator: torch.Generator) -> dict[str, int]:
+             generator: torch.Generator, grows: bool = True) -> dict[str, int]:
         """Run the scheduled operations after the optimizer step of `iteration` (1-based count of steps done).
+        With `grows` False (no step follows to train them: the schedule's `StepSettings.densify`) the densification
+        and the opacity reset are skipped, the floater removal is not.
 
         Returns:
             counts of cloned, split and pruned Gaussians (empty when nothing was scheduled).
         """
         config = self.config
         report: dict[str, int] = {}
-        if config.start <= iteration < config.stop and iteration % config.every == 0 and self.grad_sum is not None:
+        if (grows and config.start <= iteration < config.stop and iteration % config.every == 0
+                and self.grad_sum is not None):
             report = self._densify_and_prune(params, optimizer, generator)
             self._reset_stats(len(params["means"]), params["means"].device)
         if config.floater_every and iteration % config.floater_every == 0:
             removed = self._remove_floaters(params, optimizer)
             if removed:
                 report["floaters"] = removed
-        if config.opacity_reset_every and iteration % config.opacity_reset_every == 0 and iteration < config.stop:
+        if grows and config.opacity_reset_every and iteration % config.opacity_reset_every == 0 and iteration < config.stop:
             self._reset_opacities(params, optimizer)
             report["opacity_reset"] = 1
         return report
