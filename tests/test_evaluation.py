@@ -795,6 +795,20 @@ def test_a_ply_of_no_gaussians_is_one_line_and_no_command_writes_anything(finish
     assert sorted(path.name for path in run.iterdir()) == before and not (tmp_path / "export").exists()
 
 
+def test_a_run_without_its_result_is_told_to_resume_only_when_it_has_a_checkpoint(finished_run, tmp_path):
+    """A run killed before its first checkpoint (SIGKILL, power) was told to continue with --resume, which refuses
+    it ("no checkpoint")."""
+    killed = _copy_of(finished_run, tmp_path / "killed")  # no checkpoints
+    (killed / "gaussians.ply").unlink()
+    stopped = tmp_path / "stopped"
+    shutil.copytree(finished_run, stopped, ignore=shutil.ignore_patterns("eval*", "report.md", "gaussians.ply"))
+    for run, message in ((killed, "the run stopped before its first checkpoint, so it cannot be resumed"),
+                         (stopped, "the run has not finished (continue it with --resume)")):
+        result = runner.invoke(app, ["eval", str(run), "--refine-iters", "0"])
+        assert result.exit_code == 2 and len(_lines(result)) == 1, result.output
+        assert message in " ".join(result.output.split()), result.output
+
+
 def test_a_ply_header_claiming_more_gaussians_than_the_file_holds_is_a_truncated_ply(finished_run, tmp_path):
     """`element vertex 1000000000` in a small file was read as that many bytes: a MemoryError traceback from
     eval, render, export and view."""

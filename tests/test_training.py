@@ -25,6 +25,7 @@ from warpbags.configs.train import TrainConfig, load_preset, parse_settings
 from warpbags.data import SyntheticOptions, ensure_synthetic_scene, load_scene
 from warpbags.errors import WarpbagsError
 from warpbags import camera_setup, run_folder
+from warpbags import trainer as trainer_module
 from warpbags.losses import depth_loss, ssim
 from warpbags.pose_history import read_pose_history
 from warpbags.strategy import replace_rows
@@ -564,6 +565,42 @@ def test_a_new_run_that_fails_before_its_first_checkpoint_leaves_nothing_behind(
         trainer.train()
     assert len((empty / "log.jsonl").read_text().splitlines()) == 3 and (empty / "config.json").is_file()
     assert start_or_resume(scene, config, empty, resume=True, log=lambda message: None).iteration == 3
+
+
+def test_a_second_run_started_into_a_folder_while_the_first_starts_stops(scene_dir, tmp_path, monkeypatch):
+    """The folder was checked before the start procedures and made only after them: a second run started into the
+    same --out meanwhile (a resubmitted job) found it empty too, and both trained into it, one log for two runs.
+    The first now claims the folder before its start procedures; the second stops, writing nothing."""
+    config = tiny_config(iters=3)
+    scene = training_scene(load_scene(scene_dir, name="tiny"), config)
+    out = tmp_path / "made" / "same"
+    starting_poses = trainer_module.starting_poses
+    second = []
+
+    def second_run_starts(*args, **kwargs):  # during the first run's start procedures
+        with pytest.raises(WarpbagsError, match="another run is starting in .*same"):
+            start_or_resume(scene, config, out, log=lambda message: None)
+        second.append(sorted(path.name for path in out.iterdir()))
+        return starting_poses(*args, **kwargs)
+
+    monkeypatch.setattr(trainer_module, "starting_poses", second_run_starts)
+    start_or_resume(scene, config, out, log=lambda message: None).train()
+    assert second == [[run_folder.STARTING_FILE]]
+    assert not (out / run_folder.STARTING_FILE).exists() and (out / "gaussians.ply").is_file()
+    # two that both found it empty: the second claim stops
+    both = run_folder.RunFolder(tmp_path / "both")
+    both.claim_new()
+    with pytest.raises(WarpbagsError, match="another run is starting"):
+        run_folder.RunFolder(tmp_path / "both").claim_new()
+    # a start that fails before its setup files leaves no folder it made, and no claim
+
+    def failing_start(*args, **kwargs):
+        raise WarpbagsError("the start failed")
+
+    monkeypatch.setattr(trainer_module, "starting_poses", failing_start)
+    with pytest.raises(WarpbagsError, match="the start failed"):
+        start_or_resume(scene, config, tmp_path / "failed" / "run", log=lambda message: None)
+    assert not (tmp_path / "failed").exists()
 
 
 def test_resuming_a_finished_run_trains_nothing(scene_dir, tmp_path):

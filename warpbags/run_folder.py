@@ -1,6 +1,8 @@
 """`RunFolder`: the files of a training run, the one place that writes them; `load_run` reads a finished one.
 
 Layout:
+    .starting          while a new run starts (made exclusively, removed once its setup files are written): a
+                       second run started into the same folder meanwhile stops instead of writing into it
     config.json        the resolved TrainConfig plus scene/view information
     poses_true.npy     [C,4,4] world-to-camera poses of the training views (normalized scene world)
     poses_init.npy     [C,4,4] the (noisy) poses given to training
@@ -49,6 +51,7 @@ CHECKPOINTS_KEPT = 3
 CHECKPOINT_KEYS = ("iteration", "config", "params", "optimizer", "strategy", "cameras", "generator", "viewmats_init",
                    "viewmats_start")
 LOG_FILE = "log.jsonl"
+STARTING_FILE = ".starting"
 # The fields of every log record that the reports and plots read (the trainer's `_record` writes more).
 LOG_NUMBERS = ("loss", "rot_err_deg", "trans_err")
 SETUP_FILES = ("config.json", "poses_true.npy", "poses_init.npy", "poses_start.npy", "intrinsics.npy")
@@ -259,6 +262,8 @@ class RunFolder:
         entries = sorted(entry.name for entry in self.path.iterdir())
         if not entries:
             return
+        if STARTING_FILE in entries and not self.has_checkpoint():
+            raise WarpbagsError(self._starting_message())
         if self.has_checkpoint():
             raise WarpbagsError(f"{self.path} already holds a run; pass --resume to continue it or choose another "
                                 "--out")
@@ -268,6 +273,27 @@ class RunFolder:
         shown = ", ".join(entries[:6]) + (f" and {len(entries) - 6} more" if len(entries) > 6 else "")
         raise WarpbagsError(f"{self.path} is not empty ({shown}) and holds no run to --resume: a new run needs a new "
                             "or empty folder, choose another --out")
+
+    def claim_new(self) -> None:
+        """Make the folder (with its parents) and claim it for a new run by creating STARTING_FILE exclusively:
+        of two runs started into one folder, which both found it empty (`require_new`), the second stops here.
+
+        Raises:
+            WarpbagsError: another run holds the claim.
+        """
+        self.path.mkdir(parents=True, exist_ok=True)
+        try:
+            (self.path / STARTING_FILE).open("x").close()
+        except FileExistsError:
+            raise WarpbagsError(self._starting_message()) from None
+
+    def release_claim(self) -> None:
+        """Remove the claim of `claim_new` (the run's setup files now tell the folder is taken)."""
+        (self.path / STARTING_FILE).unlink(missing_ok=True)
+
+    def _starting_message(self) -> str:
+        return (f"another run is starting in {self.path} (or one was killed while it started: then remove the "
+                "folder); choose another --out")
 
     def missing_folders(self) -> list[Path]:
         """The run folder and those of its parents that do not exist yet (deepest first): what writing it makes."""
@@ -281,7 +307,7 @@ class RunFolder:
         if not self.path.is_dir() or self.has_checkpoint():
             return False
         names = {*SETUP_FILES, LOG_FILE, HISTORY_FILE}
-        names |= {temporary_name(name) for name in names}
+        names |= {temporary_name(name) for name in names} | {STARTING_FILE}
         entries = list(self.path.iterdir())
         return bool(entries) and all(
             (entry.name in names and entry.is_file() and not entry.is_symlink())
@@ -301,6 +327,7 @@ class RunFolder:
                     (folder / written).unlink(missing_ok=True)
         for cut_short in self._cut_short_checkpoints():
             cut_short.unlink()
+        self.release_claim()
         for folder in (self.path / "coarse", self.checkpoints, *made_folders):
             try:
                 folder.rmdir()
@@ -470,6 +497,9 @@ def load_run(path: str | Path) -> TrainingRun:
     info = folder.read_info()
     config = folder.saved_config(info)
     if not (path / "gaussians.ply").is_file():
+        if not folder.has_checkpoint():  # killed before it (SIGKILL, power): --resume has nothing to continue
+            raise WarpbagsError(f"{path / 'gaussians.ply'} is missing: the run stopped before its first checkpoint, "
+                                "so it cannot be resumed; train it again into an empty folder")
         raise WarpbagsError(f"{path / 'gaussians.ply'} is missing: the run has not finished (continue it with "
                             "--resume)")
     for name in ("poses_true.npy", "poses_init.npy", "poses_final.npy"):  # written at the start and with the result

@@ -591,7 +591,14 @@ def start_or_resume(scene: Scene, config: TrainConfig, out_dir: str | Path, devi
     else:
         run_folder.require_new()
     made_folders = run_folder.missing_folders()
-    trainer = Trainer(scene, config, out_dir, device=device, log=log, resuming=resume)
+    if not resume:  # claimed before the start procedures (seconds to minutes), in which another run could start
+        run_folder.claim_new()
+    try:
+        trainer = Trainer(scene, config, out_dir, device=device, log=log, resuming=resume)
+    except BaseException:
+        if not resume:
+            run_folder.remove_unfinished(made_folders)
+        raise
     if resume:
         trainer.resume()
         return trainer
@@ -601,4 +608,5 @@ def start_or_resume(scene: Scene, config: TrainConfig, out_dir: str | Path, devi
     except BaseException:
         trainer.remove_if_unfinished()
         raise
+    run_folder.release_claim()
     return trainer
