@@ -55,7 +55,7 @@ def train(
     # A resumed run goes on with the config it was started with; options given again must agree with it.
     config = (resumed_config(saved_run_config(out), preset, config_options, settings or []) if resume else
               train_config(preset or DEFAULT_PRESET, config_options, settings or []))
-    scene_data = training_scene(scene if scene is not None else saved_run_scene(out), config, data_root,
+    scene_data = training_scene(scene if scene is not None else saved_run_scene(out, data_root), config, data_root,
                                 log=stdout.print)
     views = config.views
     out = out or default_run_dir(scene_data.name, views)

@@ -362,6 +362,19 @@ def test_cli_resume_of_a_folder_named_as_a_preset_is_refused_at_the_presets_reso
         in message, result.output
 
 
+def test_cli_resume_of_a_users_folder_named_as_a_preset_reopens_that_folder(scene_dir, tmp_path):
+    """A run of the user's own folder `caps/maryrose`: the hint after Ctrl-C (`--resume --out RUN`, no scene)
+    reopened the packaged maryrose preset and refused ("a run of the scene in caps/maryrose, not of ...assets")."""
+    folder = tmp_path / "caps" / "maryrose"
+    shutil.copytree(scene_dir, folder)
+    out = tmp_path / "run"
+    started = runner.invoke(app, ["train", str(folder), "--iters", "4", "--max-image-size", "32",
+                                  "--set", "init_points=300", "--set", "checkpoint_every=2", "--out", str(out)])
+    assert started.exit_code == 0, started.output
+    result = runner.invoke(app, ["train", "--resume", "--out", str(out)])
+    assert result.exit_code == 0, result.output
+
+
 def test_a_checkpoint_at_a_rounds_start_resumes_at_the_last_rounds_resolution(scene_dir, tmp_path):
     """With a pyramid over the rounds, the Gaussians saved at a round's start were trained at the round before's
     level: a resumed trainer holds them with those training views until the next step starts the round (which is

@@ -36,7 +36,7 @@ from warpbags.camera_setup import coherent_start, given_viewmats, starting_poses
 from warpbags.configs.scenes import SCENES
 from warpbags.configs.train import TrainConfig
 from warpbags.correspondences import find_view_matches
-from warpbags.data import open_scene
+from warpbags.data import open_scene, resolve_scene
 from warpbags.data.scene import Scene
 from warpbags.devices import torch_device
 from warpbags.errors import Stopped, WarpbagsError
@@ -547,17 +547,25 @@ def saved_run_config(out_dir: str | Path) -> TrainConfig:
     return run_folder.saved_config()
 
 
-def saved_run_scene(out_dir: str | Path) -> str:
-    """The scene the run in `out_dir` trained on, as `training_scene` takes it: its preset name if it was one (the
-    preset also fixes the resolution and published splits), else its folder.
+def saved_run_scene(out_dir: str | Path, data_root: str | Path | None = None) -> str:
+    """The scene the run in `out_dir` trained on, as `training_scene` takes it: its preset name if it was one and
+    the preset (with `data_root`) is still that folder (the preset also fixes the resolution and published splits),
+    else its folder (a folder of the user's named like a preset, a data-root preset whose root is not given now).
 
     Raises:
         WarpbagsError: no readable config.json in `out_dir`, or one without the scene.
     """
     info = RunFolder(out_dir).read_info()
-    if "scene_root" not in info:
+    if not isinstance(info.get("scene_root"), str):
         raise WarpbagsError(f"{Path(out_dir) / 'config.json'} names no scene folder: give the scene")
-    return info["scene"] if info.get("scene") in SCENES else info["scene_root"]
+    name = info.get("scene")
+    if name in SCENES:
+        try:
+            if str(resolve_scene(name, data_root)[0].resolve()) == info["scene_root"]:
+                return name
+        except WarpbagsError:  # a data-root preset without its data root: the folder the run recorded
+            pass
+    return info["scene_root"]
 
 
 def start_or_resume(scene: Scene, config: TrainConfig, out_dir: str | Path, device: str = "cpu", resume: bool = False,
