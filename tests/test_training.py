@@ -642,6 +642,24 @@ def test_resume_cuts_log_and_pose_history_back_to_the_checkpoint(scene_dir, tmp_
     np.testing.assert_array_equal(history.viewmats[-1], resumed.current_viewmats().numpy())
 
 
+def test_a_config_json_changed_after_the_run_started_is_refused_on_resume(scene_dir, tmp_path):
+    """config.json alone decided how a checkpoint was resumed: edited (an object-centric run's corrections read as
+    camera-centred ones, 30 iterations cut to 12), the run went on silently. The checkpoint's own config is compared;
+    how often it saves and its render threads may differ."""
+    trainer = make_trainer(scene_dir, tmp_path, iters=4, checkpoint_every=2)
+    trainer.write_run_files()
+    trainer.train(stop_at=2)
+    info = json.loads((tmp_path / "config.json").read_text())
+    info["config"]["camera"]["parameterization"] = "camera"
+    (tmp_path / "config.json").write_text(json.dumps(info))
+    result = runner.invoke(app, ["train", "--resume", "--out", str(tmp_path)])
+    message = " ".join(result.output.split())
+    errors = [line for line in result.output.splitlines() if line.startswith("error:")]
+    assert result.exit_code == 2 and len(errors) == 1 and "Traceback" not in result.output, result.output
+    assert "checkpoint_000002.pt was saved with camera.parameterization = 'object', the config resumed with" in message
+    assert make_trainer(scene_dir, tmp_path, iters=4, checkpoint_every=3, render_threads=2).resume()
+
+
 def test_an_old_or_damaged_checkpoint_is_one_line(scene_dir, tmp_path):
     trainer = make_trainer(scene_dir, tmp_path, iters=2)
     trainer.write_run_files()

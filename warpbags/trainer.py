@@ -305,9 +305,14 @@ class Trainer:
         """Restore everything a checkpoint holds (into the existing camera optimizer).
 
         Raises:
-            WarpbagsError: the checkpoint is unreadable or from an older warpbags.
+            WarpbagsError: the checkpoint is unreadable or from an older warpbags, or its run's config differs from
+                the one resumed with (config.json changed after the run started).
         """
         state = self.run_folder.load_checkpoint(path, self.device)
+        if differences := _config_differences(state["config"], self.config.to_dict()):
+            field, saved, given = differences[0]
+            raise WarpbagsError(f"{path} was saved with {field} = {saved!r}, the config resumed with (config.json) "
+                                f"says {given!r}: the run's config.json was changed after it started; restore it")
         self.iteration = state["iteration"]
         # the level the saved Gaussians were trained at (a checkpoint at a round's start holds the last round's)
         self.model.training_views = self._training_views(self.schedule.pyramid_level(max(self.iteration - 1, 0)))
@@ -533,6 +538,29 @@ def training_scene(scene: Scene | str | Path, config: TrainConfig, data_root: st
 def default_run_dir(scene_name: str, views: int, root: str | Path = "runs") -> Path:
     """`runs/<scene>-<views>v-<YYYYmmdd-HHMMSS>`."""
     return Path(root) / f"{scene_name}-{views}v-{time.strftime('%Y%m%d-%H%M%S')}"
+
+
+# Fields a run may be resumed with at other values: how often it saves and on how many threads it renders change
+# neither what a checkpoint holds nor the schedule that goes on from it.
+RESUMABLE_CHANGES = frozenset({"checkpoint_every", "render_threads"})
+
+
+def _config_differences(saved: dict, current: dict, prefix: str = "") -> list[tuple[str, object, object]]:
+    """(field, saved value, current value) for each field both configs hold and set differently, as "group.name",
+    but `RESUMABLE_CHANGES` (fields only one holds: a checkpoint of a warpbags that had fewer, checked by
+    `RunFolder.saved_config`)."""
+    differences = []
+    for key in saved.keys() & current.keys() - RESUMABLE_CHANGES:
+        if isinstance(saved[key], dict) and isinstance(current[key], dict):
+            differences += _config_differences(saved[key], current[key], f"{prefix}{key}.")
+        elif _as_lists(saved[key]) != _as_lists(current[key]):
+            differences.append((prefix + key, saved[key], current[key]))
+    return sorted(differences)
+
+
+def _as_lists(value):
+    """Tuples as lists, all the way down: a config read back from JSON holds lists where the dataclass holds tuples."""
+    return [_as_lists(item) for item in value] if isinstance(value, (list, tuple)) else value
 
 
 def saved_run_config(out_dir: str | Path) -> TrainConfig:
