@@ -242,6 +242,30 @@ def test_resumed_repair_stage_names_an_unreadable_saved_file(tmp_path):
         assert "\n" not in str(error.value)
 
 
+def test_a_stop_during_the_repairer_fit_stops_it_and_the_saved_pairs_are_reused(tmp_path):
+    """Ctrl-C and SIGTERM were only flagged during the repairer's fit (minutes at its 400 steps), and a run stopped
+    there had pairs.pt but no repairer.pt, so its resume built the leave-one-out pairs again."""
+    config = tiny_config()
+    folder = tmp_path / "repair"
+    folder.mkdir()
+    g = torch.Generator().manual_seed(0)
+    pairs = RepairPairs(torch.rand(4, 16, 16, 3, generator=g), torch.rand(4, 16, 16, 3, generator=g),
+                        [LEAVE_ONE_OUT, NOISE, LEAVE_ONE_OUT, NOISE], [0, 0, 1, 1], NoiseStatistics({}, {}))
+    pairs.save(folder / "pairs.pt")
+    coarse = SimpleNamespace(training_views=torch.zeros(0))  # no model: building pairs would fail
+    messages, checks = [], []
+
+    def should_stop() -> bool:
+        checks.append(True)
+        return len(checks) > 3
+
+    with pytest.raises(KeyboardInterrupt):
+        RepairStage(config, folder, coarse, torch.eye(4)[None], torch.Generator(), log=messages.append,
+                    should_stop=should_stop)
+    assert messages == [f"repair: loaded 4 pairs from {folder}"] and len(checks) == 4
+    assert not (folder / "repairer.pt").exists()
+
+
 def test_repair_stage_resumes_to_the_same_result(scene_dir, tmp_path):
     straight = make_trainer(scene_dir, tmp_path / "straight")
     straight.train()

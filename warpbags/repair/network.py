@@ -32,7 +32,9 @@ class Repairer(Protocol):
     `repair` returns them on the device they came on."""
 
     def fit(self, pairs: RepairPairs, log: Callable[[str], None]) -> dict:
-        """Learn to map `pairs.corrupted` to `pairs.targets`; returns statistics worth saving (JSON-able)."""
+        """Learn to map `pairs.corrupted` to `pairs.targets`; returns statistics worth saving (JSON-able). A
+        repairer whose `fit` also takes `should_stop` (a callable, `UNetRepairer.fit`) is given the stage's, to
+        raise KeyboardInterrupt when it turns true: Ctrl-C and SIGTERM then stop a fit that takes minutes."""
 
     def repair(self, images: torch.Tensor) -> torch.Tensor:
         """Repaired versions of `images` (no gradient)."""
@@ -121,15 +123,21 @@ class UNetRepairer:
             torch.manual_seed(seed)
             self.network = RepairUNet(self.config.unet_channels).to(self.device)
 
-    def _train(self, pairs: RepairPairs, steps: int, size: int, validation: RepairPairs | None = None,
-               check_every: int = 0) -> tuple[list[float], list[tuple[int, float]]]:
+    def _train(self, pairs: RepairPairs, steps: int, size: int, should_stop: Callable[[], bool],
+               validation: RepairPairs | None = None, check_every: int = 0) -> tuple[list[float], list[tuple[int, float]]]:
         """`steps` Adam steps on L1 (cosine-decayed rate) from the current network; returns the crop losses and,
-        with `validation`, its whole-image mean squared error every `check_every` steps."""
+        with `validation`, its whole-image mean squared error every `check_every` steps.
+
+        Raises:
+            KeyboardInterrupt: `should_stop()` turned true (checked every step).
+        """
         optimizer = torch.optim.Adam(self.network.parameters(), lr=self.config.fit_lr)
         schedule = torch.optim.lr_scheduler.LambdaLR(
             optimizer, lambda step: 0.1 + 0.9 * 0.5 * (1 + math.cos(math.pi * step / steps)))
         losses, checks = [], []
         for step in range(1, steps + 1):
+            if should_stop():
+                raise KeyboardInterrupt
             self.network.train()
             inputs, targets = self._crops(pairs, size)
             loss = (self.network(inputs) - targets).abs().mean()
@@ -144,8 +152,10 @@ class UNetRepairer:
         self.network.eval()
         return losses, checks
 
-    def fit(self, pairs: RepairPairs, log: Callable[[str], None] = print) -> dict:
-        """Fit with the number of steps chosen on a held-out view, then on all pairs.
+    def fit(self, pairs: RepairPairs, log: Callable[[str], None] = print,
+            should_stop: Callable[[], bool] = lambda: False) -> dict:
+        """Fit with the number of steps chosen on a held-out view, then on all pairs (KeyboardInterrupt when
+        `should_stop()` turns true).
 
         A network fitted on a few views soon starts painting those views' appearance into others, which makes
         novel views worse (measured on the 4-view synthetic scene: the coarse model's held-out renders go from
@@ -173,12 +183,12 @@ class UNetRepairer:
         # Convolutions use every core the process may run on (or a sweep task's share); the renderer is idle.
         with torch_threads(host_threads()):
             check_every = max(config.fit_steps // 10, 1)
-            _, checks = self._train(training, config.fit_steps, size, validation, check_every)
+            _, checks = self._train(training, config.fit_steps, size, should_stop, validation, check_every)
             identity = ((validation.corrupted - validation.targets) ** 2).mean().item()
             best_steps, best_error = min(checks, key=lambda check: check[1])
             steps = best_steps if best_error < identity else 0
             self._fresh_network(self.seed)
-            losses = self._train(pairs, steps, size)[0] if steps else []
+            losses = self._train(pairs, steps, size, should_stop)[0] if steps else []
             after = self.l1_by_kind(pairs, repaired=True)
         stats = {"steps": steps, "crop": size, "validation_view": held_out_view, "validation_mse_identity": identity,
                  "validation_mse": checks, "final_crop_l1": losses[-1] if losses else None,

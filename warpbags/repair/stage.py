@@ -19,6 +19,7 @@ Files (under the run folder's repair/):
 
 from __future__ import annotations
 
+import inspect
 import math
 import pickle
 from pathlib import Path
@@ -117,11 +118,17 @@ class RepairStage:
             log(f"repair: loaded {len(pairs.kinds)} pairs and the fitted repairer from {self.folder}")
         else:
             self.repairer = make_repairer(self.repair, config.seed, device)
-            log(f"repair: building training pairs ({len(viewmats)} leave-one-out models, "
-                f"{self.repair.loo_iters} iterations each)")
-            pairs = build_pairs(coarse, viewmats, config, should_stop, log)
-            pairs.save(pairs_path)
-            stats = self.repairer.fit(pairs, log)
+            if pairs_path.is_file():  # a run stopped during the fit: the pairs, the costly part, are kept
+                pairs = _load_saved(pairs_path, RepairPairs.load)
+                log(f"repair: loaded {len(pairs.kinds)} pairs from {self.folder}")
+            else:
+                log(f"repair: building training pairs ({len(viewmats)} leave-one-out models, "
+                    f"{self.repair.loo_iters} iterations each)")
+                pairs = build_pairs(coarse, viewmats, config, should_stop, log)
+                pairs.save(pairs_path)
+            stops = "should_stop" in inspect.signature(self.repairer.fit).parameters  # a plugin's may not take it
+            stats = (self.repairer.fit(pairs, log, should_stop=should_stop) if stops else
+                     self.repairer.fit(pairs, log))
             with atomic_output(repairer_path) as temporary:
                 torch.save(self.repairer.state_dict(), temporary)
             with atomic_output(self.folder / "fit.json") as temporary:
