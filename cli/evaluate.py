@@ -8,7 +8,6 @@ from typing import Optional
 
 import typer
 from rich.console import Console
-from rich.markup import escape
 from rich.table import Table
 
 from warpbags.agreement import pose_agreement
@@ -18,7 +17,8 @@ from warpbags.evaluation import evaluate_run
 from warpbags.files import atomic_output, finite_json, writable_folder
 from warpbags.run_folder import latest_run, load_run
 
-stdout = Console(highlight=False)
+# plain text: paths and names with brackets (`runs/mary[s0]`) are not Rich markup
+stdout = Console(highlight=False, markup=False)
 
 
 def _fmt(value, digits: int) -> str:
@@ -107,7 +107,7 @@ def agree(
         table.add_column(column)
     summary = result.per_camera()
     for camera, name in enumerate(result.image_names):
-        row = [str(camera), escape(name), f"{summary['rotation_deg_median'][camera]:.2f}",
+        row = [str(camera), name, f"{summary['rotation_deg_median'][camera]:.2f}",
                f"{summary['rotation_deg_max'][camera]:.2f}", f"{summary['centre_percent_of_orbit_max'][camera]:.2f}",
                f"{summary['pixels_max'][camera]:.2f}" if "pixels_max" in summary else "n/a"]
         if result.error_deg is not None:
@@ -116,9 +116,9 @@ def agree(
     stdout.print(table)
     stdout.print(f"runs disagree by {result.rotation_deg.mean():.2f} deg (mean over pairs and cameras); each run's "
                  "mean disagreement with the others: " + ", ".join(
-                     f"{escape(str(path))} {value:.2f}" for path, value in zip(result.runs, result.run_disagreement_deg())))
+                     f"{path} {value:.2f}" for path, value in zip(result.runs, result.run_disagreement_deg())))
     if result.central_run() is not None:
-        stdout.print(f"closest to the others: {escape(str(result.runs[result.central_run()]))}")
+        stdout.print(f"closest to the others: {result.runs[result.central_run()]}")
     if not result.same_start:
         stdout.print("the runs started from different poses: their disagreement includes how far apart they started")
     stdout.print("rot: degrees between two runs' orientations of a camera; centre: % of the orbit radius; px: RMS "
@@ -129,7 +129,7 @@ def agree(
         json_path.parent.mkdir(parents=True, exist_ok=True)
         with atomic_output(json_path) as temporary:
             temporary.write_text(finite_json(result.to_json()))
-        stdout.print(f"wrote {escape(str(json_path))}")
+        stdout.print(f"wrote {json_path}")
 
 
 def register(app: typer.Typer) -> None:

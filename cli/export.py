@@ -12,7 +12,8 @@ from warpbags.cli.common import clean_errors
 from warpbags.run_folder import latest_run
 from warpbags.export import export_run, render_turntable
 
-stdout = Console(highlight=False)
+# plain text: paths and names with brackets (`runs/mary[s0]`) are not Rich markup
+stdout = Console(highlight=False, markup=False)
 
 
 def export(

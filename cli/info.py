@@ -7,6 +7,7 @@ from typing import Optional
 
 import typer
 from rich.console import Console
+from rich.text import Text
 from rich.table import Table
 
 from warpbags.cli.common import clean_errors
@@ -14,7 +15,8 @@ from warpbags.configs.scenes import SCENES
 from warpbags.data import ORBIT_RADIUS, SyntheticOptions, generate_synthetic_scene, open_scene
 from warpbags.data.scene import Scene
 
-stdout = Console(highlight=False)
+# plain text: paths and names with brackets (`runs/mary[s0]`) are not Rich markup
+stdout = Console(highlight=False, markup=False)
 
 
 def scene_summary(scene: Scene) -> Table:
@@ -37,7 +39,7 @@ def scene_summary(scene: Scene) -> Table:
     points = "none" if scene.points is None else str(len(scene.points))
     table.add_row("SfM points", points)
     for key, indices in scene.splits.items():
-        table.add_row(f"split {key}", f"{indices}  [dim]({scene.split_sources.get(key, '')})[/]")
+        table.add_row(f"split {key}", Text.assemble(f"{indices}  ", (f"({scene.split_sources.get(key, '')})", "dim")))
     table.add_row("orbit radius", f"{scene.orbit_radius():.4f} (normalized; target {ORBIT_RADIUS})")
     normalization = scene.normalization
     center = ", ".join(f"{value:.4f}" for value in normalization.center)

@@ -16,7 +16,8 @@ from warpbags.configs.train import DEFAULT_PRESET
 from warpbags.errors import WarpbagsError
 from warpbags.sweep import RAY_INSTALL, SweepSpec, make_executor, run_sweep
 
-stdout = Console(highlight=False)
+# plain text: paths and names with brackets (`runs/mary[s0]`) are not Rich markup
+stdout = Console(highlight=False, markup=False)
 
 
 def sweep(

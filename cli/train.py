@@ -19,7 +19,8 @@ from warpbags.files import writable_folder
 from warpbags.run_folder import RunFolder
 from warpbags.trainer import default_run_dir, saved_run_config, saved_run_scene, start_or_resume, training_scene
 
-stdout = Console(highlight=False)
+# plain text: paths and names with brackets (`runs/mary[s0]`) are not Rich markup
+stdout = Console(highlight=False, markup=False)
 
 
 @with_train_options(after="preset")
@@ -76,11 +77,11 @@ def train(
             last = _train_with_log_lines(trainer, log_every)
     except KeyboardInterrupt:
         if trainer.latest_checkpoint() is None:  # a new run removed what it had written (Trainer.train)
-            stdout.print(f"[yellow]stopped at iteration {trainer.iteration}, before the first checkpoint: nothing "
-                         "was kept[/]")
+            stdout.print(f"stopped at iteration {trainer.iteration}, before the first checkpoint: nothing was kept",
+                         style="yellow")
         else:
-            stdout.print(f"[yellow]stopped at iteration {trainer.iteration}; checkpoint saved, continue with "
-                         f"--resume --out {out}[/]")
+            stdout.print(f"stopped at iteration {trainer.iteration}; checkpoint saved, continue with --resume --out "
+                         f"{out}", style="yellow")
         raise
     final = trainer.pose_error()
     poses = (f"pose error {initial['rot_err_deg']:.3f} -> {final['rot_err_deg']:.3f} deg, {initial['trans_err']:.4f} -> "

@@ -8,10 +8,12 @@ from typing import Optional
 
 import typer
 from rich.console import Console
+from rich.text import Text
 
 from warpbags.cli.common import clean_errors
 
-stdout = Console(highlight=False)
+# plain text: paths and names with brackets (`runs/mary[s0]`) are not Rich markup
+stdout = Console(highlight=False, markup=False)
 
 
 def view(
@@ -26,7 +28,8 @@ def view(
 
     content = load_viewer_content(path, log=stdout.print)
     viewer = Viewer(content, host=host, port=port, device=device)
-    stdout.print(f"[bold]warpbags view[/]: {content.name} at [link={viewer.url}]{viewer.url}[/link]  (Ctrl-C stops)")
+    stdout.print(Text.assemble(("warpbags view", "bold"), f": {content.name} at ", (viewer.url, f"link {viewer.url}"),
+                               "  (Ctrl-C stops)"))
     try:
         while True:
             time.sleep(1.0)

@@ -795,6 +795,14 @@ def test_a_ply_of_no_gaussians_is_one_line_and_no_command_writes_anything(finish
     assert sorted(path.name for path in run.iterdir()) == before and not (tmp_path / "export").exists()
 
 
+def test_paths_with_brackets_are_printed_as_they_are(finished_run, tmp_path):
+    """Rich read `[s0]` in a run's path as markup: `warpbags eval "m[s0]"` said it wrote m/eval.json."""
+    run = _copy_of(finished_run, tmp_path / "m[s0]")
+    result = runner.invoke(app, ["eval", str(run), "--refine-iters", "0"])
+    assert result.exit_code == 0, result.output
+    assert f"wrote {run / 'eval.json'}" in " ".join(result.output.split()), result.output
+
+
 def test_a_run_without_its_result_is_told_to_resume_only_when_it_has_a_checkpoint(finished_run, tmp_path):
     """A run killed before its first checkpoint (SIGKILL, power) was told to continue with --resume, which refuses
     it ("no checkpoint")."""
