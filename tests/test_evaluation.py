@@ -795,6 +795,25 @@ def test_a_ply_of_no_gaussians_is_one_line_and_no_command_writes_anything(finish
     assert sorted(path.name for path in run.iterdir()) == before and not (tmp_path / "export").exists()
 
 
+@pytest.mark.parametrize("change, message", [
+    (lambda info: info.pop("scene"), "has no 'scene': written by an older warpbags"),
+    (lambda info: info.update(scene_root=5), "'scene_root' must be a folder (text), got 5"),
+    (lambda info: info.update(resolution="8"), "'resolution' must be 1, 2, 4 or 8, got '8'"),
+    (lambda info: info.update(image_names="IMG_0.png"), "'image_names' must be a list of image names"),
+])
+def test_a_config_json_with_a_damaged_scene_field_is_one_line_naming_it(finished_run, tmp_path, change, message):
+    """A config.json without "scene" was a KeyError traceback out of eval, a scene_root of 5 a TypeError, and a
+    resolution of "8" said "resolution must be 1, 2, 4 or 8, got 8" without naming the file."""
+    run = _copy_of(finished_run, tmp_path / "run")
+    info = json.loads((run / "config.json").read_text())
+    change(info)
+    (run / "config.json").write_text(json.dumps(info))
+    result = runner.invoke(app, ["eval", str(run), "--refine-iters", "0"])
+    assert result.exit_code == 2 and len(_lines(result)) == 1, result.output
+    assert str(run / "config.json") in result.output.replace("\n", "") and message in " ".join(result.output.split())
+    assert not (run / "eval.json").exists()
+
+
 def test_paths_with_brackets_are_printed_as_they_are(finished_run, tmp_path):
     """Rich read `[s0]` in a run's path as markup: `warpbags eval "m[s0]"` said it wrote m/eval.json."""
     run = _copy_of(finished_run, tmp_path / "m[s0]")

@@ -79,7 +79,7 @@ def held_out_views(run: TrainingRun) -> Scene:
         WarpbagsError: the scene folder is gone, has no test split (`warpbags.data.splits.evaluation_views`), or no
             longer matches the run's frame.
     """
-    require_info(run, "scene_root", "resolution", "normalization", "image_names")
+    require_info(run, "scene", "scene_root", "resolution", "normalization", "image_names")
     info, config = run.info, run.config
     stored = run_normalization(run)
     with _held_back_warnings("warpbags.data"):

@@ -91,7 +91,8 @@ class RunFolder:
         """config.json: the TrainConfig (under "config") and the scene and view information written with it.
 
         Raises:
-            WarpbagsError: no config.json, or one that cannot be read.
+            WarpbagsError: no config.json, one that cannot be read, or one whose scene and view fields are not of
+                the kind `write_setup` writes (a field of an older warpbags that is missing is `require_info`'s).
         """
         path = self.path / "config.json"
         try:
@@ -100,6 +101,9 @@ class RunFolder:
             raise WarpbagsError(f"{path}: unreadable ({error})") from None
         if not isinstance(info, dict):
             raise WarpbagsError(f"{path}: unreadable (not a JSON object)")
+        for key, (valid, kind) in _INFO_FIELDS.items():
+            if key in info and not valid(info[key]):
+                raise WarpbagsError(f"{path}: {key!r} must be {kind}, got {info[key]!r}")
         return info
 
     def saved_config(self, info: dict | None = None) -> TrainConfig:
@@ -408,6 +412,20 @@ def checked_cameras(path: Path, array: np.ndarray, intrinsics: bool = False) -> 
         raise WarpbagsError(f"{path}: camera {camera} is not a world-to-camera pose (its 3x3 part has determinant "
                             f"{np.linalg.det(array[camera, :3, :3]):.3g}, last row {array[camera, 3].tolist()})")
     return array
+
+
+# config.json's scene and view fields (`RunFolder.write_setup`): a check of each and what it says is expected
+_INFO_FIELDS = {
+    "scene": (lambda value: isinstance(value, str), "a scene name (text)"),
+    "scene_root": (lambda value: isinstance(value, str) and bool(value), "a folder (text)"),
+    "resolution": (lambda value: type(value) is int and value in (1, 2, 4, 8), "1, 2, 4 or 8"),
+    "image_names": (lambda value: isinstance(value, list) and all(isinstance(name, str) for name in value),
+                    "a list of image names"),
+    "width": (lambda value: type(value) is int and value > 0, "a positive whole number of pixels"),
+    "height": (lambda value: type(value) is int and value > 0, "a positive whole number of pixels"),
+    "normalization": (lambda value: isinstance(value, dict), "an object (the scene's normalization)"),
+    "device": (lambda value: isinstance(value, str), "a device name (text)"),
+}
 
 
 def _text(path: Path) -> str:
