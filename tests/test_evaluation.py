@@ -674,6 +674,25 @@ def test_report_has_the_metrics_and_pictures(finished_run):
     assert "| from iteration | camera | best turn | its loss | unturned loss | kept |" in report
     assert "| 2 |" in report
     assert "eval/" in report
+    assert "## Held-out views: truth | render | 4x error" in report
+
+
+def test_the_refinement_rows_show_the_refined_metrics_and_the_pictures_say_they_are_refined(finished_run, tmp_path):
+    """Nothing checked the refinement row's numbers: a terminal row or report.md row that showed the aligned metrics
+    passed; and the pictures, the refined render, were labelled "render" next to the aligned row."""
+    run = _copy_of(finished_run, tmp_path / "run")
+    result = runner.invoke(app, ["eval", str(run), "--refine-iters", "3"])
+    assert result.exit_code == 0, result.output
+    saved = json.loads((run / "eval.json").read_text())
+    report = (run / "report.md").read_text()
+    for label, terminal, key in (("aligned", "aligned", "images"),
+                                 ("+ 3 refinement iterations", "+ 3 refinement its", "images_after_test_pose_refinement")):
+        mean = saved[key]["mean"]
+        assert f"| {label} | {mean['psnr']:.2f} | {mean['ssim']:.4f} | {mean['flip']:.4f} |" in report, report
+        row = next(line for line in result.output.splitlines() if terminal in line)
+        assert f"{mean['psnr']:.2f}" in row and f"{mean['ssim']:.4f}" in row and f"{mean['flip']:.4f}" in row, row
+    assert saved["images"]["mean"]["psnr"] != saved["images_after_test_pose_refinement"]["mean"]["psnr"]
+    assert "## Held-out views: truth | render after 3 refinement iterations | 4x error" in report
 
 
 def test_sweep_bad_values_one_line(tmp_path):

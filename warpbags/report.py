@@ -132,7 +132,10 @@ def write_run_report(run_dir: Path, result: dict, training_alignment: str, recor
         lines += ["", "## Training", "", "![loss and pose error](curves.png)"]
     comparisons = sorted((run_dir / "eval").glob("*.png"))
     if comparisons:
-        lines += ["", "## Held-out views: truth | render | 4x error", ""]
+        # the pictures show the last render eval made: the refined one where the test poses were refined
+        refined = result.get("images_after_test_pose_refinement")
+        render = "render" if refined is None else f"render after {refined['iters']} refinement iterations"
+        lines += ["", f"## Held-out views: truth | {render} | 4x error", ""]
         lines += [f"![{path.stem}](eval/{path.name})" for path in comparisons]
     frames = sorted((run_dir / "turntable").glob("frame_*.png"))
     if frames:
