@@ -180,6 +180,28 @@ def test_agree_prints_and_writes_each_cameras_disagreement(two_runs, tmp_path):
     assert "| error" in result.output.replace("┃", "|") and len(saved["error_deg"]) == 2 and saved["same_start"]
     # two runs disagree with each other alike: naming the first "closest to the others" said nothing of them
     assert "closest to the others" not in text and saved["central_run"] is None
+    # each camera's row: median and largest rotation, largest centre and pixel distance, mean error of the runs
+    rows = {cells[0]: cells for cells in ([cell.strip() for cell in line.split("│")[1:-1]]
+                                          for line in result.output.splitlines() if line.count("│") == 8)}
+    per_camera = saved["per_camera"]
+    for camera in range(4):
+        expected = [f"{per_camera[key][camera]:.2f}" for key in
+                    ("rotation_deg_median", "rotation_deg_max", "centre_percent_of_orbit_max", "pixels_max")]
+        assert rows[str(camera)][2:6] == expected, rows[str(camera)]
+        assert rows[str(camera)][6] == f"{np.mean(np.array(saved['error_deg'])[:, camera]):.2f}"
+    assert rows["1"][2:4] == ["3.00", "3.00"] and rows["0"][2:4] == ["0.00", "0.00"]
+    assert len({row[6] for row in rows.values()}) > 1 and float(rows["1"][5]) > 1.0
+    # three runs, camera 1 turned by 0, 3 and 1 deg about one axis: pairs 3, 1 and 2 deg, median 2, largest 3
+    third = tmp_path / "c"
+    shutil.copytree(two_runs[0], third)
+    poses = torch.from_numpy(np.load(third / "poses_final.npy")).double()
+    poses[1] = turned_about_own_centre(poses[1], [0, 1.0, 0], 1.0)
+    np.save(third / "poses_final.npy", poses.float().numpy())
+    result = runner.invoke(app, ["agree", str(two_runs[0]), str(two_runs[1]), str(third)])
+    assert result.exit_code == 0, result.output
+    row = next([cell.strip() for cell in line.split("│")[1:-1]] for line in result.output.splitlines()
+               if line.count("│") == 8 and line.split("│")[1].strip() == "1")
+    assert row[2:4] == ["2.00", "3.00"], row
 
 
 @pytest.mark.parametrize("arguments, message", [
