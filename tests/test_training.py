@@ -660,6 +660,33 @@ def test_a_config_json_changed_after_the_run_started_is_refused_on_resume(scene_
     assert make_trainer(scene_dir, tmp_path, iters=4, checkpoint_every=3, render_threads=2).resume()
 
 
+def test_a_full_disk_while_training_is_one_line_naming_the_checkpoint_kept(scene_dir, tmp_path, monkeypatch):
+    """A checkpoint torch could not write (its RuntimeError "unexpected pos" at a file-size limit) or a result file
+    numpy could not (OSError: no space left) was a traceback."""
+    trainer = make_trainer(scene_dir, tmp_path, iters=4, checkpoint_every=2)
+    trainer.write_run_files()
+    save = torch.save
+
+    def full_disk(*args, **kwargs):
+        raise RuntimeError("[enforce fail at inline_container.cc:672] . unexpected pos 368768 vs 368656")
+
+    monkeypatch.setattr(torch, "save", full_disk)
+    with pytest.raises(WarpbagsError, match=f"^cannot write into {re.escape(str(tmp_path))}: torch.save failed "
+                                            r"\(\[enforce fail .*unexpected pos"):
+        trainer.train()
+    assert not list((tmp_path / "checkpoints").glob("*"))  # nor a temporary left
+    monkeypatch.setattr(torch, "save", save)
+    trainer = make_trainer(scene_dir, tmp_path, iters=4, checkpoint_every=2)
+
+    def no_space(path, array):
+        raise OSError(28, "No space left on device", str(path))
+
+    monkeypatch.setattr(run_folder.np, "save", no_space)
+    with pytest.raises(WarpbagsError, match="No space left on device.*checkpoint_000004.pt is kept: --resume "
+                                            "continues from it once there is room"):
+        trainer.train()
+
+
 def test_an_old_or_damaged_checkpoint_is_one_line(scene_dir, tmp_path):
     trainer = make_trainer(scene_dir, tmp_path, iters=2)
     trainer.write_run_files()

@@ -363,8 +363,11 @@ class RunFolder:
             raise ValueError(f"checkpoint state lacks {missing}")
         self.checkpoints.mkdir(parents=True, exist_ok=True)
         path = self.checkpoints / f"checkpoint_{state['iteration']:06d}.pt"
-        with atomic_output(path) as temporary:
-            torch.save(state, temporary)
+        try:
+            with atomic_output(path) as temporary:
+                torch.save(state, temporary)
+        except RuntimeError as error:  # torch's writer says a failed write so ("unexpected pos", a full disk)
+            raise OSError(f"torch.save failed ({' '.join(str(error).split())})") from error
         for old in (*self._checkpoints()[:-CHECKPOINTS_KEPT], *self._cut_short_checkpoints()):
             old.unlink()
         return path

@@ -498,14 +498,26 @@ class Trainer:
             # leaves as one Stopped that names it; a Ctrl-C no handler of ours took stays as it came
             if isinstance(error, KeyboardInterrupt) and self._stop_signal is not None:
                 raise Stopped(self._stop_signal) from None
+            if isinstance(error, OSError):
+                raise self._write_failure(error) from None
             raise
         finally:
             for stop_signal, handler in previous_handlers.items():
                 if handler is not None:  # None: a handler not installed from Python, which Python cannot put back
                     signal.signal(stop_signal, handler)
         if self.iteration >= total:
-            self.write_results()
+            try:
+                self.write_results()
+            except OSError as error:
+                raise self._write_failure(error) from None
         return record
+
+    def _write_failure(self, error: OSError) -> WarpbagsError:
+        """One line for a file of the run that could not be written (a full disk, a file-size limit), with the
+        checkpoint a --resume would continue from."""
+        latest = self.latest_checkpoint()
+        kept = f"; {latest} is kept: --resume continues from it once there is room" if latest is not None else ""
+        return WarpbagsError(f"cannot write into {self.run_folder.path}: {' '.join(str(error).split())}{kept}")
 
 
 def training_scene(scene: Scene | str | Path, config: TrainConfig, data_root: str | Path | None = None,
