@@ -63,3 +63,31 @@ def test_demo_evaluates_the_folder_and_device_training_used(tmp_path, extra, out
         assert trained_into == str(tmp_path / out)
     assert evaluate[:2] == ["eval", trained_into]
     assert evaluate[evaluate.index("--device") + 1] == device
+
+
+def test_the_test_script_and_ci_take_paths_from_where_they_are_called(tmp_path):
+    """scripts/test.sh moved to the checkout's root before pytest read its arguments, so `bash ../scripts/test.sh
+    test_x.py` from tests/ found no file; .ci/run ran `scripts/test.sh` relative to the caller's folder (rc 127
+    anywhere but the root). A copy whose setup is a stub, and a pytest stub that records what it is given."""
+    checkout = tmp_path / "checkout"
+    (checkout / "scripts").mkdir(parents=True)
+    (checkout / ".ci").mkdir()
+    shutil.copy(ROOT / "scripts" / "test.sh", checkout / "scripts" / "test.sh")
+    shutil.copy(ROOT / ".ci" / "run", checkout / ".ci" / "run")
+    log = tmp_path / "pytest-arguments.txt"
+    stub_bin = tmp_path / "bin"
+    stub_bin.mkdir()
+    (stub_bin / "python").write_text(f'#!/usr/bin/env bash\nprintf "%s\\n" "$PWD" "$@" > "{log}"\n')
+    (stub_bin / "python").chmod(0o755)
+    (checkout / "scripts" / "setup.sh").write_text(f'set -euo pipefail\ncd "{checkout}"\nexport PATH="{stub_bin}:$PATH"\n')
+    caller = tmp_path / "caller"
+    caller.mkdir()
+    (caller / "test_x.py").write_text("")
+    subprocess.run(["bash", str(checkout / "scripts" / "test.sh"), "test_x.py::test_one", "-k", "test_x.py", "-q"],
+                   check=True, cwd=caller, timeout=60)
+    assert log.read_text().splitlines() == [str(checkout), "-m", "pytest", "-q", f"{caller}/test_x.py::test_one", "-k",
+                                            "test_x.py", "-q"]
+    has_chromium = Path("/usr/bin/chromium").exists()  # .ci/run installs it first where it is missing
+    if has_chromium:
+        subprocess.run(["bash", str(checkout / ".ci" / "run")], check=True, cwd=caller, timeout=60)
+        assert log.read_text().splitlines() == [str(checkout), "-m", "pytest", "-q"]
