@@ -19,8 +19,8 @@ from warpbags.devices import init_warp_quietly
 init_warp_quietly()  # the tables, not Warp's banner and module loads, as the CLI
 
 from warpbags.configs.scenes import TELEPHOTO_OPTICS  # noqa: E402
-from warpbags.configs.train import DEFAULT_PRESET, load_preset, parse_settings  # noqa: E402
-from warpbags.data import SyntheticOptions, ensure_synthetic_scene, load_scene, open_scene  # noqa: E402
+from warpbags.configs.train import DEFAULT_PRESET, MAX_HULL_RESOLUTION, load_preset, parse_settings  # noqa: E402
+from warpbags.data import ORBIT_RADIUS, SyntheticOptions, ensure_synthetic_scene, load_scene, open_scene  # noqa: E402
 from warpbags.data.noise import monocular_like_depths  # noqa: E402
 from warpbags.errors import WarpbagsError  # noqa: E402
 from warpbags.files import atomic_output, finite_json  # noqa: E402
@@ -74,6 +74,35 @@ def merge_settings(base: dict, extra: dict) -> dict:
     for key, value in extra.items():
         merged[key] = {**merged.get(key, {}), **value} if isinstance(value, dict) else value
     return merged
+
+
+def check_options(checks: Iterable[tuple[bool, str]]) -> None:
+    """Raise the message of the first failed `(ok, message)` check: a script's option values checked before any
+    work, each message naming its option and value.
+
+    Raises:
+        WarpbagsError: a check that failed.
+    """
+    for ok, message in checks:
+        if not ok:
+            raise WarpbagsError(message)
+
+
+def pose_noise_checks(rot: float, trans: float) -> list[tuple[bool, str]]:
+    """`check_options` checks of a `--rot` (std, degrees) and a `--trans` (std per axis) value, by these options'
+    names: the TrainConfig check they would reach later names `warpbags train`'s --rot-noise-deg and --trans-noise,
+    which the benchmarks lack, and comes only once a run starts. A NaN fails both comparisons."""
+    return [(0 <= rot <= 180, f"--rot must be in [0, 180] (a std in degrees), got {rot:g}"),
+            (0 <= trans <= ORBIT_RADIUS, f"--trans must be in [0, {ORBIT_RADIUS:g}] (a std in scene units, the "
+                                         f"cameras orbiting at radius {ORBIT_RADIUS:g}), got {trans:g}")]
+
+
+def resolution_check(resolution: int) -> tuple[bool, str]:
+    """The `check_options` check of a visual hull's `--resolution` (voxels per axis of its fine pass), in the range
+    training allows its `hull_resolution`: 0 or less fails deep in the carve (a division by zero), and above the
+    maximum the first pass's (1.5 x resolution)^3 voxels take gigabytes."""
+    return (2 <= resolution <= MAX_HULL_RESOLUTION,
+            f"--resolution must be in [2, {MAX_HULL_RESOLUTION}] (voxels per axis), got {resolution}")
 
 
 def add_training_options(parser: argparse.ArgumentParser, set_help: str, json_help: str | None = None) -> None:

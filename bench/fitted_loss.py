@@ -32,8 +32,8 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from common import (add_training_options, merge_settings, open_bench_scene, training_overrides,
-                    with_depth, write_json)
+from common import (add_training_options, check_options, merge_settings, open_bench_scene, pose_noise_checks,
+                    training_overrides, with_depth, write_json)
 from warpbags.alignment import pose_errors
 from warpbags.cameras import pixel_directions, project_points
 from warpbags.cli.common import clean_errors, parse_numbers
@@ -161,6 +161,7 @@ def main() -> None:
     args = parser.parse_args()
     torch.set_num_threads(1)
     seeds, fit_seeds = parse_numbers(args.seeds, "--seeds", int), parse_numbers(args.fit_seeds, "--fit-seeds", int)
+    check_options(pose_noise_checks(args.rot, args.trans))
     # a bad preset or setting fails before the first line of the table
     overrides = training_overrides(args, fixed={"views": "from --views", "rot_noise_deg": "from --rot",
                                                 "trans_noise": "from --trans", "noise_seed": "from --seeds",

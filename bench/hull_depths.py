@@ -30,7 +30,7 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from common import open_bench_scene  # noqa: E402
+from common import check_options, open_bench_scene, resolution_check  # noqa: E402
 from warpbags.cameras import camera_centers, pixel_directions, project_points  # noqa: E402
 from warpbags.cli.common import clean_errors  # noqa: E402
 from warpbags.errors import WarpbagsError  # noqa: E402
@@ -104,6 +104,7 @@ def main() -> None:
     parser.add_argument("--resolution", type=int, default=160, help="voxels per axis of the hull's fine pass")
     parser.add_argument("--carve-split", default=None, help="carve with this training split's views only (4, 6, 9)")
     args = parser.parse_args()
+    check_options([resolution_check(args.resolution)])
     if args.out.exists():
         raise WarpbagsError(f"{args.out} exists; choose a new folder")
     scene = open_bench_scene(args.scene)

@@ -17,7 +17,7 @@ import argparse
 
 import torch
 
-from common import open_bench_scene
+from common import check_options, open_bench_scene, resolution_check
 from warpbags.data.noise import PoseNoise, noisy_viewmats
 from warpbags.init import visual_hull
 from warpbags.cli.common import clean_errors
@@ -44,6 +44,7 @@ def main() -> None:
     parser.add_argument("--size", type=int, default=128, help="longer image side the masks are carved at")
     parser.add_argument("--resolution", type=int, default=48, help="voxels per axis (fine pass)")
     args = parser.parse_args()
+    check_options([resolution_check(args.resolution)])
     scene = open_bench_scene(args.scene)
     scene = scene.subset(scene.train_views(args.views)).downscaled(args.size)
     truth, voxel = visual_hull(scene.masks, scene.viewmats, scene.Ks, resolution=args.resolution)

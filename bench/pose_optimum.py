@@ -27,13 +27,15 @@ from __future__ import annotations
 import argparse
 import copy
 import dataclasses
+import math
 import tempfile
 import time
 
 import numpy as np
 import torch
 
-from common import add_training_options, merge_settings, open_bench_scene, training_overrides, write_json
+from common import (add_training_options, check_options, merge_settings, open_bench_scene, training_overrides,
+                    write_json)
 from warpbags.alignment import centre_floor_errors, pose_errors
 from warpbags.configs.train import load_preset
 from warpbags.data import ORBIT_RADIUS
@@ -155,6 +157,8 @@ def main() -> None:
                          json_help="also write every row's numbers here")
     args = parser.parse_args()
     torch.set_num_threads(1)
+    check_options([(0 < args.pose_lr < math.inf,  # a NaN fails both comparisons
+                    f"--pose-lr must be a positive number, got {args.pose_lr:g}")])
     fit_iters, start_noises = parse_numbers(args.fit_iters, "--fit-iters", int), parse_start_noise(args.start_noise)
     overrides = training_overrides(args, fixed=FIXED)
     if args.max_image_size is not None:

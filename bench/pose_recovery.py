@@ -49,8 +49,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from common import (add_training_options, merge_settings, open_bench_scene, quiet_trainer, timed_training,
-                    training_overrides, with_depth, write_json)
+from common import (add_training_options, check_options, merge_settings, open_bench_scene, pose_noise_checks,
+                    quiet_trainer, timed_training, training_overrides, with_depth, write_json)
 from warpbags.alignment import pose_errors
 from warpbags.data import ORBIT_RADIUS
 from warpbags.evaluation import evaluate_run
@@ -165,6 +165,7 @@ def main() -> None:
     args = parser.parse_args()
     torch.set_num_threads(1)
     rots, view_counts = parse_numbers(args.rot, "--rot"), parse_numbers(args.views, "--views", int)
+    check_options(check for rot in rots for check in pose_noise_checks(rot, args.trans))
     seeds = parse_numbers(args.seeds, "--seeds", int)
     variants = args.variants.split(",") + (ABLATIONS if args.ablations else [])
     unknown = [name for name in variants if name not in VARIANTS]

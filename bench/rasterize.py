@@ -44,6 +44,8 @@ import warpbags  # noqa: E402
 from warpbags.cli.common import clean_errors  # noqa: E402
 from warpbags.devices import torch_device  # noqa: E402
 from warpbags.errors import WarpbagsError  # noqa: E402
+from warpbags.rendering import DEFAULT_TILE_SIZE  # noqa: E402
+from warpbags.wrapper import _pixel_block  # noqa: E402
 
 
 def bench_scene(n: int, cams: int, size: int, seed: int = 0, device: torch.device = torch.device("cpu")) -> dict:
@@ -163,9 +165,24 @@ def main() -> None:
     args = parser.parse_args()
     if args.repeats < 1:
         raise WarpbagsError(f"--repeats must be >= 1, got {args.repeats}")
+    if args.tile_size is not None and args.tile_size < 1:
+        raise WarpbagsError(f"--tile-size must be >= 1 (pixels), got {args.tile_size}")
     device = torch_device(args.device)
     if args.blocks and device.type != "cpu":
         raise WarpbagsError("--blocks compares CPU pixel blocks: it needs --device cpu")
+    tile_size = args.tile_size or DEFAULT_TILE_SIZE[device.type]
+    for block in args.blocks or []:
+        if block is None:  # "default": whatever the rasterizer makes of its default block, as its label says
+            continue
+        # the rasterizer shrinks each side to a power of two dividing the tile: the column would name a block that
+        # did not run
+        try:
+            ran = _pixel_block(device, tile_size, block)
+        except ValueError as error:  # more pixels per thread than it has kernels for
+            raise WarpbagsError(f"--blocks {block[0]}x{block[1]}: {error}") from None
+        if ran != block:
+            raise WarpbagsError(f"--blocks {block[0]}x{block[1]}: the rasterizer would run it as {ran[0]}x{ran[1]} "
+                                f"on {tile_size} px tiles (each side a power of two dividing the tile)")
     torch.set_num_threads(1)  # Warp uses its own host threads; idle torch OpenMP workers would spin against them
 
     sizes = args.sizes if args.sizes else [128] if args.quick else [128, 256, 432]

@@ -32,8 +32,10 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from common import add_training_options, merge_settings, open_bench_scene, training_overrides
+from common import (add_training_options, check_options, merge_settings, open_bench_scene, pose_noise_checks,
+                    training_overrides)
 from warpbags.configs.train import load_preset
+from warpbags.errors import WarpbagsError
 from warpbags.evaluation import evaluate_run, held_out_views, psnr, test_cameras_in_model_frame
 from warpbags.gaussians import render_gaussians, sh_degree_of
 from warpbags.run_folder import load_run
@@ -94,6 +96,12 @@ def _repairer_on_held_out(coarse_dir: Path, repairer) -> tuple[float, float]:
     return mean_psnr(renders), mean_psnr(repairer.repair(renders))
 
 
+def _run_paths(root: Path, name: str, views: int) -> dict[str, Path]:
+    """Where a scene's runs go under `root`: the repair run, the copy of its coarse checkpoint and the two controls."""
+    return {"repair": root / f"{name}-{views}v-repair", "coarse": root / f"{name}-coarse.pt",
+            "real": root / f"{name}-real-only", "identity": root / f"{name}-identity"}
+
+
 def _fmt(value, digits: int) -> str:
     return "n/a" if value is None else f"{value:.{digits}f}"
 
@@ -111,12 +119,22 @@ def main() -> None:
                                  "(repeatable), as `warpbags train --set`")
     args = parser.parse_args()
     torch.set_num_threads(1)
+    check_options(pose_noise_checks(args.rot, args.trans))
     overrides = training_overrides(args, fixed={"views": "from --views", "rot_noise_deg": "from --rot",
                                                 "trans_noise": "from --trans"})
-    repair = {"iters": args.repair_iters, **overrides.pop("repair", {})}  # a repair.iters setting wins
+    repair_settings = overrides.pop("repair", {})
+    repair = {"iters": args.repair_iters, **repair_settings}  # a repair.iters setting wins
     settings = merge_settings(overrides, dict(views=args.views, rot_noise_deg=args.rot, trans_noise=args.trans,
                                               repair=repair))
     load_preset(args.preset, **settings)  # a bad preset or setting fails before the first line
+    if repair["iters"] < 1:  # else the runs would stop after the coarse stage, with no repair stage to measure
+        source = "--set repair.iters" if "iters" in repair_settings else "--repair-iters"
+        raise WarpbagsError(f"{source} must be >= 1 (this benchmark measures the repair stage), got {repair['iters']}")
+    if args.keep is not None:  # a second run into the same folder would reuse the first's pairs and checkpoints
+        for name in args.scenes:
+            for path in _run_paths(args.keep, name, args.views).values():
+                if path.exists():
+                    raise WarpbagsError(f"--keep {args.keep}: {path} exists (an earlier run's); choose a new folder")
     scenes = {name: open_bench_scene(name) for name in args.scenes}  # a bad name fails before the first line
     print(f"{args.views} views, noise {args.rot} deg / {args.trans}, preset {args.preset}, repair {repair} {overrides}")
     header = (f"{'scene':<16} {'model':<8} {'PSNR':>6} {'SSIM':>6} {'LPIPS':>6} {'PSNR*':>6} {'SSIM*':>6} "
@@ -125,14 +143,15 @@ def main() -> None:
         root = args.keep or Path(scratch)
         for name, scene in scenes.items():
             config = load_preset(args.preset, **settings)
-            out = root / f"{name}-{args.views}v-repair"
+            paths = _run_paths(root, name, args.views)
+            out = paths["repair"]
             trainer = Trainer(training_scene(scene, config), config, out, log=lambda message: None)
             trainer.write_run_files()
             started = time.perf_counter()
             trainer.train(stop_at=config.iters)
             coarse_seconds = time.perf_counter() - started
 
-            coarse_checkpoint = root / f"{name}-coarse.pt"  # the run keeps only its newest checkpoints
+            coarse_checkpoint = paths["coarse"]  # the run keeps only its newest checkpoints
             shutil.copy(trainer.latest_checkpoint(), coarse_checkpoint)
             started = time.perf_counter()
             trainer.start_repair_stage()  # pairs + fit, timed on their own
@@ -144,8 +163,8 @@ def main() -> None:
             # pseudo views whose targets are the renders themselves (what the repairer adds over that).
             real_only = dataclasses.replace(config, repair=dataclasses.replace(
                 config.repair, pseudo_ratio_start=0.0, pseudo_ratio_end=0.0))
-            real_out, real_seconds = _continue(scene, real_only, coarse_checkpoint, root / f"{name}-real-only")
-            identity_out, _ = _continue(scene, config, coarse_checkpoint, root / f"{name}-identity", IdentityRepairer())
+            real_out, real_seconds = _continue(scene, real_only, coarse_checkpoint, paths["real"])
+            identity_out, _ = _continue(scene, config, coarse_checkpoint, paths["identity"], IdentityRepairer())
             fit = json.loads((out / "repair" / "fit.json").read_text())
             print(header + "\n" + "-" * len(header))
             for model, folder in (("coarse", out / "coarse"), ("real", real_out), ("identity", identity_out),

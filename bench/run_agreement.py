@@ -22,8 +22,8 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from common import (add_training_options, merge_settings, open_bench_scene, quiet_trainer, timed_training,
-                    training_overrides, with_depth, write_json)
+from common import (add_training_options, check_options, merge_settings, open_bench_scene, pose_noise_checks,
+                    quiet_trainer, timed_training, training_overrides, with_depth, write_json)
 
 from warpbags.agreement import pose_agreement
 from warpbags.cli.common import clean_errors, parse_numbers
@@ -53,6 +53,7 @@ def main() -> None:
                             "have runs to compare")
     if len(set(noise_seeds)) < len(noise_seeds):
         raise WarpbagsError(f"--noise-seeds {args.noise_seeds!r}: a seed given twice")
+    check_options(pose_noise_checks(args.rot, args.trans))
     if args.rot <= 0 and args.trans <= 0:
         raise WarpbagsError("--rot 0 and --trans 0: without noise the scene's poses are no truth to measure errors by")
     overrides = training_overrides(args, fixed={"views": "from --views", "rot_noise_deg": "from --rot",

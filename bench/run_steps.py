@@ -89,6 +89,8 @@ def main() -> None:
     args = parser.parse_args()
     if args.steps < 1 or args.warmup < 0:
         raise WarpbagsError(f"--steps must be >= 1 and --warmup >= 0, got {args.steps} and {args.warmup}")
+    if args.iteration is not None and args.iteration < 0:
+        raise WarpbagsError(f"--iteration must be >= 0, got {args.iteration}")
     context = _warp_cpu_launch()  # a Warp version without it fails before any step
     if not RunFolder(args.run).has_checkpoint():
         raise WarpbagsError(f"{args.run}: no checkpoint to time steps from")

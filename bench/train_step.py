@@ -367,14 +367,19 @@ def run_opensplat(binary: Path, points: int, steps: int, warmup: int) -> dict:
         step_line = re.compile(r"^Step ([0-9]+):")
         stamps = {}
         peak_kib = 0
+        last = ""  # its last line of output, said if it fails
         for line in process.stdout:
+            last = line.strip() or last
             match = step_line.match(line)
             if match:
                 stamps[int(match.group(1))] = time.perf_counter()
                 peak_kib = max(peak_kib, _high_water_kib(process.pid))
         process.wait()
     if process.returncode != 0 or len(stamps) < warmup + 2:
-        raise RuntimeError(f"opensplat exited with {process.returncode} after {len(stamps)} steps: {' '.join(command)}")
+        from warpbags.errors import WarpbagsError  # noqa: PLC0415 - the parent alone imports it, as in main
+
+        raise WarpbagsError(f"--opensplat {binary}: exited with code {process.returncode} after {len(stamps)} "
+                            f"\"Step N:\" lines, needed {warmup + 2} or more; its last line: {last or '(none)'}")
     intervals = [stamps[s] - stamps[s - 1] for s in sorted(stamps) if s > warmup and s - 1 in stamps]
     return {"step_ms": 1e3 * statistics.median(intervals), "peak_rss_mib": peak_kib / 1024}
 
@@ -395,7 +400,11 @@ def _child(arguments: list[str]) -> dict:
     """Run this script for one configuration in a fresh process (its own peak RSS) and read its JSON line."""
     result = subprocess.run([sys.executable, __file__, *arguments], capture_output=True, text=True, check=False)
     if result.returncode != 0:
-        raise RuntimeError(f"{' '.join(arguments)} failed:\n{result.stderr[-3000:]}")
+        from warpbags.errors import WarpbagsError  # noqa: PLC0415 - the parent alone imports it, as in main
+
+        # the child's traceback ends with its exception: one line to print, not the traceback
+        lines = result.stderr.strip().splitlines() or [f"exit code {result.returncode}"]
+        raise WarpbagsError(f"the configuration {' '.join(arguments)} failed: {lines[-1]}")
     return json.loads(result.stdout.strip().splitlines()[-1])
 
 
@@ -461,8 +470,11 @@ def main() -> None:
         return
     from common import write_json  # noqa: PLC0415 - not in the children: their peak RSS is measured
     from warpbags.cli.common import parse_numbers  # noqa: PLC0415
+    from warpbags.configs.train import load_preset  # noqa: PLC0415
     from warpbags.devices import torch_device  # noqa: PLC0415
     from warpbags.errors import WarpbagsError  # noqa: PLC0415
+    from warpbags.rendering import DEFAULT_TILE_SIZE  # noqa: PLC0415
+    from warpbags.wrapper import _pixel_block  # noqa: PLC0415
 
     device = torch_device(args.device)
     if device.type == "cuda" and (args.pixel_blocks or args.opensplat):
@@ -471,14 +483,35 @@ def main() -> None:
     if args.opensplat and args.sh_degree != 0:
         raise WarpbagsError(f"--opensplat runs OpenSplat at SH degree 0: compare with --sh-degree 0, not "
                             f"{args.sh_degree}")
+    if not 0 <= args.sh_degree <= 3:
+        raise WarpbagsError(f"--sh-degree must be 0-3, got {args.sh_degree}")
+    # checked here, not found missing after every configuration has been timed
+    if args.opensplat and not (args.opensplat.is_file() and os.access(args.opensplat, os.X_OK)):
+        raise WarpbagsError(f"--opensplat {args.opensplat}: not an executable file")
     inits = [init for init in args.inits.split(",") if init]
     if not inits or any(init not in ("random", "hull") for init in inits):
         raise WarpbagsError(f"--inits {args.inits!r}: expected comma-separated random, hull")
-    views_per_step = parse_numbers(args.views, "--views", int)
+    views_per_step = parse_numbers(args.views, "--views", int, minimum=1)
+    # a step draws its views from the training views (build_problem's scene: the quick preset's view count), so a
+    # larger count would render them all and be labelled as more
+    training_views = load_preset("quick").views
+    if max(views_per_step) > training_views:
+        raise WarpbagsError(f"--views {args.views!r}: a step renders at most maryrose's {training_views} training "
+                            f"views, not {max(views_per_step)}")
     blocks = [block for block in args.pixel_blocks.split(",") if block] if args.pixel_blocks else [None]
+    tile_size = DEFAULT_TILE_SIZE[device.type]
     for block in blocks:
-        if block is not None and not re.fullmatch(r"[1-9][0-9]*x[1-9][0-9]*", block):
+        if block is None:
+            continue
+        if not re.fullmatch(r"[1-9][0-9]*x[1-9][0-9]*", block):
             raise WarpbagsError(f"--pixel-blocks {args.pixel_blocks!r}: {block!r} is not WIDTHxHEIGHT (e.g. 2x2)")
+        # the rasterizer shrinks each side to a power of two dividing the tile: the column would name a block
+        # that did not run
+        width, height = _pixel_block(device, tile_size, tuple(int(side) for side in block.split("x")))
+        if block != f"{width}x{height}":
+            raise WarpbagsError(f"--pixel-blocks {args.pixel_blocks!r}: the rasterizer would run {block} as "
+                                f"{width}x{height} on its {tile_size} px tiles (each side a power of two dividing "
+                                "the tile)")
     if args.steps < 1 or args.warmup < 0 or args.points < 1:
         raise WarpbagsError(f"--steps and --points must be >= 1 and --warmup >= 0, got {args.steps}, {args.points} "
                             f"and {args.warmup}")

@@ -29,11 +29,10 @@ from pathlib import Path
 
 import torch
 
-from common import open_bench_scene, write_json
+from common import check_options, open_bench_scene, write_json
 from warpbags.cli.common import clean_errors, parse_numbers
 from warpbags.correspondences import (RANSAC_PX, RATIO, SIFT_FEATURES, fundamental_matrices, match_pair,
                                       sampson_distances, sift_detector, view_features)
-from warpbags.errors import WarpbagsError
 
 TRUE_PAIR_MATCHES = 10
 
@@ -94,15 +93,12 @@ def main() -> None:
     parser.add_argument("--json", type=Path, help="also write every pair's numbers here")
     args = parser.parse_args()
     views = parse_numbers(args.views, "--views", int)
-    checks = [(args.features > 0, f"--features must be positive, got {args.features}"),
-              (0 < args.ratio <= 1, f"--ratio must be in (0, 1], got {args.ratio}"),
-              (args.true_px > 0, f"--true-px must be positive, got {args.true_px}"),
-              (args.ransac_px > 0, f"--ransac-px must be positive, got {args.ransac_px}"),
-              (args.min_inliers >= 8, f"--min-inliers must be at least 8, got {args.min_inliers}"),
-              (min(views) >= 2, f"--views {args.views}: at least 2 views make a pair")]
-    for ok, message in checks:
-        if not ok:
-            raise WarpbagsError(message)
+    check_options([(args.features > 0, f"--features must be positive, got {args.features}"),
+                   (0 < args.ratio <= 1, f"--ratio must be in (0, 1], got {args.ratio}"),
+                   (args.true_px > 0, f"--true-px must be positive, got {args.true_px}"),
+                   (args.ransac_px > 0, f"--ransac-px must be positive, got {args.ransac_px}"),
+                   (args.min_inliers >= 8, f"--min-inliers must be at least 8, got {args.min_inliers}"),
+                   (min(views) >= 2, f"--views {args.views}: at least 2 views make a pair")])
     scenes = {name: open_bench_scene(name) for name in args.scenes}
     for scene in scenes.values():  # too few views fails before the first line of the table
         for count in views:

@@ -14,7 +14,8 @@ import pytest
 from warpbags.errors import WarpbagsError
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
-from common import add_training_options, merge_settings, training_overrides, write_json  # noqa: E402
+from common import (add_training_options, check_options, merge_settings, pose_noise_checks,  # noqa: E402
+                    resolution_check, training_overrides, write_json)
 
 
 def test_merge_settings_merges_groups_field_by_field_and_leaves_its_inputs():
@@ -60,3 +61,16 @@ def test_write_json_writes_strict_json_with_nan_as_null(tmp_path):
     assert "NaN" not in path.read_text() and "Infinity" not in path.read_text()
     assert json.loads(path.read_text()) == {"rows": [{"psnr": None, "rotation": 0.5, "seeds": [0, 1]}], "inf": None}
     assert sorted(p.name for p in path.parent.iterdir()) == ["rows.json"]  # no temporary left beside it
+
+
+def test_option_checks_pass_the_ends_of_their_ranges_and_raise_the_first_failure():
+    check_options(pose_noise_checks(0.0, 0.0))
+    check_options(pose_noise_checks(180.0, 4.0))  # the ends TrainConfig accepts for rot_noise_deg and trans_noise
+    check_options([resolution_check(2), resolution_check(256)])
+    with pytest.raises(WarpbagsError) as error:
+        check_options(pose_noise_checks(math.nan, -1.0))  # the first failed check: the NaN rotation
+    assert str(error.value) == "--rot must be in [0, 180] (a std in degrees), got nan"
+    with pytest.raises(WarpbagsError, match=r"--trans must be in \[0, 4\]"):
+        check_options(pose_noise_checks(5.0, 4.5))
+    with pytest.raises(WarpbagsError, match=r"--resolution must be in \[2, 256\] \(voxels per axis\), got 257"):
+        check_options([resolution_check(257)])

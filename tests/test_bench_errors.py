@@ -1,9 +1,11 @@
 """The benchmarks answer bad input as the CLI does: one line on stderr and exit code 2, before any work and any
-table line: a bad scene name, a bad number list, a bad or clashing `--set`."""
+table line: a bad scene name, a bad number list, a bad or clashing `--set`, an option out of its range, a --keep
+holding an earlier run. A failure of bench/train_step.py's configuration processes or of OpenSplat is one line too."""
 
 from __future__ import annotations
 
 import runpy
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -11,7 +13,12 @@ from pathlib import Path
 import pytest
 import torch
 
+from warpbags.errors import WarpbagsError
+
 BENCH = Path(__file__).resolve().parents[1] / "bench"
+# Options that keep a run short where the check under test is missing (the benchmark then runs instead of failing)
+QUICK_RASTERIZE = ["--quick", "--gaussians", "100", "--cameras", "1", "--repeats", "1"]
+QUICK_TRAIN_STEP = ["--inits", "random", "--points", "100", "--steps", "1", "--warmup", "0"]
 
 
 @pytest.mark.parametrize("script", ["pose_recovery.py", "pose_optimum.py", "repair.py", "hull_noise.py",
@@ -60,13 +67,107 @@ def test_an_unknown_scene_is_one_error_line(script, tmp_path):
     ("train_step.py", ["--inits", "sphere"], "--inits 'sphere'"),
     ("train_step.py", ["--device", "cuda", "--pixel-blocks", "1x1"],
      "not with --device cuda" if torch.cuda.is_available() else "--device cuda: no CUDA device is available"),
+    # pose noise in the scripts' own option names, before the header (was: after the first row, as --rot-noise-deg)
+    ("pose_recovery.py", ["--rot", "0,-5", "--start-only"], "--rot must be in [0, 180] (a std in degrees), got -5"),
+    ("pose_recovery.py", ["--trans", "-0.1"], "--trans must be in [0, 4]"),
+    ("run_agreement.py", ["--rot", "nan"], "--rot must be in [0, 180] (a std in degrees), got nan"),
+    ("run_agreement.py", ["--trans", "5"], "--trans must be in [0, 4] (a std in scene units"),
+    ("fitted_loss.py", ["--rot", "181"], "--rot must be in [0, 180]"),
+    ("fitted_loss.py", ["--trans", "-1"], "--trans must be in [0, 4]"),
+    ("repair.py", ["--rot", "-1"], "--rot must be in [0, 180]"),
+    # no repair iterations: four models trained, then no repair stage to measure
+    ("repair.py", ["--repair-iters", "0"], "--repair-iters must be >= 1 (this benchmark measures the repair stage)"),
+    ("repair.py", ["--set", "repair.iters=0"], "--set repair.iters must be >= 1"),
+    # bad numbers that were a traceback, or a row of zeros
+    ("hull_noise.py", ["--resolution", "0"], "--resolution must be in [2, 256] (voxels per axis), got 0"),
+    ("hull_noise.py", ["--resolution", "-3"], "--resolution must be in [2, 256] (voxels per axis), got -3"),
+    ("hull_depths.py", ["out", "--resolution", "0"], "--resolution must be in [2, 256] (voxels per axis), got 0"),
+    ("run_steps.py", ["--iteration", "-5"], "--iteration must be >= 0, got -5"),
+    ("pose_optimum.py", ["--pose-lr", "nan"], "--pose-lr must be a positive number, got nan"),
+    ("view_agreement.py", ["--refine-iters", "-1"], "--refine-iters must be >= 1, got -1"),
+    ("rasterize.py", ["--tile-size", "0", *QUICK_RASTERIZE], "--tile-size must be >= 1 (pixels), got 0"),
+    # a pixel block the rasterizer would shrink (each side to a power of two dividing the tile): the columns would
+    # be labelled with a block that did not run
+    ("rasterize.py", ["--blocks", "3x3,8x8", *QUICK_RASTERIZE],
+     "--blocks 3x3: the rasterizer would run it as 2x2 on 4 px tiles"),
+    ("rasterize.py", ["--blocks", "1x1,8x8", *QUICK_RASTERIZE],
+     "--blocks 8x8: the rasterizer would run it as 4x4 on 4 px tiles"),
+    ("rasterize.py", ["--tile-size", "16", "--blocks", "8x8", *QUICK_RASTERIZE],
+     "--blocks 8x8: pixel block 8x8: the rasterizer is built for"),
+    ("train_step.py", ["--pixel-blocks", "1x1,3x3", *QUICK_TRAIN_STEP],
+     "--pixel-blocks '1x1,3x3': the rasterizer would run 3x3 as 2x2 on its 4 px tiles"),
+    ("train_step.py", ["--pixel-blocks", "8x8", *QUICK_TRAIN_STEP], "would run 8x8 as 4x4"),
+    # maryrose trains on 4 views: a step of 8 renders those 4 (was: a column labelled 8v)
+    ("train_step.py", ["--views", "1,8", *QUICK_TRAIN_STEP],
+     "--views '1,8': a step renders at most maryrose's 4 training views, not 8"),
+    ("train_step.py", ["--views", "0", *QUICK_TRAIN_STEP], "--views '0': 0 is below 1"),  # was a ZeroDivisionError
+    ("train_step.py", ["--sh-degree", "9", *QUICK_TRAIN_STEP], "--sh-degree must be 0-3, got 9"),
+    # OpenSplat's binary checked before the first configuration, not run after the last
+    ("train_step.py", ["--opensplat", "nosuch/opensplat", *QUICK_TRAIN_STEP],
+     "--opensplat nosuch/opensplat: not an executable file"),
+    ("train_step.py", ["--opensplat", ".", *QUICK_TRAIN_STEP], "--opensplat .: not an executable file"),
 ])
 def test_bad_input_is_one_error_line_before_any_work(script, arguments, message, tmp_path, monkeypatch, capsys):
     """Checked before the scene is loaded (its name here is unknown too) and before any line of a table. Run in
     this process as `python bench/SCRIPT` runs it (`__main__`, its `clean_errors` entry point), which spares a
     process start per case; the test above starts each script as a process."""
     scene = [] if script in ("train_step.py", "rasterize.py") else ["nosuchscene"]
-    monkeypatch.setattr(sys, "argv", [str(BENCH / script), *scene, *arguments])
+    code, output = _run_in_process(script, [*scene, *arguments], tmp_path, monkeypatch, capsys)
+    assert code == 2, output.err
+    errors = [line for line in output.err.splitlines() if line.startswith("error:")]
+    assert len(errors) == 1 and message in errors[0] and "Traceback" not in output.err, output.err
+    assert output.out == ""
+
+
+def test_repair_refuses_a_keep_folder_that_holds_an_earlier_run(tmp_path, monkeypatch, capsys):
+    """A second run into the same --keep would reuse the first's repair pairs and copy its repaired checkpoint as
+    its own coarse one: refused before the scene is loaded. Another scene's runs there are no obstacle (the scene,
+    unknown, is then the error)."""
+    (tmp_path / "kept" / "nosuchscene-4v-repair" / "repair").mkdir(parents=True)
+    code, output = _run_in_process("repair.py", ["nosuchscene", "--keep", "kept"], tmp_path, monkeypatch, capsys)
+    assert code == 2 and "Traceback" not in output.err and output.out == ""
+    assert output.err.startswith("error: --keep kept: kept/nosuchscene-4v-repair exists"), output.err
+    code, output = _run_in_process("repair.py", ["otherscene", "--keep", "kept"], tmp_path, monkeypatch, capsys)
+    assert code == 2 and "--keep" not in output.err and "otherscene" in output.err, output.err
+
+
+def test_train_step_child_failure_is_one_error_line(tmp_path, monkeypatch, capsys):
+    """A configuration's process that fails (its traceback on stderr) is one line naming the configuration and the
+    child's error, not a RuntimeError holding the child's traceback."""
+    run = subprocess.run
+
+    def failing_child(command, *args, **kwargs):
+        if str(command[1]).endswith("train_step.py"):
+            return subprocess.CompletedProcess(command, 1, "", "Traceback (most recent call last):\n  File ...\n"
+                                               "warpbags.errors.WarpbagsError: sh_degree must be 0-3, got 4\n")
+        return run(command, *args, **kwargs)
+
+    monkeypatch.setattr(subprocess, "run", failing_child)
+    code, output = _run_in_process("train_step.py", ["--inits", "random", "--views", "1"], tmp_path, monkeypatch,
+                                   capsys)
+    assert code == 2 and "Traceback" not in output.err and output.out == "", output.err
+    assert output.err.startswith("error: the configuration --one random 1 ") and output.err.endswith(
+        "failed: warpbags.errors.WarpbagsError: sh_degree must be 0-3, got 4\n"), output.err
+
+
+def test_opensplat_that_runs_no_steps_is_one_error_line(monkeypatch):
+    """An OpenSplat that exits without its "Step N:" lines (here `true`) is a WarpbagsError naming the binary, not a
+    RuntimeError."""
+    monkeypatch.syspath_prepend(str(BENCH))
+    import train_step  # noqa: PLC0415 - bench/ is on the path for this test only
+
+    monkeypatch.setattr(train_step, "write_opensplat_project", lambda folder, points: {})  # no scene to write
+    binary = Path(shutil.which("true"))
+    with pytest.raises(WarpbagsError) as error:
+        train_step.run_opensplat(binary, points=10, steps=2, warmup=1)
+    assert str(error.value) == (f"--opensplat {binary}: exited with code 0 after 0 \"Step N:\" lines, needed 3 or "
+                                "more; its last line: (none)")
+
+
+def _run_in_process(script: str, arguments: list[str], tmp_path, monkeypatch, capsys):
+    """Run `python bench/SCRIPT ARGUMENTS` in this process (`__main__`, its `clean_errors` entry point) in
+    `tmp_path`: its exit code and captured output."""
+    monkeypatch.setattr(sys, "argv", [str(BENCH / script), *arguments])
     monkeypatch.syspath_prepend(str(BENCH))
     monkeypatch.chdir(tmp_path)
     threads = torch.get_num_threads()  # the scripts set torch's threads for their own process
@@ -75,11 +176,7 @@ def test_bad_input_is_one_error_line_before_any_work(script, arguments, message,
             runpy.run_path(str(BENCH / script), run_name="__main__")
     finally:
         torch.set_num_threads(threads)
-    output = capsys.readouterr()
-    assert exit_.value.code == 2, output.err
-    errors = [line for line in output.err.splitlines() if line.startswith("error:")]
-    assert len(errors) == 1 and message in errors[0] and "Traceback" not in output.err, output.err
-    assert output.out == ""
+    return exit_.value.code, capsys.readouterr()
 
 
 @pytest.mark.parametrize("script, arguments", [("rasterize.py", ["--quick"]), ("train_step.py", [])])
