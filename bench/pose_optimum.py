@@ -123,22 +123,22 @@ def parse_start_noise(text: str) -> list[tuple[float, float]]:
 def run_scene(name: str, scene, views: int, fit_iters: list[int], pose_iters: int, lr: float, preset: str,
               overrides: dict, start_noises: list[tuple[float, float]], optimizer: str = "adam") -> list[dict]:
     config = load_preset(preset, **run_settings(views, fit_iters, overrides))
-    trainer = Trainer(training_scene(scene, config), config, tempfile.mkdtemp(prefix="pose-optimum-"),
-                      log=lambda message: None)
-    rows, started = [], time.time()
-    for fit in sorted(fit_iters):
-        while trainer.iteration < fit:
-            trainer.train_step()
-        for noise in start_noises:
-            row = {"scene": name, "views": views, "size": trainer.scene.width, "fit_iters": fit,
-                   "optimizer": optimizer, "pose_iters": pose_iters, "start_noise": list(noise),
-                   **pose_only_optimum(trainer, pose_iters, lr, noise, optimizer),
-                   "minutes": (time.time() - started) / 60}
-            rows.append(row)
-            print(f"{name:<22} {views:>5} {row['size']:>5} {fit:>8} {noise[0]:>5g}/{noise[1]:<5g}"
-                  f" {row['start_rotation_mean']:>9.2f} {row['rotation_mean']:>10.2f} {row['rotation_max']:>8.2f}"
-                  f" {row['centre_floor']:>12.2f} {row['translation_pct']:>14.2f} {row['minutes']:>8.1f}", flush=True)
-    return rows
+    with tempfile.TemporaryDirectory(prefix="pose-optimum-") as folder:  # removed after, as nothing there is kept
+        trainer = Trainer(training_scene(scene, config), config, folder, log=lambda message: None)
+        rows, started = [], time.time()
+        for fit in sorted(fit_iters):
+            while trainer.iteration < fit:
+                trainer.train_step()
+            for noise in start_noises:
+                row = {"scene": name, "views": views, "size": trainer.scene.width, "fit_iters": fit,
+                       "optimizer": optimizer, "pose_iters": pose_iters, "start_noise": list(noise),
+                       **pose_only_optimum(trainer, pose_iters, lr, noise, optimizer),
+                       "minutes": (time.time() - started) / 60}
+                rows.append(row)
+                print(f"{name:<22} {views:>5} {row['size']:>5} {fit:>8} {noise[0]:>5g}/{noise[1]:<5g}"
+                      f" {row['start_rotation_mean']:>9.2f} {row['rotation_mean']:>10.2f} {row['rotation_max']:>8.2f}"
+                      f" {row['centre_floor']:>12.2f} {row['translation_pct']:>14.2f} {row['minutes']:>8.1f}", flush=True)
+        return rows
 
 
 def main() -> None:
