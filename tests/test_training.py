@@ -247,7 +247,7 @@ def test_no_pose_opt_keeps_poses_and_trains_one_round(scene_dir, tmp_path):
     trainer.train()
     assert torch.all(trainer.cameras.params() == 0)
     torch.testing.assert_close(trainer.current_viewmats(), trainer.viewmats_init, rtol=0, atol=0)
-    assert trainer.schedule.round_length == 12  # one round: no re-initialization throws the trained Gaussians away
+    assert trainer.schedule.rounds == 1  # one round: no re-initialization throws the trained Gaussians away
 
 
 @pytest.mark.parametrize("rounds", [1, 2])
@@ -781,9 +781,9 @@ def test_a_camera_left_rolled_off_is_turned_back_by_the_hypotheses(scene_dir, tm
     assert read_pose_history(tmp_path).iterations.tolist() == list(range(10, 201, 10))
 
 
-def test_a_search_in_a_shorter_last_round_trains_to_the_end(scene_dir, tmp_path):
-    """8 iterations in 3 rounds: rounds of 3, 3 and 2; the search in the last round trains its 2 iterations per trial
-    and the run ends at iteration 8 with its results written."""
+def test_a_search_in_the_last_round_trains_to_the_end(scene_dir, tmp_path):
+    """8 iterations in 3 rounds: rounds of 2, 3 and 3 (the longer ones last); the search in the last round trains
+    its 3 iterations per trial and the run ends at iteration 8 with its results written."""
     trainer = make_trainer(scene_dir, tmp_path, iters=8, rounds=3, pose_opt_start=0,
                            camera={"hypotheses_round": 2, "hypothesis_angles": (10.0, 20.0)})
     trainer.train()
@@ -1249,3 +1249,32 @@ def test_the_coarse_stage_does_not_densify_at_its_last_iteration(scene_dir, tmp_
     assert [record["iter"] for record in records if record.get("cloned", 0) + record.get("split", 0)] == [10, 20, 30]
     assert len(trainer.model.params["means"]) == counts[-1]  # the last step changed no row
     assert not trainer.schedule.at(39).densify and all(trainer.schedule.at(i).densify for i in range(39))
+
+
+def test_the_blur_shrinks_over_each_round_and_reaches_the_loss_as_does_the_depth_mode(scene_dir, tmp_path):
+    """Nothing checked that --blur-px / --blur-until blur anything or that --depth-loss pearson reaches the loss
+    (the schedule's blur returning 0, or the depth term called without its mode, passed)."""
+    schedule = Schedule(tiny_config(iters=40, rounds=2, blur_sigma_px=2.0, blur_until=10))
+    assert [schedule.at(i).blur_sigma for i in (0, 5, 10, 19, 20, 25, 39)] == pytest.approx([2, 1, 0, 0, 2, 1, 0])
+    trainers = {mode: make_trainer(scene_dir, tmp_path / mode, depth_loss=mode) for mode in ("mad", "pearson")}
+    views = torch.arange(trainers["mad"].num_cameras)
+    settings = trainers["mad"].schedule.at(0)
+    assert settings.depth and settings.blur_sigma == 0
+    terms = {mode: trainer.model.loss(views, trainer.current_viewmats(), settings)[1]
+             for mode, trainer in trainers.items()}
+    assert terms["mad"]["depth"] != pytest.approx(terms["pearson"]["depth"], rel=1e-3)
+    blurred = trainers["mad"].model.loss(views, trainers["mad"].current_viewmats(),
+                                         dataclasses.replace(settings, blur_sigma=2.0))[1]
+    assert blurred["l1"] < 0.95 * terms["mad"]["l1"]  # blurred renders and targets differ less
+
+
+def test_an_sh_degree_no_round_reaches_is_said(scene_dir, tmp_path):
+    """--set sh_degree=2 on the quick preset (rounds of 200, a degree every 1000 iterations of a round) trained
+    degree 0 only, its higher coefficients saved as zeros, without a word."""
+    scene = load_scene(scene_dir, name="tiny")
+    for every, said in ((1000, True), (5, False)):
+        notes = []
+        config = tiny_config(iters=40, rounds=2, sh_degree=2, sh_degree_every=every)
+        Trainer(training_scene(scene, config), config, tmp_path / str(every), log=notes.append)
+        assert Schedule(config).final_sh_degree() == (0 if said else 2)
+        assert any("sh_degree 2 is reached after" in note and "up to degree 0" in note for note in notes) is said

@@ -75,13 +75,12 @@ class Schedule:
         # (the last round's Gaussians are the result): the last iters % rounds rounds take one iteration more.
         short, longer = divmod(config.iters, self.rounds)
         self.round_starts = [k * short + max(0, k - (self.rounds - longer)) for k in range(self.rounds)]
-        self.round_length = math.ceil(config.iters / self.rounds)  # the longest round: the repair stage's cycle
 
     def round_iteration(self, iteration: int) -> int:
-        """The iteration within its coarse round; in the repair stage, within cycles of the longest round's length
-        (what the repair stage's densification counts)."""
+        """The iteration within its coarse round; in the repair stage, within the repair stage (nothing there
+        restarts: it neither densifies nor steps the SH degree or the blur)."""
         if iteration >= self.config.iters:
-            return (iteration - self.config.iters) % self.round_length
+            return iteration - self.config.iters
         return iteration - self.round_starts[self.round_index(iteration)]
 
     def starts_round(self, iteration: int) -> bool:
@@ -103,6 +102,11 @@ class Schedule:
         if self.in_repair(iteration):
             return self.config.sh_degree
         return min(self.config.sh_degree, self.round_iteration(iteration) // max(self.config.sh_degree_every, 1))
+
+    def final_sh_degree(self) -> int:
+        """The SH degree the saved model was last trained at: the repair stage's (the configured one), else the one
+        the last coarse round's last iteration reaches (a degree every `sh_degree_every` iterations of the round)."""
+        return self.sh_degree(self.config.total_iters - 1)
 
     def blur_sigma(self, iteration: int) -> float:
         """Coarse-to-fine blur (pixels)."""

@@ -97,6 +97,10 @@ class Trainer:
         if config.pose_opt and config.pose_opt_start >= config.iters:  # e.g. the paper preset cut to a short run
             self.log(f"pose optimization starts at iteration {config.pose_opt_start}, after the run's {config.iters}: "
                      "the poses stay where the start procedures put them (--pose-opt-start to move them)")
+        if (reached := self.schedule.final_sh_degree()) < config.sh_degree:
+            self.log(f"sh_degree {config.sh_degree} is reached after {config.sh_degree * config.sh_degree_every} "
+                     f"iterations of a round; the last round trains up to degree {reached}, so the model's higher "
+                     "coefficients stay zero (a smaller sh_degree_every, or longer rounds)")
         if empty_windows := self.schedule.rounds_without_pose_window():
             self.log(f"the pose window of round(s) {', '.join(str(k) for k in empty_windows)} (0-based) holds no "
                      "iteration of the round: poses hold still there (a wider pose_round_window(s) or fewer rounds)")
