@@ -389,8 +389,8 @@ class Trainer:
             self.generator.set_state(start_generator)
 
         turns = hypothesis_turns(camera_config.hypothesis_axes, camera_config.hypothesis_angles)
-        self.log(f"round {round_index}: camera {camera} fits worst; the round is trained unturned and with each of "
-                 f"{len(turns)} turns of it about the object")
+        self.log(f"round {round_index} (0-based): camera {camera} fits worst; the round is trained unturned and with "
+                 f"each of {len(turns)} turns of it about the object")
         unturned, best = None, None
         for label, rotation in [("not turned", None), *turns]:
             back_to_start()
