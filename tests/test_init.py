@@ -80,20 +80,40 @@ def test_mean_neighbour_distances_rejects_what_it_cannot_measure():
         mean_neighbour_distances(points, 3)
 
 
-def test_a_two_view_hull_is_the_intersection_of_the_silhouettes():
-    """With 2 views the default one missed view kept every voxel inside either silhouette: the union, each view's
-    cone out to the cube's walls (85% of the hull outside a sphere). Two views must agree, as one holds no depth."""
-    eyes = torch.tensor([[4.0, 0.0, 0.0], [0.0, 4.0, 0.0]])
+def _sphere_silhouettes(eyes: torch.Tensor, size: int = 64):
+    """Cameras at `eyes` looking at the origin, and the unit sphere's silhouette in each (rays within 1 of it)."""
     viewmats = torch.stack([look_at(eye, torch.zeros(3)) for eye in eyes])
-    Ks = torch.tensor([[60.0, 0.0, 32.0], [0.0, 60.0, 32.0], [0.0, 0.0, 1.0]]).expand(2, 3, 3)
-    ys, xs = torch.meshgrid(torch.arange(64.0) + 0.5, torch.arange(64.0) + 0.5, indexing="ij")
+    Ks = torch.tensor([[60.0, 0.0, size / 2], [0.0, 60.0, size / 2], [0.0, 0.0, 1.0]]).expand(len(eyes), 3, 3)
+    ys, xs = torch.meshgrid(torch.arange(float(size)) + 0.5, torch.arange(float(size)) + 0.5, indexing="ij")
     masks = []
-    for viewmat, K, eye in zip(viewmats, Ks, eyes):  # the unit sphere's silhouette: rays passing within 1 of the origin
+    for viewmat, K, eye in zip(viewmats, Ks, eyes):
         rays = pixel_directions(torch.stack([xs, ys], -1).reshape(-1, 2), K) @ viewmat[:3, :3]
         rays = rays / rays.norm(dim=-1, keepdim=True)
         along = -(eye * rays).sum(-1)
-        masks.append(((eye + along[:, None] * rays).norm(dim=-1) < 1.0).float().reshape(64, 64))
-    voxels, edge = visual_hull(torch.stack(masks), viewmats, Ks, resolution=32, dilation_px=0, missed_views=1)
+        masks.append(((eye + along[:, None] * rays).norm(dim=-1) < 1.0).float().reshape(size, size))
+    return viewmats, Ks, torch.stack(masks)
+
+
+def test_the_masks_dilation_widens_the_hull_to_hold_what_slightly_wrong_poses_carve_off():
+    """The quick preset dilates every mask by 2 px before carving (`hull_dilation_px`), so that a hull carved at
+    poses a few pixels off still holds the object; no test passed a dilation (skipping it passed)."""
+    eyes = torch.tensor([[4.0, 0.0, 0.0], [0.0, 4.0, 0.0], [0.0, 0.0, 4.0]])
+    viewmats, Ks, masks = _sphere_silhouettes(eyes)
+    shifted = masks.roll(3, dims=2)  # one view's silhouette 3 px off, as a pose a little off would put it
+    masks = torch.stack([masks[0], shifted[1], masks[2]])
+    plain, edge = visual_hull(masks, viewmats, Ks, resolution=32, dilation_px=0, missed_views=0)
+    dilated, _ = visual_hull(masks, viewmats, Ks, resolution=32, dilation_px=3, missed_views=0)
+    sphere = torch.randn(2000, 3, generator=torch.Generator().manual_seed(0))
+    sphere = 0.9 * sphere / sphere.norm(dim=-1, keepdim=True)  # points just inside the object's surface
+    held = [float((torch.cdist(sphere, voxels).min(dim=1).values < edge).float().mean()) for voxels in (plain, dilated)]
+    assert held[0] < 0.97 and held[1] > 0.99, held
+
+
+def test_a_two_view_hull_is_the_intersection_of_the_silhouettes():
+    """With 2 views the default one missed view kept every voxel inside either silhouette: the union, each view's
+    cone out to the cube's walls (85% of the hull outside a sphere). Two views must agree, as one holds no depth."""
+    viewmats, Ks, masks = _sphere_silhouettes(torch.tensor([[4.0, 0.0, 0.0], [0.0, 4.0, 0.0]]))
+    voxels, edge = visual_hull(masks, viewmats, Ks, resolution=32, dilation_px=0, missed_views=1)
     inside = (voxels.norm(dim=-1) < 1.0 + edge).float().mean()
     assert len(voxels) > 100 and inside > 0.5, (len(voxels), float(inside))
 

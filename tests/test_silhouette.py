@@ -67,6 +67,17 @@ def test_centroid_start_recovers_an_off_axis_camera(scene):
     assert center.norm() < 0.3  # the synthetic object sits at the origin of the normalized world
 
 
+@pytest.mark.parametrize("centroid_start", [True, False])
+def test_the_mask_centroid_start_turns_the_cameras_only_when_asked(scene, centroid_start):
+    """`--set camera.centroid_start=false` was never tested (dropping the setting passed): off, the given poses come
+    back unchanged; on, the noisy cameras are turned."""
+    views = scene.subset(scene.train_views(4))
+    noisy = perturb_viewmats(views.viewmats, 10.0, 0.0, seed=3)
+    config = load_preset("quick", camera={"centroid_start": centroid_start})
+    start, _ = starting_poses(noisy, views.masks, views.Ks, config, lambda message: None)
+    assert torch.equal(start, noisy) is not centroid_start
+
+
 @pytest.mark.parametrize("pose_opt", [True, False])
 def test_a_forward_facing_rig_keeps_its_poses_and_takes_the_origin_as_object_centre(pose_opt):
     """Parallel optical axes (four cameras on a line, a forward-facing capture) have no meeting point: the poses stay

@@ -277,12 +277,20 @@ def test_resume_equals_uninterrupted(scene_dir, tmp_path, rounds):
 
 @pytest.mark.parametrize("views, continued", [(4, False), (6, True)])
 def test_the_coherence_solve_continues_the_masks_beyond_the_frame_from_six_views_on(scene_dir, tmp_path, views,
-                                                                                     continued):
+                                                                                     continued, monkeypatch):
     config = tiny_config(views=views, camera={"coherence_iters": 2})
-    lines = []
+    lines, margins = [], []
+    solve = trainer_module.coherent_start
+
+    def recording_solve(cameras, targets, *args):  # what the solve is given, not only what the log says
+        margins.append(targets.margin)
+        return solve(cameras, targets, *args)
+
+    monkeypatch.setattr(trainer_module, "coherent_start", recording_solve)
     Trainer(training_scene(load_scene(scene_dir, name="tiny"), config), config, tmp_path, log=lines.append)
     solve = [line for line in lines if "silhouette coherence of the starting poses" in line]
     assert len(solve) == 1 and ("masks continued beyond the image border" in solve[0]) == continued
+    assert len(margins) == 1 and (margins[0] > 0) == continued
 
 
 def test_feature_matches_are_found_for_a_run_that_uses_them_at_the_images_resolution(scene_dir):
