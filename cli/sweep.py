@@ -29,6 +29,8 @@ def sweep(
     preset: str = typer.Option(DEFAULT_PRESET, "--preset", help="Training preset for every run."),
     iters: Optional[int] = typer.Option(None, "--iters", help="Coarse iterations per run (default: the preset's)."),
     repair_iters: Optional[int] = typer.Option(None, "--repair-iters", help="Repair iterations per run (default: the preset's)."),
+    refine_iters: int = typer.Option(50, "--refine-iters", help="Test-pose refinement iterations of each run's "
+                                     "evaluation (its PSNR refined; 0: none)."),
     settings: Optional[list[str]] = typer.Option(
         None, "--set", help="Any TrainConfig field for every run: name=value or group.name=value, JSON values "
         "(repeatable), e.g. --set lr.pose=0.005; not the fields the sweep sets per run (views, noise, seeds, "
@@ -54,7 +56,9 @@ def sweep(
     sweep_executor = make_executor(executor, address=address, cpus_per_run=cpus_per_run,
                                    gpus_per_run=gpus_per_run, device=device)
     overrides = tuple(sweep_overrides(iters, repair_iters, settings or [], executor).items())
-    spec = SweepSpec(scene=scene, out=out or Path("runs") / f"sweep-{Path(scene).name}",
+    if refine_iters < 0:
+        raise WarpbagsError(f"--refine-iters must be >= 0, got {refine_iters}")
+    spec = SweepSpec(scene=scene, out=out or Path("runs") / f"sweep-{Path(scene).name}", refine_iters=refine_iters,
                      rot_noises=tuple(parse_numbers(rot_noises, "--rot-noises", minimum=0, maximum=180)),
                      views=tuple(parse_numbers(views, "--views", int, minimum=2)),  # a visual hull needs two
                      seeds=tuple(parse_numbers(seeds, "--seeds", int)),

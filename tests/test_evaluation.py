@@ -706,6 +706,8 @@ def test_sweep_bad_values_one_line(tmp_path):
     assert result.exit_code == 2 and "--rot-noises '10,200': 200 is above 180" in result.output
     result = runner.invoke(app, ["sweep", "maryrose", "--rot-noises", "nan", "--out", str(tmp_path / "s")])
     assert result.exit_code == 2 and "--rot-noises 'nan': 'nan' is not a finite number" in result.output
+    result = runner.invoke(app, ["sweep", "maryrose", "--refine-iters", "-1", "--out", str(tmp_path / "s")])
+    assert result.exit_code == 2 and "--refine-iters must be >= 0, got -1" in result.output
     (tmp_path / "a-file").write_text("")
     result = runner.invoke(app, ["sweep", "maryrose", "--out", str(tmp_path / "a-file")])
     message = " ".join(result.output.split())

@@ -3,6 +3,8 @@ eval.json of a finished run it reads is checked, and a metric held as null shows
 
 from __future__ import annotations
 
+import csv
+import fcntl
 import json
 import math
 import shutil
@@ -15,7 +17,7 @@ from warpbags.cli.main import app
 from warpbags.data import SyntheticOptions, ensure_synthetic_scene
 from warpbags.errors import WarpbagsError
 from warpbags.files import finite_json
-from warpbags.sweep import SweepSpec, combination_config, make_executor, run_sweep, sweep_runs
+from warpbags.sweep import LocalExecutor, SweepSpec, combination_config, make_executor, run_sweep, sweep_runs
 
 runner = CliRunner()
 
@@ -26,15 +28,18 @@ def scene(tmp_path_factory):
                                   cache_dir=tmp_path_factory.mktemp("cache"))
 
 
-def evaluation(psnr: float = 20.0, rot_final: float = 1.0) -> dict:
-    """The parts of an eval.json (`evaluate_run`) that a sweep's row reads; each stage's and each row's numbers
-    differ, so that a row that read the wrong one would show it."""
+def evaluation(psnr: float = 20.0, rot_final: float = 1.0, refine_iters: int = SweepSpec.refine_iters) -> dict:
+    """The parts of an eval.json (`evaluate_run`, with the sweep's refinement iterations by default) that a sweep's
+    row reads; each stage's and each row's numbers differ, so that a row that read the wrong one would show it."""
     poses = {stage: {"rotation_deg_mean": rotation, "translation_mean": translation}
              for stage, rotation, translation in (("initial", 5.0, 0.05), ("final", rot_final, 0.01))}
     images = {"mean": {"psnr": psnr, "ssim": 0.9, "flip": 0.1, "lpips": None}, "per_view": []}
-    refined = {"mean": {**images["mean"], "psnr": psnr + 1.5}, "per_view": []}
-    return {"alignment": "procrustes", "poses": {"procrustes": poses}, "images": images,
-            "images_after_test_pose_refinement": {"iters": 2, **refined}}
+    report = {"alignment": "procrustes", "poses": {"procrustes": poses}, "images": images}
+    if refine_iters:
+        report["images_after_test_pose_refinement"] = {
+            "iters": refine_iters, "mean": {"psnr": psnr + 1.5, "ssim": 0.95, "flip": 0.05, "lpips": None},
+            "per_view": []}
+    return report
 
 
 def write_evaluation(folder, report: dict) -> None:
@@ -85,6 +90,60 @@ def test_null_metrics_of_finished_runs_show_as_na_and_stay_out_of_the_plots(scen
         assert (out / name).stat().st_size > 100, name
 
 
+def test_the_tables_and_the_printed_table_hold_each_runs_values_in_their_columns(scene, tmp_path):
+    """Nothing checked sweep.csv, the printed table's columns or a row's ssim and flip: a CSV without its first row, a
+    table with rot init and final swapped or the refined PSNR under "PSNR", and rows with the refined SSIM and FLIP
+    passed. sweep.csv holds sweep.json's rows; each printed row holds its run's values under their headers."""
+    out = tmp_path / "sweep"
+    values = {"baseline-4v-rot5-seed0": (20.0, 4.0), "bags-4v-rot5-seed0": (24.0, 0.5)}  # PSNR, final rotation error
+    for run, (psnr, rot_final) in values.items():
+        write_evaluation(out / run, evaluation(psnr=psnr, rot_final=rot_final))
+    result = runner.invoke(app, ["sweep", str(scene), "--rot-noises", "5", "--views", "4", "--out", str(out)],
+                           env={"COLUMNS": "200"})
+    assert result.exit_code == 0, result.output
+    rows = json.loads((out / "sweep.json").read_text())
+    assert [(row["run"], row["psnr"], row["psnr_refined"], row["rot_err_final"]) for row in rows] == [
+        (run, psnr, psnr + 1.5, rot_final) for run, (psnr, rot_final) in values.items()]
+    assert all((row["ssim"], row["flip"]) == (0.9, 0.1) for row in rows)  # unrefined, as the PSNR column is
+    with open(out / "sweep.csv", newline="") as handle:
+        assert list(csv.DictReader(handle)) == [{key: "" if value is None else str(value) for key, value in row.items()}
+                                                for row in rows]
+    header, *printed = [[cell.strip() for cell in line.split(bar)[1:-1]] for line in result.output.splitlines()
+                        for bar in "┃│" if line.startswith(bar)]
+    assert header == ["method", "views", "noise", "seed", "rot init", "rot final", "PSNR", "PSNR refined"]
+    assert printed == [[row["method"], "4", "5", "0", "5.00", f"{row['rot_err_final']:.2f}", f"{row['psnr']:.2f}",
+                        f"{row['psnr_refined']:.2f}"] for row in rows]
+
+
+def test_the_curves_legend_tells_seeds_apart(scene, tmp_path, monkeypatch):
+    """The curves of a sweep over two seeds had the same legend entry twice ("baseline, 4v, 5 deg"): with more than
+    one seed, each names its seed."""
+    import warpbags.report as report
+
+    legends = {}
+    save_figure = report._save_figure
+
+    def saved(plt, figure, path):
+        legends[path.name] = [text.get_text() for axis in figure.axes if axis.get_legend()
+                              for text in axis.get_legend().get_texts()]
+        save_figure(plt, figure, path)
+
+    monkeypatch.setattr(report, "_save_figure", saved)
+    out = tmp_path / "sweep"
+    labels = []
+    for seeds in ((0,), (0, 1)):
+        spec = SweepSpec(scene=str(scene), out=out, rot_noises=(5,), views=(4,), seeds=seeds)
+        for run in sweep_runs(spec):
+            if not (out / run.name).exists():
+                write_evaluation(out / run.name, evaluation())
+                (out / run.name / "log.jsonl").write_text(
+                    '{"iter": 1, "loss": 0.5, "rot_err_deg": 5.0, "trans_err": 0.1}\n')
+        run_sweep(spec, log=lambda message: None)
+        labels.append(legends["curves.png"])
+    assert labels == [["baseline, 4v, 5 deg", "bags, 4v, 5 deg"],  # one seed: no need to name it
+                      [f"{method}, 4v, 5 deg, seed {seed}" for seed in (0, 1) for method in ("baseline", "bags")]]
+
+
 @pytest.mark.parametrize("content, named", [
     ("{\"alignment\": \"procrustes\", ", "unreadable (Expecting"),  # cut short
     (json.dumps({key: value for key, value in evaluation().items() if key != "poses"}), "no poses (not an evaluation"),
@@ -113,6 +172,156 @@ def test_unusable_eval_json_of_a_finished_run_is_one_line_before_anything_trains
     assert f"{out / 'bags-4v-rot5-seed0' / 'eval.json'}: {named}" in lines[0], lines[0]
     assert lines[0].endswith("remove it and run the sweep again to evaluate the run anew"), lines[0]
     assert sorted(path.name for path in out.iterdir()) == ["bags-4v-rot5-seed0"]
+
+
+def pairwise_evaluation() -> dict:
+    """`evaluation()` as `warpbags eval --pairwise` writes it for cameras that Procrustes fits: aligned pairwise."""
+    report = evaluation()
+    report["poses"]["pairwise"] = report["poses"]["procrustes"]
+    return {**report, "alignment": "pairwise"}
+
+
+@pytest.mark.parametrize("report, named", [
+    (evaluation(refine_iters=100), "evaluated with 100 test pose refinement iterations, not the sweep's 50"),
+    (evaluation(refine_iters=0), "evaluated with 0 test pose refinement iterations, not the sweep's 50"),
+    (pairwise_evaluation(), "evaluated with the pairwise alignment, not the sweep's procrustes"),
+])
+def test_a_finished_run_evaluated_otherwise_than_the_sweep_is_one_line_before_anything_trains(scene, tmp_path,
+                                                                                                monkeypatch, report,
+                                                                                                named):
+    """eval.json was read as it stood: a run evaluated again by `warpbags eval` (100 refinement iterations,
+    --refine-iters 0, --pairwise) sat in the table beside the sweep's own evaluations, and its "PSNR refined" was the
+    unrefined PSNR when it had no refinement. It is refused, naming the file, before any run trains; evaluating it
+    again is the user's to ask (the sweep does not overwrite an evaluation someone made on purpose)."""
+
+    def train(*args, **kwargs):
+        raise AssertionError("a run trained")
+
+    monkeypatch.setattr("warpbags.sweep.start_or_resume", train)
+    out = tmp_path / "sweep"
+    write_evaluation(out / "bags-4v-rot5-seed0", report)  # after baseline-4v-rot5-seed0, which is not done
+    result = runner.invoke(app, ["sweep", str(scene), "--rot-noises", "5", "--views", "4", "--out", str(out)])
+    lines = [line for line in result.output.splitlines() if line.strip()]
+    assert result.exit_code == 2 and len(lines) == 1, result.output
+    assert f"{out / 'bags-4v-rot5-seed0' / 'eval.json'}: {named}" in lines[0], lines[0]
+    assert lines[0].endswith("remove it and run the sweep again to evaluate the run anew"), lines[0]
+    assert sorted(path.name for path in out.iterdir()) == ["bags-4v-rot5-seed0"]
+
+
+def test_a_sweep_without_refinement_has_no_refined_psnr_and_two_views_align_pairwise(scene, tmp_path):
+    """psnr_refined of a sweep that does not refine the test poses was the unrefined PSNR. It is None; and a run of
+    two views, which Procrustes cannot align (eval.json holds its pairwise pose errors alone), is the sweep's own."""
+    out = tmp_path / "sweep"
+    two_views = evaluation(refine_iters=0)
+    two_views["poses"]["pairwise"] = two_views["poses"].pop("procrustes")
+    for run in ("baseline-2v-rot5-seed0", "bags-2v-rot5-seed0"):
+        write_evaluation(out / run, {**two_views, "alignment": "pairwise"})
+    rows = run_sweep(SweepSpec(scene=str(scene), out=out, rot_noises=(5,), views=(2,), refine_iters=0),
+                     log=lambda message: None)
+    assert [(row["psnr"], row["psnr_refined"], row["rot_err_final"]) for row in rows] == [(20.0, None, 1.0)] * 2
+
+
+def test_a_damaged_log_of_a_finished_run_is_one_line_before_anything_trains(scene, tmp_path, monkeypatch):
+    """The curves plot reads each run's log.jsonl: a damaged line in a finished run's log stopped the sweep after every
+    new run had trained and sweep.csv and sweep.json had been rewritten, before the plots. It is one line naming the
+    line, before any run trains, and the sweep writes nothing."""
+
+    def train(*args, **kwargs):
+        raise AssertionError("a run trained")
+
+    monkeypatch.setattr("warpbags.sweep.start_or_resume", train)
+    out = tmp_path / "sweep"
+    done = out / "bags-4v-rot5-seed0"  # after baseline-4v-rot5-seed0, which is not done
+    write_evaluation(done, evaluation())
+    (done / "log.jsonl").write_text('{"iter": 1, "loss": 0.5, "rot_err_deg": 5.0, "trans_err": 0.1}\n{"iter": 2, "lo\n')
+    result = runner.invoke(app, ["sweep", str(scene), "--rot-noises", "5", "--views", "4", "--out", str(out)])
+    lines = [line for line in result.output.splitlines() if line.strip()]
+    assert result.exit_code == 2 and len(lines) == 1, result.output
+    assert f"{done / 'log.jsonl'}:2: not a log record" in lines[0], lines[0]
+    assert sorted(path.name for path in out.iterdir()) == ["bags-4v-rot5-seed0"]
+
+
+def test_a_second_sweep_into_a_folder_is_one_line_while_the_first_runs(scene, tmp_path, monkeypatch):
+    """Two sweeps into one folder at once both trained the same runs (one clearing the other's unfinished start, or
+    both resuming one run into one log). A sweep holds a lock on its folder from before it reads it to after its
+    plots and tables, with either executor (the driver holds it); a second sweep is one line before it reads or
+    writes anything, and the lock file is gone when the sweep ends."""
+
+    def train(*args, **kwargs):
+        raise AssertionError("a run trained")
+
+    monkeypatch.setattr("warpbags.sweep.start_or_resume", train)
+    out = tmp_path / "sweep"
+    out.mkdir()
+    with open(out / ".sweep.lock", "a") as held:  # as a running sweep holds it
+        fcntl.flock(held, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        result = runner.invoke(app, ["sweep", str(scene), "--rot-noises", "5", "--views", "4", "--out", str(out)])
+    lines = [line for line in result.output.splitlines() if line.strip()]
+    assert result.exit_code == 2 and len(lines) == 1, result.output
+    assert lines[0].endswith(f"another sweep is running in {out}"), lines[0]
+    assert sorted(path.name for path in out.iterdir()) == [".sweep.lock"]  # the running sweep's, left to it
+
+    for run in ("baseline-4v-rot5-seed0", "bags-4v-rot5-seed0"):
+        write_evaluation(out / run, evaluation())
+    spec = SweepSpec(scene=str(scene), out=out, rot_noises=(5,), views=(4,))
+    refused = []
+
+    class SecondSweepMeanwhile(LocalExecutor):
+        """Starts a second sweep into the folder while the runs run."""
+
+        def map(self, spec, runs, scene, log):
+            with pytest.raises(WarpbagsError) as error:
+                run_sweep(spec, log=log)
+            refused.append(str(error.value))
+            return super().map(spec, runs, scene, log)
+
+    assert len(run_sweep(spec, log=lambda message: None, executor=SecondSweepMeanwhile())) == 2
+    assert refused == [f"another sweep is running in {out}"]
+    assert sorted(path.name for path in out.iterdir()) == sorted(["baseline-4v-rot5-seed0", "bags-4v-rot5-seed0",
+                                                                  "sweep.json", "sweep.csv", "curves.png",
+                                                                  "psnr_vs_noise.png", "pose_error_vs_noise.png"])
+
+
+def test_set_resolution_reads_the_scene_at_that_resolution(scene, tmp_path, monkeypatch):
+    """`--set resolution=2` was recorded in each run's config.json while the runs trained on the scene at its
+    default resolution. They train on it at the resolution given, as `warpbags train --resolution` does."""
+    trained = []
+
+    class Stop(Exception):
+        """Raised where the run would train: the scene it was given is what this test reads."""
+
+    def start_or_resume(scene, config, *args, **kwargs):
+        trained.append((scene.resolution, scene.width, config.resolution))
+        raise Stop
+
+    monkeypatch.setattr("warpbags.sweep.start_or_resume", start_or_resume)
+    for resolution, width in ((None, 64), (2, 32)):
+        overrides = () if resolution is None else (("resolution", resolution),)
+        with pytest.raises(Stop):
+            run_sweep(SweepSpec(scene=str(scene), out=tmp_path / f"sweep{resolution}", rot_noises=(5,), views=(4,),
+                                overrides=overrides), log=lambda message: None)
+        assert trained.pop() == (resolution or 1, width, resolution)
+
+
+def test_an_earlier_run_with_another_group_field_names_that_field(scene, tmp_path, monkeypatch):
+    """A sweep over the runs of an earlier one with another `--set lr.pose` named the whole group: "lr=LearningRates(
+    ...twelve fields...), not LearningRates(...)". It names the field as --set spells it."""
+
+    def train(*args, **kwargs):
+        raise AssertionError("a run trained")
+
+    monkeypatch.setattr("warpbags.sweep.start_or_resume", train)
+    out = tmp_path / "sweep"
+    earlier = SweepSpec(scene=str(scene), out=out, rot_noises=(5,), views=(4,), overrides=(("lr", {"pose": 0.01}),))
+    run = sweep_runs(earlier)[0]
+    (out / run.name).mkdir(parents=True)  # a run of the earlier sweep, stopped before its first checkpoint
+    (out / run.name / "config.json").write_text(json.dumps({"config": combination_config(earlier, run).to_dict(),
+                                                            "scene_root": str(scene.resolve())}))
+    result = runner.invoke(app, ["sweep", str(scene), "--rot-noises", "5", "--views", "4", "--set", "lr.pose=0.005",
+                                 "--out", str(out)])
+    lines = [line for line in result.output.splitlines() if line.strip()]
+    assert result.exit_code == 2 and len(lines) == 1, result.output
+    assert f"{out / run.name} holds a run with lr.pose=0.01, not 0.005: choose another --out" in lines[0], lines[0]
 
 
 def test_a_scene_whose_runs_would_have_no_test_view_is_one_line_before_anything_trains(scene, tmp_path, monkeypatch):
@@ -152,11 +361,13 @@ def test_device_cuda_without_cuda_is_one_line_before_the_sweep_folder_is_made(sc
     ("bags-4v-rot5-seed0/notes.txt", "bags-4v-rot5-seed0 is not empty (notes.txt) and holds no run to --resume"),
     ("sweep.csv/", "sweep.csv is a folder, not a file for the sweep's tables and figures"),
     ("curves.png/", "curves.png is a folder, not a file for the sweep's tables and figures"),
+    (".sweep.lock/", ".sweep.lock is a folder, not a file to lock the sweep's folder"),
 ])
 def test_a_folder_in_the_way_of_a_run_or_the_tables_is_one_line_before_anything_trains(scene, tmp_path, monkeypatch,
                                                                                         blocker, named):
     """A run's folder holding other files was refused when its turn came, after the runs before it had trained; a
-    folder named as a table or figure was a traceback after every run. Both are one line before any run trains."""
+    folder named as a table or figure was a traceback after every run. Both are one line before any run trains, and
+    so is a folder named as the sweep's lock file."""
 
     def train(*args, **kwargs):
         raise AssertionError("a run trained")

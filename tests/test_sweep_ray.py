@@ -64,7 +64,8 @@ def test_ray_sweep_gives_the_local_results_and_resumes(scene, tmp_path, local_ra
     # Resumable as the local executor: a second sweep over the folder (through the command line) runs nothing new.
     evals = {name: (spec.out / name / "eval.json").stat().st_mtime_ns for name in names}
     result = runner.invoke(app, ["sweep", str(scene), "--rot-noises", "5", "--views", "4", "--seeds", "0",
-                                 "--iters", "4", "--out", str(spec.out), "--executor", "ray", "--cpus-per-run", "2"])
+                                 "--iters", "4", "--refine-iters", "2", "--out", str(spec.out), "--executor", "ray",
+                                 "--cpus-per-run", "2"])
     assert result.exit_code == 0, result.output
     assert all(f"skip {name} (done)" in result.output for name in names) and "train " not in result.output
     assert evals == {name: (spec.out / name / "eval.json").stat().st_mtime_ns for name in names}

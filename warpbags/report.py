@@ -164,12 +164,15 @@ def plot_sweep(rows: list[dict], out_dir: Path) -> list[Path]:
     written = []
     plt = _pyplot()
     figure, (loss_axis, pose_axis) = plt.subplots(1, 2, figsize=(11, 3.8))
+    seeded = len({row["seed"] for row in rows}) > 1  # the seed tells apart curves of one method, views and noise
     for row in rows:
         records = RunFolder(out_dir / row["run"]).read_log()
         if not records:
             continue
         iters = [r["iter"] for r in records]
         label = f"{row['method']}, {row['views']}v, {row['rot_noise_deg']:g} deg"
+        if seeded:
+            label += f", seed {row['seed']}"
         style = "-" if row["method"] == "bags" else "--"
         loss_axis.plot(iters, [r["loss"] for r in records], style, label=label, linewidth=1)
         pose_axis.plot(iters, [r["rot_err_deg"] for r in records], style, label=label, linewidth=1)

@@ -1,12 +1,13 @@
 """`warpbags sweep`: BAGS against the fixed-pose baseline over rotation noise, view counts and seeds.
 
 Each combination is one run folder `<out>/<method>-<views>v-rot<noise>-seed<seed>/` (trained, then evaluated by
-`run_combination`). A folder that already holds eval.json is skipped and one with checkpoints is resumed, so an
-interrupted sweep continues where it stopped. An executor maps `run_combination` over the combinations:
-`LocalExecutor` runs them one after another in this process, `RayExecutor` as Ray tasks on this machine or on an
-existing cluster. Results: `<out>/sweep.json`, `<out>/sweep.csv` and the plots of `warpbags.report`.
+`run_combination`). A folder that already holds eval.json (of the sweep's evaluation settings) is skipped and one
+with checkpoints is resumed, so an interrupted sweep continues where it stopped. An executor maps `run_combination`
+over the combinations: `LocalExecutor` runs them one after another in this process, `RayExecutor` as Ray tasks on
+this machine or on an existing cluster. Results: `<out>/sweep.json`, `<out>/sweep.csv` and the plots of
+`warpbags.report`. A sweep locks its folder while it runs (`<out>/.sweep.lock`): a second sweep into it is refused.
 
-It stays one module (a little over 400 lines) because the executors are the sweep's own map: both call
+It stays one module (about 550 lines) because the executors are the sweep's own map: both call
 `run_combination` and `make_executor` picks between them, so moving them out would make an import cycle.
 """
 
@@ -14,14 +15,16 @@ from __future__ import annotations
 
 import csv
 import dataclasses
+import fcntl
 import json
 import os
 import signal
 import socket
 import threading
+from contextlib import contextmanager
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Callable, Protocol
+from typing import Callable, Iterator, Protocol
 
 from warpbags.configs.train import DEFAULT_PRESET, MAX_RENDER_THREADS, TrainConfig, is_number, load_preset
 from warpbags.data import Scene, open_scene
@@ -84,8 +87,8 @@ class Executor(Protocol):
 
 def run_sweep(spec: SweepSpec, data_root: Path | None = None, log: Log = print,
               executor: Executor | None = None) -> list[dict]:
-    """Train and evaluate every combination not done yet (with `executor`, default `LocalExecutor`); write
-    sweep.json, sweep.csv and the plots; returns one row per run."""
+    """Train and evaluate every combination not done yet (with `executor`, default `LocalExecutor`); write the
+    plots, then sweep.json and sweep.csv; returns one row per run. The sweep's folder is locked meanwhile."""
     checked_device_name(spec.device)  # whether CUDA is there is the executor's business: its runs' machines
     _check_iters(spec)
     executor = executor or LocalExecutor()
@@ -93,21 +96,81 @@ def run_sweep(spec: SweepSpec, data_root: Path | None = None, log: Log = print,
     writable_folder(spec.out, "to hold the sweep")
     for name in (*SWEEP_TABLES, *SWEEP_FIGURES):  # written after every run: a folder in the way is said now
         writable_file(spec.out / name, "for the sweep's tables and figures")
-    scene = open_scene(spec.scene, root=data_root)
+    writable_file(spec.out / LOCK_FILE, "to lock the sweep's folder")
+    configs = {}
     for run in sweep_runs(spec):  # every run's settings checked before the first one trains
-        try:
-            config = combination_config(spec, run)
-            evaluation_views(scene, [scene.image_names[i] for i in scene.train_views(config.views)])  # eval's views
-            _check_earlier_run(spec.out / run.name, config, scene)
-            if _is_done(spec.out / run.name):  # an unusable eval.json is named now, not after the other runs train
-                _row(spec.out / run.name, run)
-        except WarpbagsError as error:
-            raise WarpbagsError(f"sweep run {run.name}: {error}") from None
-    spec.out.mkdir(parents=True, exist_ok=True)
-    rows = executor.map(spec, sweep_runs(spec), scene, log)
-    _write_tables(rows, spec.out)
-    plot_sweep(rows, spec.out)
+        with _naming(run):
+            configs[run] = combination_config(spec, run)
+    with _sweep_lock(spec.out):  # from before its folder is read to the last output: no other sweep changes it
+        # at the resolution the overrides give (`--set resolution=R`; None: the preset's), as `training_scene` opens
+        # it for `warpbags train`: each run's config.json records that resolution
+        scene = open_scene(spec.scene, root=data_root, resolution=next(iter(configs.values())).resolution)
+        for run, config in configs.items():
+            run_dir = spec.out / run.name
+            with _naming(run):
+                evaluation_views(scene, [scene.image_names[i] for i in scene.train_views(config.views)])  # eval's views
+                _check_earlier_run(run_dir, config, scene)
+                if _is_done(run_dir):  # what the tables and curves read of it: named now, not after the others train
+                    _row(run_dir, run, spec.refine_iters)
+                    RunFolder(run_dir).read_log()
+        rows = executor.map(spec, list(configs), scene, log)
+        plot_sweep(rows, spec.out)
+        _write_tables(rows, spec.out)  # last, as evaluate_run writes eval.json: a failed plot leaves the earlier tables
     return rows
+
+
+@contextmanager
+def _naming(run: SweepRun) -> Iterator[None]:
+    """A WarpbagsError in the block as one of `run`, named."""
+    try:
+        yield
+    except WarpbagsError as error:
+        raise WarpbagsError(f"sweep run {run.name}: {error}") from None
+
+
+LOCK_FILE = ".sweep.lock"
+"""What `run_sweep` locks in the sweep's folder while it runs; hidden, and removed when the sweep ends."""
+
+
+@contextmanager
+def _sweep_lock(out: Path) -> Iterator[None]:
+    """Hold an exclusive lock on the sweep folder `out` (made if missing) for the block: two sweeps into one folder
+    trained the same runs at once (one clearing the other's unfinished start, or both resuming one run into one log).
+    On leaving, the lock file goes, and so do the folders made for it that stayed empty: a sweep refused before it
+    wrote anything leaves no folder.
+
+    Raises:
+        WarpbagsError: another sweep holds the lock.
+    """
+    made = RunFolder(out).missing_folders()
+    path = out / LOCK_FILE
+    while True:
+        out.mkdir(parents=True, exist_ok=True)
+        try:
+            handle = open(path, "a")
+        except FileNotFoundError:  # a sweep ending removed the folder it had made, empty: make it again
+            continue
+        try:
+            fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            handle.close()
+            raise WarpbagsError(f"another sweep is running in {out}") from None
+        try:  # a sweep ending removes the file it locked: one opened before that is no lock on the folder
+            if os.path.samestat(os.fstat(handle.fileno()), os.stat(path)):
+                break
+        except FileNotFoundError:
+            pass
+        handle.close()
+    try:
+        yield
+    finally:
+        path.unlink(missing_ok=True)  # while locked, so that no sweep locks the file once it is gone
+        handle.close()
+        for folder in made:
+            try:
+                folder.rmdir()
+            except OSError:  # not empty: the sweep's outputs
+                pass
 
 
 def _check_iters(spec: SweepSpec) -> None:
@@ -172,7 +235,7 @@ def run_combination(spec: SweepSpec, run: SweepRun, scene: Scene, render_threads
                                       resume=resume, log=_quiet)
             trainer.train()
             evaluate_run(run_dir, refine_iters=spec.refine_iters, device=spec.device, log=_quiet)
-    return _row(run_dir, run)
+    return _row(run_dir, run, spec.refine_iters)
 
 
 def progress(spec: SweepSpec, run: SweepRun) -> str:
@@ -287,7 +350,7 @@ class RayExecutor:
         for run in runs:
             log(progress(spec, run))
             if _is_done(spec.out / run.name):
-                rows[run] = _row(spec.out / run.name, run)
+                rows[run] = _row(spec.out / run.name, run, spec.refine_iters)
             else:
                 todo.append(run)
         if todo:
@@ -375,12 +438,24 @@ def _check_earlier_run(run_dir: Path, config: TrainConfig, scene: Scene) -> None
     if not folder.trained_on(scene, info):
         raise WarpbagsError(f"{run_dir} holds a run of the scene in {info.get('scene_root')}: choose another --out")
     saved = folder.saved_config(info)
-    differing = [field.name for field in dataclasses.fields(TrainConfig) if field.name != "render_threads"
-                 and getattr(saved, field.name) != getattr(config, field.name)]
+    differing = _differing(saved, config)
     if differing:
-        name = differing[0]
-        raise WarpbagsError(f"{run_dir} holds a run with {name}={getattr(saved, name)!r}, not "
-                            f"{getattr(config, name)!r}: choose another --out (or remove that run)")
+        name, value, asked = differing
+        raise WarpbagsError(f"{run_dir} holds a run with {name}={value!r}, not {asked!r}: choose another --out (or "
+                            "remove that run)")
+
+
+def _differing(saved, config, prefix: str = "") -> tuple[str, object, object] | None:
+    """The first field but render_threads in which two configs (or two of their groups) differ, named as --set
+    names it (lr.pose, not the whole group lr), with its value in `saved` and in `config`; None if they agree."""
+    for field in dataclasses.fields(saved):
+        name, value, asked = prefix + field.name, getattr(saved, field.name), getattr(config, field.name)
+        if name == "render_threads" or value == asked:
+            continue
+        if dataclasses.is_dataclass(value):
+            return _differing(value, asked, f"{name}.")
+        return name, value, asked
+    return None
 
 
 def _is_done(run_dir: Path) -> bool:
@@ -396,13 +471,15 @@ def _quiet(message: str) -> None:
 _EVALUATE_AGAIN = "remove it and run the sweep again to evaluate the run anew"
 
 
-def _row(run_dir: Path, run: SweepRun) -> dict:
+def _row(run_dir: Path, run: SweepRun, refine_iters: int) -> dict:
     """The run's row of sweep.json, read from its eval.json; a metric eval.json holds as null (`finite_json`'s
-    NaN or infinity: the PSNR of an exact render, a metric that failed) is None.
+    NaN or infinity: the PSNR of an exact render, a metric that failed) is None, and so is psnr_refined of a sweep
+    that does not refine the test poses (`refine_iters` 0).
 
     Raises:
-        WarpbagsError: eval.json cannot be read, or lacks a number of the row (an older warpbags' or another tool's
-            file), named with the file.
+        WarpbagsError: eval.json cannot be read, lacks a number of the row (an older warpbags' or another tool's
+            file), or is of another evaluation than the sweep's (`warpbags eval` run on it with other refinement
+            iterations than `refine_iters`, or with --pairwise), named with the file.
     """
     path = run_dir / "eval.json"
     try:
@@ -412,8 +489,13 @@ def _row(run_dir: Path, run: SweepRun) -> dict:
     alignment = _lookup(report, path, "alignment")  # pairwise below 3 training views
     if not isinstance(alignment, str):
         raise WarpbagsError(f"{path}: alignment is {alignment!r}, not a name; {_EVALUATE_AGAIN}")
+    # the sweep's evaluation refines for `refine_iters` (none at 0): a run evaluated otherwise is not comparable
+    refined = "images_after_test_pose_refinement"
+    iters = _lookup(report, path, refined, "iters") if refined in report else 0
+    if iters != refine_iters:
+        raise WarpbagsError(f"{path}: evaluated with {iters!r} test pose refinement iterations, not the sweep's "
+                            f"{refine_iters} (by `warpbags eval`?); {_EVALUATE_AGAIN}")
     images = _lookup(report, path, "images", "mean")
-    refined = "images_after_test_pose_refinement" if "images_after_test_pose_refinement" in report else "images"
 
     def number(*keys: str) -> float | None:
         value = _lookup(report, path, *keys)
@@ -421,7 +503,7 @@ def _row(run_dir: Path, run: SweepRun) -> dict:
             raise WarpbagsError(f"{path}: {'.'.join(keys)} is {value!r}, not a number; {_EVALUATE_AGAIN}")
         return value
 
-    return {
+    row = {
         "method": run.method, "views": run.views, "rot_noise_deg": run.rot_noise_deg, "seed": run.seed,
         "rot_err_initial": number("poses", alignment, "initial", "rotation_deg_mean"),
         "rot_err_final": number("poses", alignment, "final", "rotation_deg_mean"),
@@ -429,8 +511,14 @@ def _row(run_dir: Path, run: SweepRun) -> dict:
         "trans_err_final": number("poses", alignment, "final", "translation_mean"),
         "psnr": number("images", "mean", "psnr"), "ssim": number("images", "mean", "ssim"),
         "flip": number("images", "mean", "flip") if "flip" in images else None,  # none in those from before FLIP
-        "psnr_refined": number(refined, "mean", "psnr"), "run": run_dir.name,
+        "psnr_refined": number(refined, "mean", "psnr") if refine_iters else None, "run": run_dir.name,
     }
+    # the sweep's evaluation aligns by Procrustes wherever the cameras allow it, as their pose errors in eval.json say
+    sweeps = "procrustes" if "procrustes" in report["poses"] else "pairwise"
+    if alignment != sweeps:
+        raise WarpbagsError(f"{path}: evaluated with the {alignment} alignment, not the sweep's {sweeps} (by `warpbags "
+                            f"eval --{alignment}`?); {_EVALUATE_AGAIN}")
+    return row
 
 
 def _lookup(report: object, path: Path, *keys: str) -> object:
