@@ -9,7 +9,7 @@ from random_poses import F64
 
 from warpbags.camera_paths import azimuth_order, interpolated_viewmats, turntable_viewmats
 from warpbags.cameras import camera_centers
-from warpbags.lie import rotation_error_deg
+from warpbags.lie import rotation_error_deg, so3_exp
 
 def test_interpolated_viewmats_walk_the_orbit_between_neighbouring_cameras():
     base = torch.eye(4, dtype=F64)
@@ -47,6 +47,26 @@ def test_the_up_axis_of_cameras_on_one_side_of_the_object_is_level():
     heights = camera_centers(turntable)[:, 2]
     torch.testing.assert_close(heights, heights[:1].expand(8))  # the orbit stays at the cameras' height
     torch.testing.assert_close(mean_up_axis(viewmats[:1]), -viewmats[0, 1, :3], rtol=0, atol=1e-12)
+
+
+def test_the_up_axis_of_cameras_rolled_by_a_quarter_turn_is_still_level():
+    """Portrait photos stored sideways (a phone's EXIF rotation, not applied) are cameras rolled by 90 deg: their x
+    axes lean towards the object and the axis perpendicular to them was horizontal, so the turntable tumbled under
+    the object and the viewer opened sideways. Their y axes are level: the up is still world z, either way rolled."""
+    from conftest import look_at
+
+    from warpbags.camera_paths import mean_up_axis
+
+    eyes = [torch.tensor([4 * math.cos(math.radians(a)), 4 * math.sin(math.radians(a)), 2.3], dtype=F64)
+            for a in range(0, 360, 45)]
+    upright = torch.stack([look_at(eye, torch.zeros(3, dtype=F64)) for eye in eyes])
+    for roll in (90.0, -90.0, 0.0):
+        turn = torch.eye(4, dtype=F64)
+        turn[:3, :3] = so3_exp(torch.tensor([0.0, 0.0, math.radians(roll)], dtype=F64))  # about each optical axis
+        rolled = turn @ upright
+        torch.testing.assert_close(mean_up_axis(rolled), torch.tensor([0.0, 0.0, 1.0], dtype=F64), rtol=0, atol=1e-9)
+        heights = camera_centers(turntable_viewmats(rolled, 8))[:, 2]
+        torch.testing.assert_close(heights, torch.full((8,), 2.3, dtype=F64))
 
 
 def test_cameras_between_neighbours_on_a_ring_look_at_the_object():

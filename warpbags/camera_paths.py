@@ -24,15 +24,25 @@ def mean_up_axis(viewmats: torch.Tensor) -> torch.Tensor:
     Cameras are seldom rolled, so their x axes are level whichever way they look, while their up axes lean towards
     the object: averaged, those of cameras on one side of it (an arc of +-30 deg looking down 30 deg) tilt the mean
     28 deg and the turntable goes under the object. Where the x axes do not single a direction out (one camera, or
-    all of them side by side), the mean up itself.
+    all of them side by side), the mean up itself. Cameras rolled by 90 deg (portrait photos stored sideways, as
+    phones store them with an EXIF rotation that is not applied) have level y axes instead: where the y axes lie
+    clearly closer to one plane than the x axes, its normal is the up, signed so that the cameras look down at the
+    object on average (or, looking level, sit above it).
     """
     mean_up = -viewmats[:, 1, :3].mean(0)
-    x_axes = viewmats[:, 0, :3]
+    x_axes, y_axes = viewmats[:, 0, :3], viewmats[:, 1, :3]
     values, vectors = torch.linalg.eigh(x_axes.T @ x_axes)  # ascending
     if values[1] < 0.01 * values[2]:  # the x axes within ~6 deg of one line: every normal to it is level
         return mean_up / mean_up.norm().clamp_min(1e-12)
     up = vectors[:, 0]
-    return up if up @ mean_up >= 0 else -up
+    y_values, y_vectors = torch.linalg.eigh(y_axes.T @ y_axes)
+    rolled = y_values[1] >= 0.01 * y_values[2] and y_values[0] / y_values.sum() < 0.5 * values[0] / values.sum()
+    if not rolled:
+        return up if up @ mean_up >= 0 else -up
+    up = y_vectors[:, 0]
+    looking_down = -(viewmats[:, 2, :3].mean(0) @ up)  # view directions (z axes) point down, against the up
+    above = camera_centers(viewmats).mean(0) @ up
+    return up if (looking_down if looking_down.abs() > 1e-3 else above) >= 0 else -up
 
 
 def turntable_viewmats(viewmats: torch.Tensor, frames: int) -> torch.Tensor:
