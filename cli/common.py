@@ -11,7 +11,7 @@ from typing import Callable
 from rich.console import Console
 from rich.markup import escape
 
-from warpbags.errors import Stopped, WarpbagsError
+from warpbags.errors import Stopped, WarpbagsError, one_line
 
 stderr = Console(stderr=True)
 
@@ -23,9 +23,11 @@ def clean_errors(command: Callable) -> Callable:
     def wrapper(*args, **kwargs):
         try:
             return command(*args, **kwargs)
-        except WarpbagsError as error:
+        except (WarpbagsError, OSError) as error:
+            # a file a command could not write or read (a full disk, a file-size limit) is one line too
+            message = str(error) if isinstance(error, WarpbagsError) else one_line(error)
             # escaped: a message's own brackets (`warpbags[ray]`, a list) are text, not Rich markup
-            stderr.print(f"[bold red]error:[/] {escape(str(error))}", highlight=False, soft_wrap=True)
+            stderr.print(f"[bold red]error:[/] {escape(message)}", highlight=False, soft_wrap=True)
             sys.exit(2)
         except KeyboardInterrupt as interrupt:
             # the shell's convention, which job schedulers read: 128 + the signal (130 Ctrl-C, 143 SIGTERM)
@@ -48,6 +50,8 @@ def parse_numbers(text: str, option: str, kind: Callable = float, minimum: float
         if not item.strip():
             continue
         try:
+            if "_" in item:  # Python reads "4_6" as 46: a typo of "4,6" would run seed 46
+                raise ValueError(item)
             numbers.append(kind(item))
         except ValueError:
             what = "an integer" if kind is int else "a number"

@@ -14,7 +14,7 @@ from warpbags.cli.common import clean_errors
 from warpbags.cli.train_options import resumed_config, train_config, with_train_options
 from warpbags.configs.scenes import SCENES
 from warpbags.configs.train import DEFAULT_PRESET
-from warpbags.errors import WarpbagsError
+from warpbags.errors import WarpbagsError, sigterm_stops
 from warpbags.files import writable_folder
 from warpbags.run_folder import RunFolder
 from warpbags.trainer import default_run_dir, saved_run_config, saved_run_scene, start_or_resume, training_scene
@@ -56,11 +56,14 @@ def train(
     # A resumed run goes on with the config it was started with; options given again must agree with it.
     config = (resumed_config(saved_run_config(out), preset, config_options, settings or []) if resume else
               train_config(preset or DEFAULT_PRESET, config_options, settings or []))
-    scene_data = training_scene(scene if scene is not None else saved_run_scene(out, data_root), config, data_root,
-                                log=stdout.print)
+    # SIGTERM (kill, a job scheduler) stops the start as Ctrl-C does, so that a new run's claim on its folder is
+    # removed; training takes both signals itself from its first iteration on
+    with sigterm_stops():
+        scene_data = training_scene(scene if scene is not None else saved_run_scene(out, data_root), config,
+                                    data_root, log=stdout.print)
+        out = out or default_run_dir(scene_data.name, config.views)
+        trainer = start_or_resume(scene_data, config, out, device=device, resume=resume, log=stdout.print)
     views = config.views
-    out = out or default_run_dir(scene_data.name, views)
-    trainer = start_or_resume(scene_data, config, out, device=device, resume=resume, log=stdout.print)
     initial = trainer.pose_error(trainer.viewmats_init)
     repair_note = (f" + {trainer.config.repair.iters} repair" if trainer.config.repair.iters else "")
     # Without injected noise the scene's poses are where training starts, not a truth: say what the numbers mean.

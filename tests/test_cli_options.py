@@ -186,6 +186,8 @@ def test_parse_numbers_reads_comma_separated_numbers_and_skips_empty_items():
     ("1.5", int, "--opt '1.5': '1.5' is not an integer"),
     (",", int, "--opt ',': expected comma-separated numbers, got none"),
     ("", float, "--opt '': expected comma-separated numbers, got none"),
+    ("4_6", int, "--opt '4_6': '4_6' is not an integer"),  # Python's digit grouping: a typo of 4,6 read as 46
+    ("1_0.5", float, "--opt '1_0.5': '1_0.5' is not a number"),
 ])
 def test_parse_numbers_names_the_option_and_the_bad_text(text, kind, message):
     with pytest.raises(WarpbagsError) as error:
@@ -197,3 +199,13 @@ def test_a_resumed_run_checks_options_given_again_against_its_own_config():
     """`views_per_step <= views` holds for the run (9 views), not for its preset's default (4)."""
     saved = load_preset("paper", views=9, views_per_step=6)
     assert resumed_config(saved, None, {}, ["views_per_step=6"]) is saved
+
+
+def test_a_command_runs_with_its_error_stream_closed():
+    """With descriptor 2 closed (a daemon, `2>&-`) sys.stderr is None: Warp's quiet start flushed it and every
+    command exited 1 without a word."""
+    import shlex
+
+    command = f"{shlex.quote(sys.executable)} -m warpbags.cli.main info maryrose 2>&-"
+    result = subprocess.run(["bash", "-c", command], capture_output=True, text=True, timeout=120)
+    assert result.returncode == 0 and "maryrose" in result.stdout, result.stdout

@@ -35,8 +35,17 @@ def test_sampson_distance_is_zero_for_projections_and_about_the_offset_across_th
     line = (F @ torch.cat([pixels[0], torch.ones(50, 1, dtype=torch.float64)], 1).T).T
     normal = line[:, :2] / line[:, :2].norm(dim=1, keepdim=True)
     # b moved 3 px across its epipolar line: a, half as far from its own line, shares the distance
-    shifted = sampson_distances(F, pixels[0], pixels[1] + 3.0 * normal)
+    moved = pixels[1] + 3.0 * normal
+    shifted = sampson_distances(F, pixels[0], moved)
     assert 1.0 < shifted.min() and shifted.max() < 3.0 + 1e-6
+    # Sampson's first-order distance, written out: |x_b' F x_a| over the gradient's norm, both lines' normals (b's
+    # line alone, the one-sided epipolar distance, reads exactly 3 and passed the bounds above)
+    homogeneous_a = torch.cat([pixels[0], torch.ones(50, 1, dtype=torch.float64)], 1)
+    homogeneous_b = torch.cat([moved, torch.ones(50, 1, dtype=torch.float64)], 1)
+    line_b, line_a = homogeneous_a @ F.T, homogeneous_b @ F
+    expected = (homogeneous_b * line_b).sum(1).abs() / (line_b[:, :2].square().sum(1) + line_a[:, :2].square().sum(1)).sqrt()
+    torch.testing.assert_close(shifted, expected, rtol=1e-9, atol=0)
+    assert shifted.max() < 2.9
 
 
 def test_find_view_matches_keeps_the_pairs_with_enough_inliers_and_their_matches_are_right():
@@ -47,6 +56,7 @@ def test_find_view_matches_keeps_the_pairs_with_enough_inliers_and_their_matches
     distances = sampson_distances(F, matches.pixels_a, matches.pixels_b)
     assert (distances < 1.0).float().mean() > 0.95  # SIFT locates blobs to a fraction of a pixel
     assert len(find_view_matches(images, masks, min_inliers=len(matches) + 1)) == 0
+    assert len(find_view_matches(images, masks, min_inliers=len(matches))) == len(matches)  # "at least" min_inliers
     masked = find_view_matches(images, torch.zeros(2, SIZE, SIZE), min_inliers=8)  # nothing inside the masks
     assert len(masked) == 0 and masked.pixels_a.shape == (0, 2)
 

@@ -408,6 +408,9 @@ def test_turntable_frames_and_video(finished_run):
 
     first = cv2.imread(str(frames[0]))
     assert first.shape[:2] == (64, 64) and first.min() < 200  # the object is in view, not just white background
+    # around it, the run's background: white, the default (a black one is the test below)
+    assert json.loads((finished_run / "config.json").read_text())["config"]["background"] == "white"
+    assert (first[0, 0] == 255).all(), first[0, 0]
     capture = cv2.VideoCapture(str(finished_run / "turntable.mp4"))
     assert int(capture.get(cv2.CAP_PROP_FRAME_COUNT)) == 6
     # a shorter render afterwards leaves no frame (nor the video) of the longer one behind
@@ -774,6 +777,11 @@ def test_writable_folder_names_the_file_or_the_folder_that_cannot_be_written(tmp
             writable_folder(path, "to train into")
     fresh = tmp_path / "new" / "run"
     assert writable_folder(fresh, "to train into") == fresh and not fresh.parent.exists()  # checked, not made
+    # `runs` linked to a disk that is not mounted: a FileExistsError traceback once the run made its folder
+    (tmp_path / "runs").symlink_to(tmp_path / "unmounted" / "scratch")
+    with pytest.raises(WarpbagsError, match=f"^{re.escape(str(tmp_path / 'runs'))} is a link to .*unmounted/scratch, "
+                                            "which does not exist: no folder to train into$"):
+        writable_folder(tmp_path / "runs" / "mary", "to train into")
     if os.geteuid() == 0:
         return  # root writes anywhere: a folder without write permission cannot be tested
     locked = tmp_path / "locked"
@@ -1124,3 +1132,25 @@ def test_eval_json_is_written_last(finished_run, tmp_path, monkeypatch):
     with pytest.raises(OSError, match="disk full"):
         evaluate_run(run, refine_iters=0, log=lambda message: None)
     assert not (run / "eval.json").exists()
+
+
+def test_a_file_a_command_cannot_write_is_one_line(finished_run, tmp_path, monkeypatch):
+    """A full disk or a file-size limit under `warpbags export` (or agree --json) was an OSError traceback."""
+    def full_disk(path, params):
+        raise OSError(27, "File too large", str(path))
+
+    monkeypatch.setattr("warpbags.export.write_ply", full_disk)
+    result = runner.invoke(app, ["export", str(finished_run), "--out", str(tmp_path / "export")])
+    assert result.exit_code == 2 and len(_lines(result)) == 1, result.output
+    assert "OSError: [Errno 27] File too large" in " ".join(result.output.split())
+
+
+def test_an_npz_cut_short_under_an_npy_name_is_one_line(tmp_path):
+    """np.load reads a file starting with a zip's magic as an archive: one cut short was a BadZipFile traceback out
+    of `warpbags info` and everything that reads poses_bounds.npy or the depth maps."""
+    from warpbags.files import read_array
+
+    np.savez(tmp_path / "poses.npz", poses=np.zeros((3, 17)))
+    (tmp_path / "poses_bounds.npy").write_bytes((tmp_path / "poses.npz").read_bytes()[:60])
+    with pytest.raises(WarpbagsError, match="poses_bounds.npy is not a NumPy array file"):
+        read_array(tmp_path / "poses_bounds.npy", "poses")

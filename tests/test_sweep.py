@@ -385,6 +385,15 @@ def test_a_folder_in_the_way_of_a_run_or_the_tables_is_one_line_before_anything_
     assert result.exit_code == 2 and len(lines) == 1 and named in " ".join(result.output.split()), result.output
 
 
+def test_a_gpu_count_that_is_not_a_finite_number_is_named_before_ray_starts():
+    """--gpus-per-run nan passed the `< 0` check and failed in Ray's scheduling after it had started."""
+    from warpbags.sweep import RayExecutor
+
+    for gpus in (math.nan, math.inf, -1.0):
+        with pytest.raises(WarpbagsError, match="--gpus-per-run must be a finite number >= 0"):
+            RayExecutor(cpus_per_run=1, gpus_per_run=gpus)
+
+
 def test_ray_options_without_ray_are_named_in_one_line():
     for options, message in ((dict(cpus_per_run=2), "--cpus-per-run needs --executor ray"),
                              (dict(address="auto", gpus_per_run=1), "--address, --gpus-per-run need --executor ray")):

@@ -1286,3 +1286,20 @@ def test_an_sh_degree_no_round_reaches_is_said(scene_dir, tmp_path):
         Trainer(training_scene(scene, config), config, tmp_path / str(every), log=notes.append)
         assert Schedule(config).final_sh_degree() == (0 if said else 2)
         assert any("sh_degree 2 is reached after" in note and "up to degree 0" in note for note in notes) is said
+
+
+def test_a_sigterm_while_a_new_run_starts_removes_its_folder(scene_dir, tmp_path, monkeypatch):
+    """SIGTERM (kill, a job scheduler) during the start procedures ended the process at once: the claim on the
+    folder stayed, and the same --out was refused as "another run is starting". It now stops the start as Ctrl-C
+    does (exit 143), and the folder the run made is removed."""
+    def killed_while_starting(*args, **kwargs):
+        os.kill(os.getpid(), signal.SIGTERM)
+        raise AssertionError("SIGTERM did not stop the start")
+
+    monkeypatch.setattr(trainer_module, "starting_poses", killed_while_starting)
+    out = tmp_path / "made" / "run"
+    result = runner.invoke(app, ["train", str(scene_dir), "--iters", "4", "--set", "init_points=300",
+                                 "--set", "hull_resolution=24", "--out", str(out)])
+    assert result.exit_code == 143 and "stopped by SIGTERM" in result.output, result.output
+    assert not (tmp_path / "made").exists()
+    assert signal.getsignal(signal.SIGTERM) == signal.SIG_DFL  # the handler is the start's only

@@ -46,6 +46,9 @@ def init_warp_quietly() -> None:
 
     wp.config.log_level = wp.LOG_WARNING
     wp.config.quiet = True
+    if sys.stderr is None:  # descriptor 2 closed (a daemon, `2>&-`): nothing to silence, and nothing to dup
+        wp.init()
+        return
     sys.stderr.flush()
     saved = os.dup(2)
     try:

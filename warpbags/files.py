@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import zipfile
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -51,6 +52,9 @@ def writable_folder(path: str | Path, purpose: str) -> Path:
     """
     path = Path(path)
     for existing in (path, *path.parents):
+        if existing.is_symlink() and not existing.exists():  # `runs` linked to a disk that is not mounted
+            raise WarpbagsError(f"{existing} is a link to {os.readlink(existing)}, which does not exist: no folder "
+                                f"{purpose}")
         if existing.exists():
             if not existing.is_dir():
                 raise WarpbagsError(f"{existing} is a file, not a folder {purpose}")
@@ -104,7 +108,7 @@ def read_array(path: Path, what: str) -> np.ndarray:
         array = np.load(path)
     except OSError as error:
         raise WarpbagsError(f"cannot read {what} {path}: {error.strerror or error}") from None
-    except (ValueError, EOFError):
+    except (ValueError, EOFError, zipfile.BadZipFile):  # an .npz cut short starts as a zip and reads as one
         raise WarpbagsError(f"{what} {path} is not a NumPy array file (empty, truncated, text or pickled)") from None
     if not isinstance(array, np.ndarray):  # an .npz archive under this name
         raise WarpbagsError(f"{what} {path} is an archive of arrays (.npz), not one NumPy array")

@@ -17,6 +17,7 @@ import csv
 import dataclasses
 import fcntl
 import json
+import math
 import os
 import signal
 import socket
@@ -285,8 +286,8 @@ class RayExecutor:
     def __post_init__(self) -> None:
         if not 1 <= self.cpus_per_run <= MAX_RENDER_THREADS:  # each task's render threads (`render_threads`)
             raise WarpbagsError(f"--cpus-per-run must be in [1, {MAX_RENDER_THREADS}], got {self.cpus_per_run}")
-        if self.gpus_per_run < 0:
-            raise WarpbagsError(f"--gpus-per-run must be >= 0, got {self.gpus_per_run:g}")
+        if not 0 <= self.gpus_per_run < math.inf:  # NaN fails too (Ray failed on it after starting)
+            raise WarpbagsError(f"--gpus-per-run must be a finite number >= 0, got {self.gpus_per_run:g}")
 
     def check(self, spec: SweepSpec) -> None:
         """Ray importable, a GPU declared for CUDA runs and a given cluster address answering."""
