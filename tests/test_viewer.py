@@ -10,6 +10,7 @@ import shutil
 import threading
 import time
 
+import cv2
 import numpy as np
 import pytest
 import torch
@@ -18,6 +19,7 @@ from random_poses import generator, random_sim3, random_viewmats
 from typer.testing import CliRunner
 
 from warpbags.alignment import align_viewmats, pose_errors
+from warpbags.camera_paths import mean_up_axis
 from warpbags.cameras import camera_centers
 from warpbags.cli.main import app
 from warpbags.configs.train import load_preset
@@ -27,6 +29,7 @@ from warpbags.gaussians import read_ply, write_ply
 from warpbags.pose_history import read_pose_history, record_poses
 from warpbags.trainer import start_or_resume, training_scene
 from warpbags.viewer import Viewer, load_viewer_content
+from warpbags.viewer.content import THUMBNAIL_SIDE
 from warpbags.viewer.render import (MIN_SCALE, ClientRenderer, camera_to_world, next_scale, pinhole_intrinsics,
                                     world_to_camera)
 from warpbags.viewer.server import FRUSTUM_LABELS
@@ -72,10 +75,11 @@ def test_pose_history_appends_and_follows_a_resume(tmp_path):
         record_poses(tmp_path, 40, viewmats[:2])
 
 
-@pytest.mark.parametrize("damage", ["empty", "not a zip", "an .npy", "1-D viewmats", "scalar iterations"])
+@pytest.mark.parametrize("damage", ["empty", "not a zip", "an .npy", "1-D viewmats", "scalar iterations",
+                                    "unknown compression"])
 def test_an_unreadable_pose_history_is_one_line(tmp_path, damage):
-    """An empty or foreign poses_history.npz raised EOFError, BadZipFile, IndexError or TypeError out of `warpbags
-    view` and a resumed training run."""
+    """An empty, damaged or foreign poses_history.npz raised EOFError, BadZipFile, IndexError, TypeError or
+    NotImplementedError out of `warpbags view` and a resumed training run."""
     path = tmp_path / "poses_history.npz"
     if damage == "empty":
         path.write_bytes(b"")
@@ -88,6 +92,11 @@ def test_an_unreadable_pose_history_is_one_line(tmp_path, damage):
         with open(path, "wb") as handle:
             np.savez(handle, iterations=np.array(10) if damage == "scalar iterations" else np.array([10]),
                      viewmats=np.zeros(16) if damage == "1-D viewmats" else np.zeros((1, 3, 4, 4)))
+    if damage == "unknown compression":  # one flipped byte pair: zipfile "That compression method is not supported"
+        data = bytearray(path.read_bytes())
+        entry = data.find(b"PK\x01\x02")  # the first central directory entry, whose method zipfile reads (the local
+        data[entry + 10:entry + 12] = b"\xff\xff"  # header's, at +8, it does not)
+        path.write_bytes(bytes(data))
     with pytest.raises(WarpbagsError, match=f"^{re.escape(str(path))}: ") as error:
         read_pose_history(tmp_path)
     assert "\n" not in str(error.value)
@@ -284,6 +293,74 @@ def test_viewer_without_history_or_scene(run_dir, tmp_path):
         viewer.history_slider.value = 0  # the slider's callback moves the optimized frustums to the start poses
         start_center = camera_to_world(np.load(run / "poses_start.npy")[1])[1]
         np.testing.assert_allclose(viewer.frustums["optimized"][1].position, start_center, atol=1e-5)
+    finally:
+        viewer.stop()
+
+
+def test_initial_camera_stands_as_the_cameras_do_above_their_side_of_the_object(run_dir):
+    """The browser's first view (and its "Reset View") has the training cameras' up and looks at the object from
+    above, on the cameras' side: with the up negated the object stood on its head, seen from below."""
+    content = load_viewer_content(run_dir, log=lambda message: None)
+    final = np.load(run_dir / "poses_final.npy")
+    up = mean_up_axis(torch.from_numpy(final).double()).numpy()
+    center = content.center()
+    centers = np.stack([camera_to_world(viewmat)[1] for viewmat in final])
+    viewer = Viewer(content, port=0, device="cpu")
+    try:
+        initial = viewer.server.initial_camera
+        np.testing.assert_allclose(initial.up, up, atol=1e-9)
+        np.testing.assert_allclose(initial.look_at, center, atol=1e-9)
+        eye = (initial.position - center) / np.linalg.norm(initial.position - center)
+    finally:
+        viewer.stop()
+    assert ((centers - center) @ up > 0).all()  # this run's cameras are all above the object: the eye is too
+    assert eye @ up > 0.5, eye @ up  # 0.80 measured
+    towards_cameras = (centers.mean(axis=0) - center) / np.linalg.norm(centers.mean(axis=0) - center)
+    assert eye @ towards_cameras > 0.5, eye @ towards_cameras  # 0.91 measured
+
+
+def test_history_slider_shows_the_poses_of_each_recorded_iteration(run_dir):
+    """An interior recorded iteration and the last one show their own pose frame, not the one before it."""
+    content = load_viewer_content(run_dir, log=lambda message: None)
+    iterations, frames = content.cameras.iterations, content.cameras.frames
+    assert iterations.tolist() == [0, 2, 4, 6, 8]
+    viewer = Viewer(content, port=0, device="cpu")
+    try:
+        for frame in (2, len(iterations) - 1):  # iteration 4, then 8 (a change of value: the callback runs)
+            # the frame before is elsewhere (by 5e-3 or more in this run), so showing it is seen
+            assert np.abs(frames[frame] - frames[frame - 1]).max() > 1e-3
+            viewer.history_slider.value = int(iterations[frame])
+            for frustum, viewmat in zip(viewer.frustums["optimized"], frames[frame]):
+                wxyz, position = camera_to_world(viewmat)
+                np.testing.assert_allclose(frustum.position, position, atol=1e-6)
+                np.testing.assert_allclose(frustum.wxyz, wxyz, atol=1e-6)
+    finally:
+        viewer.stop()
+
+
+def test_frustums_have_the_cameras_field_of_view_and_their_training_images(run_dir):
+    """Each frustum opens as its camera's intrinsics (vertical fov, width / height), and each optimized one shows the
+    training image of its camera's image name, not the scene's image at its index."""
+    content = load_viewer_content(run_dir, log=lambda message: None)
+    info = json.loads((run_dir / "config.json").read_text())
+    Ks, width, height = np.load(run_dir / "intrinsics.npy"), info["width"], info["height"]
+    scene = load_scene(info["scene_root"], resolution=info.get("resolution"), name=info.get("scene"),
+                       load_depths=False)
+    # the run trains on every 4th view: an image by index would be another view's
+    assert [scene.image_names.index(name) for name in info["image_names"]] == [0, 4, 8, 12]
+    viewer = Viewer(content, port=0, device="cpu")
+    try:
+        for name in ("start", "optimized", "reference"):
+            for index, frustum in enumerate(viewer.frustums[name]):
+                assert frustum.fov == pytest.approx(2 * np.arctan(0.5 * height / Ks[index, 1, 1]), rel=1e-9)
+                assert frustum.aspect == pytest.approx(width / height, rel=1e-9)
+                assert (frustum.image is None) == (name != "optimized"), name
+        for frustum, image_name in zip(viewer.frustums["optimized"], info["image_names"]):
+            image = scene.images[scene.image_names.index(image_name)].numpy()
+            side = THUMBNAIL_SIDE  # the 64 px square images, resized to the thumbnails' longer side
+            expected = cv2.resize(image, (side, side), interpolation=cv2.INTER_AREA) * 255
+            assert frustum.image.shape == (side, side, 3) and frustum.image.dtype == np.uint8
+            np.testing.assert_allclose(frustum.image, expected, atol=1, err_msg=image_name)
     finally:
         viewer.stop()
 

@@ -50,8 +50,10 @@ def read_pose_history(run_dir: str | Path) -> PoseHistory | None:
     try:
         with np.load(path) as stored:
             history = PoseHistory(stored["iterations"].astype(np.int64), stored["viewmats"].astype(np.float32))
-    except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile, AttributeError, TypeError) as error:
-        # empty, not a zip archive, not an .npz of arrays (an .npy under its name), scalars
+    except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile, AttributeError, TypeError,
+            NotImplementedError) as error:
+        # empty, not a zip archive, not an .npz of arrays (an .npy under its name), scalars, a damaged compression
+        # method (zipfile: "That compression method is not supported")
         raise WarpbagsError(f"{path}: unreadable pose history ({one_line(error)})") from None
     shape = history.viewmats.shape
     if history.iterations.ndim != 1 or len(shape) != 4 or shape != (len(history.iterations), shape[1], 4, 4):

@@ -1,8 +1,9 @@
 """What `warpbags view` shows: the Gaussians and, for a run folder, its training cameras and their pose history.
 
 Every pose here lives in the model's frame (the frame of the optimized cameras, where the Gaussians were fitted).
-The reference poses are mapped into it by the sim(3) that `warpbags eval` uses: Umeyama on the camera centres,
-from the optimized cameras to the reference ones, inverted.
+The reference poses are mapped into it by the sim(3) that `warpbags eval` uses (`alignment_for`): Umeyama on the
+camera centres or, where Procrustes cannot be fitted to the reference cameras (fewer than 3, or centres on one line),
+SPARF's pairwise alignment; fitted from the optimized cameras to the reference ones, and inverted.
 """
 
 from __future__ import annotations
