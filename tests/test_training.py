@@ -1298,8 +1298,13 @@ def test_a_sigterm_while_a_new_run_starts_removes_its_folder(scene_dir, tmp_path
 
     monkeypatch.setattr(trainer_module, "starting_poses", killed_while_starting)
     out = tmp_path / "made" / "run"
-    result = runner.invoke(app, ["train", str(scene_dir), "--iters", "4", "--set", "init_points=300",
-                                 "--set", "hull_resolution=24", "--out", str(out)])
+    # as in a fresh process: a handler an earlier test left (Ray's) would take the signal instead
+    previous = signal.signal(signal.SIGTERM, signal.SIG_DFL)
+    try:
+        result = runner.invoke(app, ["train", str(scene_dir), "--iters", "4", "--set", "init_points=300",
+                                     "--set", "hull_resolution=24", "--out", str(out)])
+        assert signal.getsignal(signal.SIGTERM) == signal.SIG_DFL  # the handler was the start's only
+    finally:
+        signal.signal(signal.SIGTERM, previous)
     assert result.exit_code == 143 and "stopped by SIGTERM" in result.output, result.output
     assert not (tmp_path / "made").exists()
-    assert signal.getsignal(signal.SIGTERM) == signal.SIG_DFL  # the handler is the start's only
