@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import os
+import signal
 import sys
 
 import pytest
@@ -32,9 +33,12 @@ def scene(tmp_path_factory):
 def local_ray(monkeypatch):
     """A local Ray instance with this machine's two cores, no dashboard and no usage report; stopped after."""
     monkeypatch.setenv("RAY_USAGE_STATS_ENABLED", "0")
+    previous = signal.getsignal(signal.SIGTERM)
     ray.init(address="local", num_cpus=2, include_dashboard=False, log_to_driver=False)
     yield
     ray.shutdown()
+    # Ray's core worker leaves its SIGTERM handler (it exits 15) in this process: later tests get the one before it
+    signal.signal(signal.SIGTERM, signal.SIG_DFL if previous is None else previous)
 
 
 def _tiny_spec(scene, out) -> SweepSpec:
@@ -81,7 +85,6 @@ def test_ray_sweep_gives_the_local_results_and_resumes(scene, tmp_path, local_ra
 def test_a_ray_sweep_stopped_by_sigterm_exits_143_without_rays_stack_dump(scene, tmp_path):
     """Ray's core worker took SIGTERM with a native handler: a stack dump and exit 1. The sweep stops as a local one
     does: 143, "stopped by SIGTERM", Ray shut down."""
-    import signal
     import subprocess
 
     command = [sys.executable, "-m", "warpbags.cli.main", "sweep", str(scene), "--rot-noises", "5", "--views", "4",
