@@ -159,13 +159,20 @@ def test_unusable_eval_json_of_a_finished_run_is_one_line_before_anything_trains
     run trains; the sweep writes no tables. (The sweep does not evaluate the run again over it: evaluate_run writes
     eval.json atomically, so it is no file of a sweep cut short; the message says to remove it.)"""
 
+    out = tmp_path / "sweep"
+    (out / "bags-4v-rot5-seed0").mkdir(parents=True)  # after baseline-4v-rot5-seed0, which is not done
+    (out / "bags-4v-rot5-seed0" / "eval.json").write_text(content)
+    _assert_refused_before_training(scene, out, monkeypatch, named)
+
+
+def _assert_refused_before_training(scene, out, monkeypatch, named: str) -> None:
+    """A sweep into `out` whose finished bags run's eval.json is unusable stops in one line naming it (`named`),
+    before any run trains or any output is written."""
+
     def train(*args, **kwargs):
         raise AssertionError("a run trained")
 
     monkeypatch.setattr("warpbags.sweep.start_or_resume", train)
-    out = tmp_path / "sweep"
-    (out / "bags-4v-rot5-seed0").mkdir(parents=True)  # after baseline-4v-rot5-seed0, which is not done
-    (out / "bags-4v-rot5-seed0" / "eval.json").write_text(content)
     result = runner.invoke(app, ["sweep", str(scene), "--rot-noises", "5", "--views", "4", "--out", str(out)])
     lines = [line for line in result.output.splitlines() if line.strip()]
     assert result.exit_code == 2 and len(lines) == 1, result.output
@@ -193,19 +200,9 @@ def test_a_finished_run_evaluated_otherwise_than_the_sweep_is_one_line_before_an
     --refine-iters 0, --pairwise) sat in the table beside the sweep's own evaluations, and its "PSNR refined" was the
     unrefined PSNR when it had no refinement. It is refused, naming the file, before any run trains; evaluating it
     again is the user's to ask (the sweep does not overwrite an evaluation someone made on purpose)."""
-
-    def train(*args, **kwargs):
-        raise AssertionError("a run trained")
-
-    monkeypatch.setattr("warpbags.sweep.start_or_resume", train)
     out = tmp_path / "sweep"
     write_evaluation(out / "bags-4v-rot5-seed0", report)  # after baseline-4v-rot5-seed0, which is not done
-    result = runner.invoke(app, ["sweep", str(scene), "--rot-noises", "5", "--views", "4", "--out", str(out)])
-    lines = [line for line in result.output.splitlines() if line.strip()]
-    assert result.exit_code == 2 and len(lines) == 1, result.output
-    assert f"{out / 'bags-4v-rot5-seed0' / 'eval.json'}: {named}" in lines[0], lines[0]
-    assert lines[0].endswith("remove it and run the sweep again to evaluate the run anew"), lines[0]
-    assert sorted(path.name for path in out.iterdir()) == ["bags-4v-rot5-seed0"]
+    _assert_refused_before_training(scene, out, monkeypatch, named)
 
 
 def test_a_sweep_without_refinement_has_no_refined_psnr_and_two_views_align_pairwise(scene, tmp_path):
