@@ -801,6 +801,25 @@ def _replaced(base: Any, overrides: dict[str, Any], prefix: str = "") -> Any:
     return dataclasses.replace(base, **changes)
 
 
+def differing_fields(saved: dict[str, Any], current: dict[str, Any], ignored: frozenset[str] = frozenset(),
+                     prefix: str = "") -> list[tuple[str, Any, Any]]:
+    """(field, saved value, current value) for each field two configs' `to_dict()`s both hold and set differently,
+    named as `--set` names it ("lr.pose", not the group "lr"), sorted by name; fields named in `ignored` and fields only
+    one holds (a config of a warpbags that had fewer) are left out. Lists and tuples compare alike: a config read
+    back from JSON holds lists where the dataclass holds tuples."""
+    differences = []
+    for key in saved.keys() & current.keys() - ignored:
+        if isinstance(saved[key], dict) and isinstance(current[key], dict):
+            differences += differing_fields(saved[key], current[key], ignored, f"{prefix}{key}.")
+        elif _as_lists(saved[key]) != _as_lists(current[key]):
+            differences.append((prefix + key, saved[key], current[key]))
+    return sorted(differences)
+
+
+def _as_lists(value: Any) -> Any:
+    return [_as_lists(item) for item in value] if isinstance(value, (list, tuple)) else value
+
+
 def parse_settings(settings: list[str]) -> dict[str, Any]:
     """"name=value" / "group.name=value" strings as `load_preset` overrides: "a=1" -> {"a": 1},
     "repair.b=2" -> {"repair": {"b": 2}}. Values are JSON (numbers, true/false, lists); anything else is a string.

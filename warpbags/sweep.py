@@ -27,7 +27,8 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Callable, Iterator, Protocol
 
-from warpbags.configs.train import DEFAULT_PRESET, MAX_RENDER_THREADS, TrainConfig, is_number, load_preset
+from warpbags.configs.train import (DEFAULT_PRESET, MAX_RENDER_THREADS, TrainConfig, differing_fields, is_number,
+                                     load_preset)
 from warpbags.data import Scene, open_scene
 from warpbags.data.splits import evaluation_views
 from warpbags.devices import checked_device_name, torch_device
@@ -439,24 +440,11 @@ def _check_earlier_run(run_dir: Path, config: TrainConfig, scene: Scene) -> None
     if not folder.trained_on(scene, info):
         raise WarpbagsError(f"{run_dir} holds a run of the scene in {info.get('scene_root')}: choose another --out")
     saved = folder.saved_config(info)
-    differing = _differing(saved, config)
+    differing = differing_fields(saved.to_dict(), config.to_dict(), frozenset({"render_threads"}))
     if differing:
-        name, value, asked = differing
+        name, value, asked = differing[0]
         raise WarpbagsError(f"{run_dir} holds a run with {name}={value!r}, not {asked!r}: choose another --out (or "
                             "remove that run)")
-
-
-def _differing(saved, config, prefix: str = "") -> tuple[str, object, object] | None:
-    """The first field but render_threads in which two configs (or two of their groups) differ, named as --set
-    names it (lr.pose, not the whole group lr), with its value in `saved` and in `config`; None if they agree."""
-    for field in dataclasses.fields(saved):
-        name, value, asked = prefix + field.name, getattr(saved, field.name), getattr(config, field.name)
-        if name == "render_threads" or value == asked:
-            continue
-        if dataclasses.is_dataclass(value):
-            return _differing(value, asked, f"{name}.")
-        return name, value, asked
-    return None
 
 
 def _is_done(run_dir: Path) -> bool:

@@ -34,7 +34,7 @@ from warpbags.alignment import alignment_for, pose_errors, procrustes_unfit
 from warpbags.camera_optimizer import hypothesis_turns
 from warpbags.camera_setup import coherent_start, given_viewmats, starting_poses, training_cameras
 from warpbags.configs.scenes import SCENES
-from warpbags.configs.train import TrainConfig
+from warpbags.configs.train import TrainConfig, differing_fields
 from warpbags.correspondences import find_view_matches
 from warpbags.data import open_scene, resolve_scene
 from warpbags.data.scene import Scene
@@ -313,7 +313,7 @@ class Trainer:
                 the one resumed with (config.json changed after the run started).
         """
         state = self.run_folder.load_checkpoint(path, self.device)
-        if differences := _config_differences(state["config"], self.config.to_dict()):
+        if differences := differing_fields(state["config"], self.config.to_dict(), RESUMABLE_CHANGES):
             field, saved, given = differences[0]
             raise WarpbagsError(f"{path} was saved with {field} = {saved!r}, the config resumed with (config.json) "
                                 f"says {given!r}: the run's config.json was changed after it started; restore it")
@@ -559,24 +559,6 @@ def default_run_dir(scene_name: str, views: int, root: str | Path = "runs") -> P
 # Fields a run may be resumed with at other values: how often it saves and on how many threads it renders change
 # neither what a checkpoint holds nor the schedule that goes on from it.
 RESUMABLE_CHANGES = frozenset({"checkpoint_every", "render_threads"})
-
-
-def _config_differences(saved: dict, current: dict, prefix: str = "") -> list[tuple[str, object, object]]:
-    """(field, saved value, current value) for each field both configs hold and set differently, as "group.name",
-    but `RESUMABLE_CHANGES` (fields only one holds: a checkpoint of a warpbags that had fewer, checked by
-    `RunFolder.saved_config`)."""
-    differences = []
-    for key in saved.keys() & current.keys() - RESUMABLE_CHANGES:
-        if isinstance(saved[key], dict) and isinstance(current[key], dict):
-            differences += _config_differences(saved[key], current[key], f"{prefix}{key}.")
-        elif _as_lists(saved[key]) != _as_lists(current[key]):
-            differences.append((prefix + key, saved[key], current[key]))
-    return sorted(differences)
-
-
-def _as_lists(value):
-    """Tuples as lists, all the way down: a config read back from JSON holds lists where the dataclass holds tuples."""
-    return [_as_lists(item) for item in value] if isinstance(value, (list, tuple)) else value
 
 
 def saved_run_config(out_dir: str | Path) -> TrainConfig:
