@@ -109,21 +109,26 @@ def _status(record: dict) -> str:
 def _train_with_progress_bar(trainer) -> dict:
     columns = [TextColumn("[bold]train"), BarColumn(), MofNCompleteColumn(), TextColumn("{task.fields[status]}"),
                TimeElapsedColumn(), TimeRemainingColumn()]
+    # in training steps, the turn search's trial rounds included (`Trainer.steps_left`), so that the bar's rate and
+    # time left hold through the search
+    total = trainer.iteration + trainer.steps_left()
     with Progress(*columns, console=stdout, transient=False) as progress:
-        task = progress.add_task("train", total=trainer.config.total_iters, completed=trainer.iteration, status="")
-        return trainer.train(callback=lambda record: progress.update(task, completed=record["iter"],
+        task = progress.add_task("train", total=total, completed=trainer.iteration, status="")
+        return trainer.train(callback=lambda record: progress.update(task, completed=total - trainer.steps_left(),
                                                                      status=_status(record)))
 
 
 def _train_with_log_lines(trainer, every: int) -> dict:
-    """One compact line every `every` iterations and at the end: what a log file or CI can read (no bar)."""
-    total, started, first = trainer.config.total_iters, time.perf_counter(), trainer.iteration
+    """One compact line every `every` iterations and at the end: what a log file or CI can read (no bar). The time
+    per step and the time left count the turn search's trial rounds as steps (`Trainer.steps_left`)."""
+    total, started, steps = trainer.config.total_iters, time.perf_counter(), trainer.steps_left()
 
     def line(record: dict) -> None:
         if record["iter"] % every and record["iter"] != total:
             return
-        per_iter = (time.perf_counter() - started) / max(record["iter"] - first, 1)
-        eta = per_iter * (total - record["iter"])
-        print(f"iter {record['iter']}/{total}  {_status(record)}  {per_iter:.3f} s/it  eta {eta:.0f} s", flush=True)
+        left = trainer.steps_left()
+        per_step = (time.perf_counter() - started) / max(steps - left, 1)
+        print(f"iter {record['iter']}/{total}  {_status(record)}  {per_step:.3f} s/step  eta {per_step * left:.0f} s",
+              flush=True)
 
     return trainer.train(callback=line)

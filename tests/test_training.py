@@ -1140,7 +1140,7 @@ def test_cli_without_a_terminal_prints_compact_lines_and_no_warp_driver_warning(
     assert result.returncode == 0, result.stderr
     lines = [line for line in result.stdout.splitlines() if line.startswith("iter ")]
     assert [line.split()[1] for line in lines] == ["2/4", "4/4"], result.stdout
-    assert all("loss" in line and "rot" in line and "s/it" in line and "eta" in line for line in lines)
+    assert all("loss" in line and "rot" in line and "s/step" in line and "eta" in line for line in lines)
     assert "CUDA driver" not in result.stderr + result.stdout and "Warp 1." not in result.stdout
     assert "Module " not in result.stdout + result.stderr  # no module-load lines either (devices.init_warp_quietly)
     again = [str(tmp_path / "verbose") if argument == str(out) else argument for argument in command[3:]]
@@ -1308,3 +1308,19 @@ def test_a_sigterm_while_a_new_run_starts_removes_its_folder(scene_dir, tmp_path
         signal.signal(signal.SIGTERM, previous)
     assert result.exit_code == 143 and "stopped by SIGTERM" in result.output, result.output
     assert not (tmp_path / "made").exists()
+
+
+def test_the_steps_left_count_the_turn_searchs_trial_rounds_until_it_is_done(scene_dir, tmp_path):
+    """The progress bar and the log lines' ETA counted iterations only, while the turn search trains its round once
+    per turn more: at its start the ETA said seconds were left of minutes (the quick preset: 600 iterations, 1400
+    steps)."""
+    trainer = make_trainer(scene_dir, tmp_path, iters=12, rounds=3, pose_opt_start=0,
+                           camera={"hypotheses_round": 1, "hypothesis_angles": (10.0, 20.0)})
+    turns = 4  # +-10 and +-20 deg about the line of sight
+    assert trainer.steps_left() == 12 + turns * 4
+    trainer.train(stop_at=2)
+    assert trainer.steps_left() == 10 + turns * 4
+    trainer.train(stop_at=8)  # past the searched round (iterations 4-7)
+    assert trainer.steps_left() == 4
+    assert make_trainer(scene_dir, tmp_path / "frozen", iters=12, rounds=3, pose_opt=False,
+                        camera={"hypotheses_round": 1}).steps_left() == 12

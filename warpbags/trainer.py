@@ -422,6 +422,18 @@ class Trainer:
                  + ("kept" if kept is best else "not kept"))
         return kept["steps"]
 
+    def steps_left(self) -> int:
+        """Training steps still to take: the iterations left and, while the round searched for view hypotheses is
+        ahead, its turned trials (each trains that round once more): what a progress estimate counts."""
+        left = self.config.total_iters - self.iteration
+        round_index = self.config.camera.hypotheses_round
+        if self.config.pose_opt and 0 < round_index < self.schedule.rounds:
+            start = self.schedule.round_starts[round_index]
+            if self.iteration <= start:
+                turns = hypothesis_turns(self.config.camera.hypothesis_axes, self.config.camera.hypothesis_angles)
+                left += len(turns) * (self.schedule.round_end(start) - start)
+        return left
+
     def _hypotheses_due(self) -> bool:
         """True at the start of the coarse round `camera.hypotheses_round` (> 0) when poses are optimized."""
         round_index = self.config.camera.hypotheses_round
