@@ -1140,9 +1140,10 @@ def test_a_file_a_command_cannot_write_is_one_line(finished_run, tmp_path, monke
         raise OSError(27, "File too large", str(path))
 
     monkeypatch.setattr("warpbags.export.write_ply", full_disk)
-    result = runner.invoke(app, ["export", str(finished_run), "--out", str(tmp_path / "export")])
+    result = runner.invoke(app, ["export", str(finished_run), "--out", str(tmp_path / "made" / "export")])
     assert result.exit_code == 2 and len(_lines(result)) == 1, result.output
     assert "OSError: [Errno 27] File too large" in " ".join(result.output.split())
+    assert not (tmp_path / "made").exists()  # the folders it made, and what it wrote there, are gone
 
 
 def test_an_npz_cut_short_under_an_npy_name_is_one_line(tmp_path):

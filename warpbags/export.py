@@ -19,6 +19,7 @@ import torch
 
 from warpbags.camera_paths import turntable_viewmats
 from warpbags.data.colmap import write_model
+from warpbags.data.scene import SceneNormalization
 from warpbags.data.images import image_size, resolution_path
 from warpbags.data.layouts import read_layout_cameras, scaled_intrinsics
 from warpbags.errors import WarpbagsError
@@ -170,7 +171,19 @@ def export_run(path: str | Path, out: str | Path | None = None, colmap: bool = T
     out = Path(out) if out is not None else run.path / "export"
     check_export_folder(out, run)
     calibration = training_calibration(run) if colmap else None
+    made = [folder for folder in (out, *out.parents) if not folder.exists()]
     out.mkdir(parents=True, exist_ok=True)
+    try:
+        return _write_export(run, out, normalization, calibration)
+    except BaseException:
+        if made:  # a folder this export made holds nothing else: a failed write (a full disk) leaves none of it
+            shutil.rmtree(made[-1], ignore_errors=True)
+        raise
+
+
+def _write_export(run: TrainingRun, out: Path, normalization: SceneNormalization,
+                  calibration: Calibration | None) -> tuple[Path, Path | None]:
+    """`export_run`'s files into the existing folder `out`."""
     gaussians = to_source_frame(run.params, normalization)
     write_ply(out / "gaussians.ply", gaussians)
     poses = normalization.invert_viewmats(run.poses_final.double()).numpy()
