@@ -92,7 +92,10 @@ class Trainer:
             self.log("no depth maps in this scene: depth term skipped" + (
                 "; poses are corrected from the images and masks alone, which recovers far less from large pose "
                 "noise (zoe_depth/*.png or depths/*.npy per image give the depth prior)" if config.pose_opt else ""))
-        if self._pose_alignment() != config.pose_alignment:
+        # the logged pose error's alignment: the configured one, pairwise where Procrustes cannot fit the reference
+        # cameras (found once: the reference poses do not change)
+        self.pose_alignment = alignment_for(self.viewmats_true.cpu(), config.pose_alignment)
+        if self.pose_alignment != config.pose_alignment:
             self.log(f"the logged pose error uses pairwise alignment ({procrustes_unfit(self.viewmats_true.cpu())})")
         if config.pose_opt and config.pose_opt_start >= config.iters:  # e.g. the paper preset cut to a short run
             self.log(f"pose optimization starts at iteration {config.pose_opt_start}, after the run's {config.iters}: "
@@ -180,14 +183,8 @@ class Trainer:
     def pose_error(self, viewmats: torch.Tensor | None = None) -> dict[str, float]:
         """Mean rotation (deg) and camera-centre errors of `viewmats` (default: current) against the truth."""
         viewmats = self.current_viewmats() if viewmats is None else viewmats
-        errors = pose_errors(viewmats.double().cpu(), self.viewmats_true.double().cpu(),
-                             alignment=self._pose_alignment())
+        errors = pose_errors(viewmats.double().cpu(), self.viewmats_true.double().cpu(), alignment=self.pose_alignment)
         return {"rot_err_deg": errors["rotation_error_deg_mean"], "trans_err": errors["translation_error_mean"]}
-
-    def _pose_alignment(self) -> str:
-        """The logged pose error's alignment: the configured one, pairwise where procrustes cannot fit the reference
-        cameras (`alignment.procrustes_unfit`; said once, when the trainer is made)."""
-        return alignment_for(self.viewmats_true.cpu(), self.config.pose_alignment)
 
     # ----------------------------------------------------------------------------------------------- step
     def train_step(self) -> dict:
