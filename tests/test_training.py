@@ -1207,10 +1207,11 @@ def test_a_run_killed_while_writing_its_first_checkpoint_is_an_unfinished_start(
     """A SIGKILL during the first checkpoint's write leaves the setup files, the log and checkpoint_N.tmp.pt: a run
     stopped before its first checkpoint, which a new run names as such and `remove_unfinished` (a failed start, the
     sweep) clears with the folders made for it."""
+    from warpbags.files import missing_folders
     from warpbags.run_folder import RunFolder
 
     folder = RunFolder(tmp_path / "made" / "run")
-    made = folder.missing_folders()
+    made = missing_folders(folder.path)
     folder.checkpoints.mkdir(parents=True)
     for name in ("config.json", "poses_true.npy", "log.jsonl"):
         (folder.path / name).write_text("")

@@ -23,7 +23,7 @@ from warpbags.data.scene import SceneNormalization
 from warpbags.data.images import image_size, resolution_path
 from warpbags.data.layouts import read_layout_cameras, scaled_intrinsics
 from warpbags.errors import WarpbagsError
-from warpbags.files import atomic_output, temporary_name, writable_file, writable_folder
+from warpbags.files import atomic_output, missing_folders, temporary_name, writable_file, writable_folder
 from warpbags.gaussians import render_gaussians, sh_degree_of, to_source_frame, write_ply
 from warpbags.kernels.sh import SH_C0
 from warpbags.run_folder import TrainingRun, load_run, require_info, run_normalization
@@ -171,7 +171,7 @@ def export_run(path: str | Path, out: str | Path | None = None, colmap: bool = T
     out = Path(out) if out is not None else run.path / "export"
     check_export_folder(out, run)
     calibration = training_calibration(run) if colmap else None
-    made = [folder for folder in (out, *out.parents) if not folder.exists()]
+    made = missing_folders(out)
     out.mkdir(parents=True, exist_ok=True)
     try:
         return _write_export(run, out, normalization, calibration)

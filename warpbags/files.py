@@ -65,6 +65,13 @@ def writable_folder(path: str | Path, purpose: str) -> Path:
     return path
 
 
+def missing_folders(path: str | Path) -> list[Path]:
+    """`path` and those of its parents that do not exist yet (deepest first): what making it makes, and what a
+    failed write there should remove again."""
+    path = Path(path)
+    return [folder for folder in (path, *path.parents) if not folder.exists()]
+
+
 def writable_file(path: str | Path, purpose: str) -> Path:
     """`path` as a file that can be written or replaced (it is missing or a file, and its folder exists or can be
     made): the sibling of `writable_folder` for the files a command writes, checked before it writes any of them.

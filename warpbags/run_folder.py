@@ -299,10 +299,6 @@ class RunFolder:
         return (f"another run is starting in {self.path} (or one was killed while it started: then remove the "
                 "folder); choose another --out")
 
-    def missing_folders(self) -> list[Path]:
-        """The run folder and those of its parents that do not exist yet (deepest first): what writing it makes."""
-        return [folder for folder in (self.path, *self.path.parents) if not folder.exists()]
-
     def holds_unfinished_start(self) -> bool:
         """Whether the folder holds nothing but what a new run writes before its first checkpoint (its setup files,
         log and pose history, their atomic writes' temporaries, a checkpoints/ that is empty or holds only the
@@ -322,9 +318,9 @@ class RunFolder:
     def remove_unfinished(self, made_folders: list[Path]) -> None:
         """Remove what a new run writes before its first checkpoint (its setup files, log, pose history, an
         unfinished coarse/, and checkpoints/ with the temporary of a checkpoint write cut short), then those of
-        `made_folders` (`missing_folders` before the run started) that are empty. Only for a run that started in a
-        new or empty folder (`require_new`) and has no checkpoint: it cannot be resumed, and a half-written run folder
-        must not stay."""
+        `made_folders` (`files.missing_folders` before the run started) that are empty. Only for a run that started
+        in a new or empty folder (`require_new`) and has no checkpoint: it cannot be resumed, and a half-written run
+        folder must not stay."""
         for folder in (self.path / "coarse", self.path):
             for name in (*SETUP_FILES, "gaussians.ply", "poses_final.npy", LOG_FILE, HISTORY_FILE):
                 for written in (name, temporary_name(name)):  # and a write cut short

@@ -34,7 +34,7 @@ from warpbags.data.splits import evaluation_views
 from warpbags.devices import checked_device_name, torch_device
 from warpbags.errors import WarpbagsError, raise_stopped
 from warpbags.evaluation import evaluate_run
-from warpbags.files import atomic_output, finite_json, writable_file, writable_folder
+from warpbags.files import atomic_output, finite_json, missing_folders, writable_file, writable_folder
 from warpbags.report import SWEEP_FIGURES, plot_sweep
 from warpbags.run_folder import RunFolder
 from warpbags.threads import limited_host_threads, usable_cores
@@ -144,7 +144,7 @@ def _sweep_lock(out: Path) -> Iterator[None]:
     Raises:
         WarpbagsError: another sweep holds the lock.
     """
-    made = RunFolder(out).missing_folders()
+    made = missing_folders(out)
     path = out / LOCK_FILE
     while True:
         out.mkdir(parents=True, exist_ok=True)

@@ -40,7 +40,7 @@ from warpbags.data import open_scene, resolve_scene
 from warpbags.data.scene import Scene
 from warpbags.devices import torch_device
 from warpbags.errors import Stopped, WarpbagsError
-from warpbags.files import writable_folder
+from warpbags.files import missing_folders, writable_folder
 from warpbags.model import Diverged, GaussianModel, TrainingViews, scene_extent
 from warpbags.repair import RepairStage, Repairer, repairer_factory
 from warpbags.repair.stage import pseudo_ratio
@@ -130,7 +130,7 @@ class Trainer:
         self.repair_stage: RepairStage | None = None  # built when the repair stage first uses pseudo views
         self._repair_state: dict | None = None  # its checkpointed state, applied when it is built
         self._stop_signal: int | None = None  # the signal that asked training to stop (`_request_stop`)
-        # Set by `start_or_resume` for a new run (the folders it makes: `RunFolder.missing_folders`): until the first
+        # Set by `start_or_resume` for a new run (the folders it makes: `files.missing_folders`): until the first
         # checkpoint, a failure removes what the run wrote (`RunFolder.remove_unfinished`). None: the caller's folder.
         self.new_run_folders: list[Path] | None = None
 
@@ -633,7 +633,7 @@ def start_or_resume(scene: Scene, config: TrainConfig, out_dir: str | Path, devi
                                 f"folder {info.get('scene_root')}, or its preset name, with the same --resolution)")
     else:
         run_folder.require_new()
-    made_folders = run_folder.missing_folders()
+    made_folders = missing_folders(run_folder.path)
     if not resume:  # claimed before the start procedures (seconds to minutes), in which another run could start
         run_folder.claim_new()
     try:
