@@ -128,31 +128,34 @@ class Schedule:
         return self.round_index(iteration) >= self.config.camera.orbit_from_round
 
     def pose_window(self, iteration: int) -> tuple[int, int]:
-        """[start, end) iterations of the current round in which poses are updated (the round's entry of
-        `pose_round_windows`, else `pose_round_window`, as shares of the round's own length, so that rounds of
-        unequal length each have theirs; no earlier than `pose_opt_start`)."""
-        config = self.config
-        round_start = self.round_starts[self.round_index(iteration)]
-        length = max(self.round_end(iteration) - round_start, 1)  # (the repair stage's is not used)
-        windows = config.pose_round_windows
-        window_start, window_end = (windows[min(self.round_index(iteration), len(windows) - 1)] if windows
-                                    else config.pose_round_window)
-        start = max(round_start + math.ceil(window_start * length), config.pose_opt_start)
-        return start, min(round_start + math.ceil(window_end * length), config.iters)
+        """[start, end) iterations of the current round in which poses are updated (`_pose_window_offsets`; no
+        earlier than `pose_opt_start`)."""
+        round_index = self.round_index(iteration)
+        round_start = self.round_starts[round_index]
+        first, stop = self._pose_window_offsets(round_index)
+        return max(round_start + first, self.config.pose_opt_start), min(round_start + stop, self.config.iters)
 
     def rounds_without_pose_window(self) -> list[int]:
         """The coarse rounds whose pose window, as shares of the round, rounds to no iteration (whatever
         `pose_opt_start` says): their poses hold still however the run is started."""
         if not self.config.pose_opt:
             return []
-        windows = self.config.pose_round_windows or (self.config.pose_round_window,)
         empty = []
-        for index, round_start in enumerate(self.round_starts):
-            length = max(self.round_end(round_start) - round_start, 1)
-            window_start, window_end = windows[min(index, len(windows) - 1)]
-            if math.ceil(window_start * length) >= math.ceil(window_end * length):
+        for index in range(self.rounds):
+            first, stop = self._pose_window_offsets(index)
+            if first >= stop:
                 empty.append(index)
         return empty
+
+    def _pose_window_offsets(self, round_index: int) -> tuple[int, int]:
+        """[first, stop) of coarse round `round_index`'s pose window, in iterations from the round's start: the
+        round's entry of `pose_round_windows`, else `pose_round_window`, as shares of the round's own length, so
+        that rounds of unequal length each have theirs."""
+        round_start = self.round_starts[round_index]
+        length = max(self.round_end(round_start) - round_start, 1)
+        windows = self.config.pose_round_windows or (self.config.pose_round_window,)
+        window_start, window_end = windows[min(round_index, len(windows) - 1)]
+        return math.ceil(window_start * length), math.ceil(window_end * length)
 
     def poses_move(self, iteration: int) -> bool:
         """Poses are updated (by Adam steps or L-BFGS solves, `at`) from `pose_opt_start` on, inside each coarse
