@@ -14,6 +14,8 @@ from rich.markup import escape
 from warpbags.errors import Stopped, WarpbagsError, one_line
 
 stderr = Console(stderr=True)
+# every command's output: plain text, so that paths and names with brackets (`runs/mary[s0]`) are not Rich markup
+stdout = Console(highlight=False, markup=False)
 
 
 def clean_errors(command: Callable) -> Callable:

@@ -7,18 +7,14 @@ from pathlib import Path
 from typing import Optional
 
 import typer
-from rich.console import Console
 from rich.table import Table
 
 from warpbags.agreement import pose_agreement
-from warpbags.cli.common import clean_errors
+from warpbags.cli.common import clean_errors, stdout
 from warpbags.errors import WarpbagsError
 from warpbags.evaluation import evaluate_run
 from warpbags.files import atomic_output, finite_json, writable_folder
 from warpbags.run_folder import latest_run, load_run
-
-# plain text: paths and names with brackets (`runs/mary[s0]`) are not Rich markup
-stdout = Console(highlight=False, markup=False)
 
 
 def _fmt(value, digits: int) -> str:

@@ -6,14 +6,10 @@ from pathlib import Path
 from typing import Optional
 
 import typer
-from rich.console import Console
 
-from warpbags.cli.common import clean_errors
+from warpbags.cli.common import clean_errors, stdout
 from warpbags.run_folder import latest_run
 from warpbags.export import export_run, render_turntable
-
-# plain text: paths and names with brackets (`runs/mary[s0]`) are not Rich markup
-stdout = Console(highlight=False, markup=False)
 
 
 def export(

@@ -6,17 +6,13 @@ from pathlib import Path
 from typing import Optional
 
 import typer
-from rich.console import Console
 from rich.text import Text
 from rich.table import Table
 
-from warpbags.cli.common import clean_errors
+from warpbags.cli.common import clean_errors, stdout
 from warpbags.configs.scenes import SCENES
 from warpbags.data import ORBIT_RADIUS, SyntheticOptions, generate_synthetic_scene, open_scene
 from warpbags.data.scene import Scene
-
-# plain text: paths and names with brackets (`runs/mary[s0]`) are not Rich markup
-stdout = Console(highlight=False, markup=False)
 
 
 def scene_summary(scene: Scene) -> Table:

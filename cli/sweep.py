@@ -6,18 +6,14 @@ from pathlib import Path
 from typing import Optional
 
 import typer
-from rich.console import Console
 from rich.markup import escape
 from rich.table import Table
 
-from warpbags.cli.common import clean_errors, parse_numbers
+from warpbags.cli.common import clean_errors, parse_numbers, stdout
 from warpbags.cli.train_options import config_overrides
 from warpbags.configs.train import DEFAULT_PRESET
 from warpbags.errors import WarpbagsError
 from warpbags.sweep import RAY_INSTALL, SweepSpec, make_executor, run_sweep
-
-# plain text: paths and names with brackets (`runs/mary[s0]`) are not Rich markup
-stdout = Console(highlight=False, markup=False)
 
 
 def sweep(

@@ -7,10 +7,9 @@ from pathlib import Path
 from typing import Any, Optional
 
 import typer
-from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
-from warpbags.cli.common import clean_errors
+from warpbags.cli.common import clean_errors, stdout
 from warpbags.cli.train_options import resumed_config, train_config, with_train_options
 from warpbags.configs.scenes import SCENES
 from warpbags.configs.train import DEFAULT_PRESET
@@ -18,9 +17,6 @@ from warpbags.errors import WarpbagsError, sigterm_stops
 from warpbags.files import writable_folder
 from warpbags.run_folder import RunFolder
 from warpbags.trainer import default_run_dir, saved_run_config, saved_run_scene, start_or_resume, training_scene
-
-# plain text: paths and names with brackets (`runs/mary[s0]`) are not Rich markup
-stdout = Console(highlight=False, markup=False)
 
 
 @with_train_options(after="preset")

@@ -7,13 +7,9 @@ from pathlib import Path
 from typing import Optional
 
 import typer
-from rich.console import Console
 from rich.text import Text
 
-from warpbags.cli.common import clean_errors
-
-# plain text: paths and names with brackets (`runs/mary[s0]`) are not Rich markup
-stdout = Console(highlight=False, markup=False)
+from warpbags.cli.common import clean_errors, stdout
 
 
 def view(
