@@ -155,13 +155,13 @@ class CameraConfig:
             Gaussian step: in the pose window, at every iteration i with i + 1 a multiple of `lbfgs_every` (counted
             from the start of training, not of the window) and at the window's last iteration, all training cameras
             are solved by `lbfgs_iters` L-BFGS iterations of the training loss against the current Gaussians, held
-            fixed during the solve (`CameraOptimizer.refine`). Adam steps about its learning rate whatever the gradient's size
-            and so moves the cameras along the directions the images barely constrain (an orbit about the object
-            with the matching image shift); a solve moves them only as far as the loss goes down. None = Adam in
-            every round. The repair stage keeps Adam; `round_anchor` does not enter the solves. Measured at 0
-            (15 deg / 0.3, 4 views, seeds 0-2): maryrose 10.65 -> 8.35 deg (its later rounds no longer drift), the telephoto synthetic scene 0.78 -> 0.94 with
-            its exact depth maps and 1.19 -> 4.1 (two seeds) with monocular-like ones (its later rounds gain less),
-            so off by default.
+            fixed during the solve (`CameraOptimizer.refine`). Adam steps about its learning rate whatever the
+            gradient's size and so moves the cameras along the directions the images barely constrain (an orbit
+            about the object with the matching image shift); a solve moves them only as far as the loss goes down.
+            None = Adam in every round. The repair stage keeps Adam; `round_anchor` does not enter the solves.
+            Measured at 0 (15 deg / 0.3, 4 views, seeds 0-2): maryrose 10.65 -> 8.35 deg (its later rounds no
+            longer drift), the telephoto synthetic scene 0.78 -> 0.94 with its exact depth maps and 1.19 -> 4.1
+            (two seeds) with monocular-like ones (its later rounds gain less), so off by default.
         lbfgs_every, lbfgs_iters: how often the cameras are solved and the L-BFGS iterations of a solve.
         hypotheses_round: at the start of this coarse round (0-based; 0 or a round past the last = never; poses
             optimized only), the training camera whose view the last round's Gaussians fit worst is tried turned about

@@ -3,8 +3,9 @@
 Image metrics (GaussianObject's protocol): held-out views (`sparse_test` split) rendered on a white background and
 compared with the ground truth masked onto white: PSNR, SSIM (3DGS's, which GaussianObject scores with), FLIP
 (NVIDIA's LDR-FLIP through the `flip-evaluator` package: a perceptual error in [0, 1], lower is better, no learned
-weights, so it works offline) and LPIPS-VGG (the `lpips` package) when it and its weights are available offline. A metric that cannot be had
-(LPIPS without its weights, FLIP if its package fails to import) is reported as null with the reason, never guessed.
+weights, so it works offline) and LPIPS-VGG (the `lpips` package) when it and its weights are available offline. A
+metric that cannot be had (LPIPS without its weights, FLIP if its package fails to import) is reported as null with
+the reason, never guessed.
 
 The held-out poses are true poses, while the Gaussians live in the frame of the optimized training poses. The
 test cameras are therefore mapped through the sim(3) that aligns the optimized training cameras to the true ones

@@ -130,7 +130,8 @@ class DensifyStrategy:
             removed = self._remove_floaters(params, optimizer)
             if removed:
                 report["floaters"] = removed
-        if grows and config.opacity_reset_every and iteration % config.opacity_reset_every == 0 and iteration < config.stop:
+        if (grows and config.opacity_reset_every and iteration % config.opacity_reset_every == 0
+                and iteration < config.stop):
             self._reset_opacities(params, optimizer)
             report["opacity_reset"] = 1
         return report

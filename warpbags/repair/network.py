@@ -124,7 +124,8 @@ class UNetRepairer:
             self.network = RepairUNet(self.config.unet_channels).to(self.device)
 
     def _train(self, pairs: RepairPairs, steps: int, size: int, should_stop: Callable[[], bool],
-               validation: RepairPairs | None = None, check_every: int = 0) -> tuple[list[float], list[tuple[int, float]]]:
+               validation: RepairPairs | None = None,
+               check_every: int = 0) -> tuple[list[float], list[tuple[int, float]]]:
         """`steps` Adam steps on L1 (cosine-decayed rate) from the current network; returns the crop losses and,
         with `validation`, its whole-image mean squared error every `check_every` steps.
 
