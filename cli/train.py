@@ -59,7 +59,6 @@ def train(
                                     data_root, log=stdout.print)
         out = out or default_run_dir(scene_data.name, config.views)
         trainer = start_or_resume(scene_data, config, out, device=device, resume=resume, log=stdout.print)
-    views = config.views
     initial = trainer.pose_error(trainer.viewmats_init)
     repair_note = (f" + {trainer.config.repair.iters} repair" if trainer.config.repair.iters else "")
     # Without injected noise the scene's poses are where training starts, not a truth: say what the numbers mean.
@@ -67,7 +66,7 @@ def train(
     start = (f"initial pose error {initial['rot_err_deg']:.3f} deg / {initial['trans_err']:.4f}" if noisy else
              "starting from the scene's own poses (no noise injected): rot and trans are how far the cameras move "
              "from them")
-    stdout.print(f"{scene_data.name}: {views} views at {scene_data.width}x{scene_data.height}, "
+    stdout.print(f"{scene_data.name}: {config.views} views at {scene_data.width}x{scene_data.height}, "
                  f"{trainer.config.iters}{repair_note} iterations ({trainer.config.preset}); {start}")
     try:
         if stdout.is_terminal:
