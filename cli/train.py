@@ -50,7 +50,8 @@ def train(
         if not resume:  # a new run starts in a new or empty folder (start_or_resume checks it again)
             RunFolder(out).require_new()
     # A resumed run goes on with the config it was started with; options given again must agree with it.
-    config = (resumed_config(saved_run_config(out), preset, config_options, settings or []) if resume else
+    config = (resumed_config(saved_run_config(out), preset, config_options, settings or [],
+                             RunFolder(out).read_info().get("resolution")) if resume else
               train_config(preset or DEFAULT_PRESET, config_options, settings or []))
     # SIGTERM (kill, a job scheduler) stops the start as Ctrl-C does, so that a new run's claim on its folder is
     # removed; training takes both signals itself from its first iteration on

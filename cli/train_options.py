@@ -264,10 +264,15 @@ def _check_once(given: dict[str, tuple[str, Any]], path: str, source: str) -> No
             raise WarpbagsError(f"{other_source} and {source} both set {min(path, other, key=len)}; give one")
 
 
-def resumed_config(saved: TrainConfig, preset: str | None, given: dict[str, Any], settings: list[str]) -> TrainConfig:
+def resumed_config(saved: TrainConfig, preset: str | None, given: dict[str, Any], settings: list[str],
+                   read_at: int | None = None) -> TrainConfig:
     """`saved`, the config of the run that `warpbags train --resume` continues, once the preset and the TRAIN_OPTIONS
     and `--set` items given alongside agree with it: a run does not change its schedule half-way, and the same
     command line that started it may be given again.
+
+    Args:
+        read_at: the resolution factor the run read its images at (config.json's): a run that left the factor to the
+            scene (`resolution` None) accepts it named (`-r 8` for a preset read at 1/8), which opens the same images.
 
     Raises:
         WarpbagsError: a preset, option or `--set` value that differs from the run's.
@@ -276,9 +281,14 @@ def resumed_config(saved: TrainConfig, preset: str | None, given: dict[str, Any]
         raise WarpbagsError(f"--resume: the run was trained with --preset {saved.preset}, not {preset}; drop --preset "
                             "or start a new run")
     overrides = config_overrides(given, settings)
+    if saved.resolution is None and read_at is not None and overrides.get("resolution") == read_at:
+        del overrides["resolution"]
     asked = saved.replaced(**overrides)  # checked against the run's own config (views_per_step <= views, ...)
     for path, _ in _flattened(overrides):
         if field_value(asked, path) != field_value(saved, path):
+            if path == "resolution" and saved.resolution is None and read_at is not None:
+                raise WarpbagsError(f"--resume: the run read its images at the scene's resolution factor {read_at}, "
+                                    f"not {asked.resolution}; drop that option or start a new run")
             raise WarpbagsError(f"--resume: the run was trained with {path}={_text(field_value(saved, path))}, not "
                                 f"{_text(field_value(asked, path))}; drop that option or start a new run")
     return saved

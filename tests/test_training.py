@@ -837,10 +837,15 @@ def test_cli_resume_goes_on_with_the_runs_config(scene_dir, tmp_path):
     assert bare.exit_code == 0 and "already finished its 4 iterations" in bare.output, bare.output
     missing = runner.invoke(app, ["train", "--out", str(tmp_path / "fresh")])
     assert missing.exit_code == 2 and "give the scene to train" in missing.output
+    # the run left the resolution factor to the scene, which read it at 1: naming that factor opens the same images
+    assert json.loads((out / "config.json").read_text())["resolution"] == 1
+    named = runner.invoke(app, [*command, "--resume", "-r", "1"])
+    assert named.exit_code == 0 and "already finished its 4 iterations" in named.output, named.output
     # anything that would change the run half-way is refused, before the scene is loaded at another size
     for extra, message in [(["--views", "5"], "trained with views=4, not 5"),
                            (["--preset", "paper"], "trained with --preset quick, not paper"),
                            (["--max-image-size", "64"], "trained with max_image_size=32, not 64"),
+                           (["-r", "2"], "read its images at the scene's resolution factor 1, not 2"),
                            (["--set", "init_points=500"], "trained with init_points=300, not 500")]:
         result = runner.invoke(app, [*command, "--resume", *extra])
         lines = [line for line in result.output.splitlines() if line.strip()]
