@@ -45,7 +45,7 @@ from warpbags.cli.common import clean_errors  # noqa: E402
 from warpbags.devices import torch_device  # noqa: E402
 from warpbags.errors import WarpbagsError  # noqa: E402
 from warpbags.rendering import DEFAULT_TILE_SIZE  # noqa: E402
-from warpbags.wrapper import _pixel_block  # noqa: E402
+from warpbags.wrapper import pixel_block_for  # noqa: E402
 
 
 def bench_scene(n: int, cams: int, size: int, seed: int = 0, device: torch.device = torch.device("cpu")) -> dict:
@@ -177,7 +177,7 @@ def main() -> None:
         # the rasterizer shrinks each side to a power of two dividing the tile: the column would name a block that
         # did not run
         try:
-            ran = _pixel_block(device, tile_size, block)
+            ran = pixel_block_for(device, tile_size, block)
         except ValueError as error:  # more pixels per thread than it has kernels for
             raise WarpbagsError(f"--blocks {block[0]}x{block[1]}: {error}") from None
         if ran != block:

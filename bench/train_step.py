@@ -474,7 +474,7 @@ def main() -> None:
     from warpbags.devices import torch_device  # noqa: PLC0415
     from warpbags.errors import WarpbagsError  # noqa: PLC0415
     from warpbags.rendering import DEFAULT_TILE_SIZE  # noqa: PLC0415
-    from warpbags.wrapper import _pixel_block  # noqa: PLC0415
+    from warpbags.wrapper import pixel_block_for  # noqa: PLC0415
 
     device = torch_device(args.device)
     if device.type == "cuda" and (args.pixel_blocks or args.opensplat):
@@ -507,7 +507,7 @@ def main() -> None:
             raise WarpbagsError(f"--pixel-blocks {args.pixel_blocks!r}: {block!r} is not WIDTHxHEIGHT (e.g. 2x2)")
         # the rasterizer shrinks each side to a power of two dividing the tile: the column would name a block
         # that did not run
-        width, height = _pixel_block(device, tile_size, tuple(int(side) for side in block.split("x")))
+        width, height = pixel_block_for(device, tile_size, tuple(int(side) for side in block.split("x")))
         if block != f"{width}x{height}":
             raise WarpbagsError(f"--pixel-blocks {args.pixel_blocks!r}: the rasterizer would run {block} as "
                                 f"{width}x{height} on its {tile_size} px tiles (each side a power of two dividing "

@@ -1095,14 +1095,19 @@ def _visits_per_tile(tile_offsets: torch.Tensor, isect_end: torch.Tensor, tiles:
 # of raster forward / backward / whole step): 4x1 173 / 316 / 478, 4x2 129 / 253 / 395, 4x4 92 / 224 / 335; and
 # `python bench/rasterize.py --sizes 128,432 --gaussians 10000 --cameras 4,1 --blocks 4x1,4x2,4x4` (forward +
 # backward, 128^2 / 4 cameras): 62.6 / 55.6 / 52.3.
-# 4x4 is one block per tile at the CPU's 4-pixel tiles (`_pixel_block` shrinks it where the tile is smaller).
+# 4x4 is one block per tile at the CPU's 4-pixel tiles (`pixel_block_for` shrinks it where the tile is smaller).
 DEFAULT_PIXEL_BLOCK: dict[str, tuple[int, int]] = {"cuda": (1, 1), "cpu": (4, 4)}
 
 
-def _pixel_block(device: torch.device, tile_size: int, block: tuple[int, int] | None) -> tuple[int, int]:
-    """The block for this device and tile: each side the largest power of two that divides the tile size and is
-    not above the asked side (a block never spans two tiles, and a tile of 6 or 18 px gets 2 px sides, not 3: the
-    kernels are built for power-of-two pixel counts)."""
+def pixel_block_for(device: torch.device, tile_size: int, block: tuple[int, int] | None) -> tuple[int, int]:
+    """The pixel block the rasterizer runs for `block` (None: the device's default) on tiles of `tile_size` px: each
+    side the largest power of two that divides the tile size and is not above the asked side (a block never spans two
+    tiles, and a tile of 6 or 18 px gets 2 px sides, not 3: the kernels are built for power-of-two pixel counts).
+    The benches check with it that the block a column names is the one that ran.
+
+    Raises:
+        ValueError: more pixels per thread than the rasterizer has kernels for.
+    """
     block_w, block_h = block or DEFAULT_PIXEL_BLOCK["cuda" if device.type == "cuda" else "cpu"]
     block_w, block_h = (max(d for d in (1, 2, 4, 8, 16) if d <= max(side, 1) and tile_size % d == 0)
                         for side in (block_w, block_h))
@@ -1167,7 +1172,7 @@ class _RasterizeToPixels(torch.autograd.Function):
             isect_end=_to_warp(isect_end.view(pixels), "int32"),
         )
         workers = 1 if device.type == "cuda" else (cpu_threads or _default_cpu_threads())
-        block_w, block_h = _pixel_block(device, bins.tile_size, pixel_block)
+        block_w, block_h = pixel_block_for(device, bins.tile_size, pixel_block)
         ctx.lanes = block_w * block_h
         ctx.geometry = dict(tiles=_tile_geometry(n, width, height, bins.tile_size), block_w=block_w, block_h=block_h)
         common = _splat_arguments(splats, bins.tile_offsets, bins.isect_ids, ctx.geometry)
