@@ -19,9 +19,13 @@ from typing import Any
 
 import warp as wp
 
-# Points at or behind this depth in a view get depth 1 (a finite, meaningless pixel), as `warpbags.cameras.
-# project_points` gives them: the rays start at the object, so no other camera has them behind it in practice.
+# A point at or behind this depth in a view lies outside its silhouette cone, which opens in front of the camera:
+# it is charged BEHIND_CAMERA_DISTANCE (image sizes) for that view, a pixel that far off the image lies within 0.2 deg
+# of 90 deg off the axis at any field of view warpbags reads (a camera turned away from the object: a start
+# without the mask-centroid turn, `camera.centroid_start` false). Projected with a stand-in depth, as
+# `warpbags.cameras.project_points` does, it could land inside the mask and be charged nothing.
 MIN_DEPTH = 1.0e-6
+BEHIND_CAMERA_DISTANCE = 1.0e3
 
 
 @wp.func
@@ -84,11 +88,12 @@ def least_outside_sample_kernel(rays: wp.array(dtype=Any), ray_views: wp.array(d
                     camera = wp.transform_point(viewmats[other], point)
                     z = camera[2]
                     if z <= type(z)(MIN_DEPTH):
-                        z = type(z)(1.0)
-                    k = intrinsics[other]
-                    u = k[0] * camera[0] / z + k[2]
-                    v = k[1] * camera[1] / z + k[3]
-                    total = total + outside_mask_distance(distances, other, u, v, margin, size)
+                        total = total + type(z)(BEHIND_CAMERA_DISTANCE)
+                    else:
+                        k = intrinsics[other]
+                        u = k[0] * camera[0] / z + k[2]
+                        v = k[1] * camera[1] / z + k[3]
+                        total = total + outside_mask_distance(distances, other, u, v, margin, size)
                     if best_sample >= 0 and total > best:
                         pruned = 1
             if pruned == 0 and (best_sample < 0 or total < best or (total == best and s < best_sample)):

@@ -17,6 +17,7 @@ from warpbags.camera_setup import coherent_start, starting_poses
 from warpbags.cameras import camera_centers, pixel_directions, project_points
 from warpbags.data import SyntheticOptions, ensure_synthetic_scene, load_scene
 from warpbags.data.noise import perturb_viewmats
+from warpbags.kernels.coherence import BEHIND_CAMERA_DISTANCE
 from warpbags.lie import so3_exp
 from warpbags.losses import mask_loss
 from warpbags.silhouette import (COHERENCE_SAMPLES, SilhouetteTargets, centroid_start, nearest_distances,
@@ -154,6 +155,38 @@ def test_coherence_pulls_a_camera_whose_rays_miss_the_other_silhouettes(scene):
     with torch.no_grad():
         step = moved - 0.5 * moved.grad / moved.grad[1].norm()
         assert targets.coherence_loss(step, Ks, center, radius) < loss
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_coherence_charges_points_behind_another_camera_as_outside_its_silhouette(dtype):
+    """Camera 1 stands 10 units down camera 0's axis, facing the same way: the object region camera 0 looks at
+    (5 units ahead) lies behind camera 1. Projected with a stand-in depth of 1 those points landed on camera 1's
+    mask and camera 0's rays were charged nearly nothing, though no point behind a camera is in its silhouette cone
+    (a camera turned away from the object, as a start without the mask-centroid turn can leave it)."""
+    viewmats = torch.eye(4, dtype=dtype).repeat(2, 1, 1)
+    viewmats[1, 2, 3] = -10.0  # centre at z = 10, looking down +z like camera 0
+    Ks = torch.tensor([[50.0, 0, 16], [0, 50, 16], [0, 0, 1]], dtype=dtype).repeat(2, 1, 1)
+    masks = torch.zeros(2, 32, 32)
+    masks[:, 12:20, 12:20] = 1
+    targets = SilhouetteTargets(masks)
+    center = torch.tensor([0.0, 0.0, 5.0], dtype=dtype)
+    # every sample of camera 0's rays is behind camera 1, every one of camera 1's in front of camera 0 and on its mask
+    loss = targets.coherence_loss(viewmats, Ks, center, 1.0).item()
+    assert loss == pytest.approx(BEHIND_CAMERA_DISTANCE / 2, rel=1e-6)
+    behind = torch.tensor([[0.0, 0.0, 5.0]], dtype=dtype)
+    assert targets._outside_other_views(behind, 0, viewmats, Ks).item() == BEHIND_CAMERA_DISTANCE
+    # camera 1 moved into the middle of camera 0's depth range: the search (kernels/coherence.py) takes the sample
+    # in front of it that passes through its mask, as trying every sample does, not one behind it
+    viewmats[1, 2, 3] = -5.0
+    centers = camera_centers(viewmats)
+    depths = torch.linspace(4.0, 6.0, COHERENCE_SAMPLES, dtype=dtype)[None].repeat(2, 1)
+    rays = pixel_directions(targets.foreground[0].to(dtype), Ks[0])
+    chosen = least_outside_samples(rays, torch.zeros(len(rays), dtype=torch.long), centers, depths, viewmats, Ks,
+                                   targets.outside_distance, targets.margin, targets.size)
+    points = rays[:, None] * depths[0][None, :, None]
+    totals = targets._outside_other_views(points.reshape(-1, 3), 0, viewmats, Ks).reshape(points.shape[:2])
+    assert (totals == BEHIND_CAMERA_DISTANCE).any(dim=1).all() and (totals.min(dim=1).values < 1).all()
+    assert torch.equal(chosen, totals.argmin(dim=1))
 
 
 @pytest.mark.parametrize("continued", [False, True])

@@ -25,6 +25,7 @@ import torch
 import torch.nn.functional as F
 
 from warpbags.cameras import camera_centers, pixel_directions, project_points
+from warpbags.kernels.coherence import BEHIND_CAMERA_DISTANCE, MIN_DEPTH
 from warpbags.lie import rotation_between
 from warpbags.wrapper import least_outside_samples, nearest_points
 
@@ -253,8 +254,10 @@ class SilhouetteTargets:
         """[N] the sum over every view but `view` of the distance of [N, 3] world points outside its mask, in image
         sizes (`_outside_mask`)."""
         others = [other for other in range(len(viewmats)) if other != view]
-        projected, _ = project_points(viewmats[others], Ks[others], points)  # [C-1, N, 2]
-        return self._outside_mask(projected, torch.tensor(others, device=points.device)).sum(0)
+        projected, depths = project_points(viewmats[others], Ks[others], points)  # [C-1, N, 2], [C-1, N]
+        outside = self._outside_mask(projected, torch.tensor(others, device=points.device))
+        # outside the cone of a camera the point is behind, as the search charges it (kernels/coherence.py)
+        return torch.where(depths > MIN_DEPTH, outside, BEHIND_CAMERA_DISTANCE).sum(0)
 
     def _outside_mask(self, pixels: torch.Tensor, views: torch.Tensor) -> torch.Tensor:
         """[B, N] the distance (image sizes) of [B, N, 2] pixel positions outside the masks of views [B], bilinear in
