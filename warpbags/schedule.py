@@ -44,8 +44,9 @@ class StepSettings:
             coarse stage's final poses when those are an average, else 0).
         pose_average: the poses after this step join the average that becomes the final poses
             (`camera.average_share`).
-        densify: the densification strategy may add Gaussians or reset opacities after this step; not at the coarse
-            stage's last iteration, after which no step trains what they would add before the model is saved.
+        densify: the densification strategy may add Gaussians or reset opacities after this step; not at a coarse
+            round's last iteration, after which no step trains what they would add: the last round's model is
+            saved, an earlier one's scored (the turn search's worst-fit camera) and replaced by fresh Gaussians.
     """
 
     round_iteration: int
@@ -212,5 +213,5 @@ class Schedule:
             orbit_free=self.orbit_free(iteration),
             pose_anchor=config.camera.round_anchor if in_repair or self.round_index(iteration) > 0 else 0.0,
             pose_average=self.averages_poses(iteration),
-            densify=iteration != config.iters - 1,
+            densify=iteration != self.round_end(iteration) - 1,
         )
