@@ -3,8 +3,10 @@
 Layout:
     .starting          while a new run starts (made exclusively, removed once its setup files are written): a
                        second run started into the same folder meanwhile stops instead of writing into it
-    config.json        the resolved TrainConfig plus scene/view information
-    poses_true.npy     [C,4,4] world-to-camera poses of the training views (normalized scene world)
+    config.json        the resolved TrainConfig plus scene/view information (its "normalization": how the scene's
+                       world was moved and scaled into the normalized world every file here is in; `warpbags
+                       export` writes the Gaussians and poses back in the scene's own)
+    poses_true.npy     [C,4,4] world-to-camera poses of the training views
     poses_init.npy     [C,4,4] the (noisy) poses given to training
     poses_start.npy    [C,4,4] the poses the optimization starts from (after the mask-centroid start and the
                        silhouette-coherence solve, where used)
