@@ -33,20 +33,23 @@ class Stop(Exception):
 
 @pytest.fixture
 def parsed(monkeypatch):
-    """`parsed(*arguments)`: the TrainConfig that `warpbags train scene *arguments` would train with."""
-    configs = []
+    """`parsed(*arguments, scene="scene")`: the TrainConfig that `warpbags train scene *arguments` would train with;
+    `parsed.loads` lists the (scene, data_root) each call handed the loader."""
+    configs, loads = [], []
 
     def training_scene(scene, config, data_root=None, log=print):
         configs.append(config)
+        loads.append((scene, data_root))
         raise Stop
 
     monkeypatch.setattr(train_command, "training_scene", training_scene)
 
-    def parse(*arguments: str) -> TrainConfig:
-        result = runner.invoke(app, ["train", "scene", *arguments])
+    def parse(*arguments: str, scene: str = "scene") -> TrainConfig:
+        result = runner.invoke(app, ["train", scene, *arguments])
         assert isinstance(result.exception, Stop), result.output
         return configs[-1]
 
+    parse.loads = loads
     return parse
 
 
@@ -145,6 +148,19 @@ def test_set_reaches_fields_with_an_option_and_the_noise_seed_follows_the_seed(p
     assert parsed("--seed", "3", "--noise-seed", "5").noise_seed == 5
     assert parsed("--set", "noise_seed=5").seed == 0
     assert parsed("--preset", "paper") == PRESETS["paper"]()
+
+
+def test_data_root_reaches_the_scene_loader(tmp_path, parsed):
+    """`--data-root` is not a config field: only the loader's call carries it to the data-root presets' folders."""
+    parsed("--data-root", str(tmp_path), "--views", "4", scene="kitchen")
+    assert parsed.loads[-1] == ("kitchen", tmp_path)
+    parsed(scene="kitchen")
+    assert parsed.loads[-1] == ("kitchen", None)  # left out: the loader's own default ($WARPBAGS_DATA, data/)
+
+
+def test_the_short_resolution_option_sets_the_resolution(parsed):
+    assert parsed("-r", "2").resolution == 2
+    assert parsed("-r", "2") == parsed("--resolution", "2")
 
 
 def test_a_later_set_replaces_an_earlier_one(parsed):

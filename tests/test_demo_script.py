@@ -65,6 +65,26 @@ def test_demo_evaluates_the_folder_and_device_training_used(tmp_path, extra, out
     assert evaluate[evaluate.index("--device") + 1] == device
 
 
+def _option_values(arguments: list[str]) -> dict[str, str | None]:
+    """Each `--option value` (or a flag, None) of a command line, by option."""
+    values = {}
+    for index, argument in enumerate(arguments):
+        if argument.startswith("--"):
+            following = arguments[index + 1] if index + 1 < len(arguments) else None
+            values[argument] = None if following is None or following.startswith("--") else following
+    return values
+
+
+def test_demo_trains_four_noisy_views_on_the_quick_preset_and_evaluates_aligned(tmp_path):
+    """What the demo shows (its header): 4 views, 15 deg of rotation and 0.3 of camera-centre noise to recover, the
+    CPU-sized preset, and pose errors after sim(3) Procrustes alignment (the run's frame is not the scene's)."""
+    train, evaluate = _demo_commands(tmp_path)
+    options = _option_values(train)
+    assert {name: options.get(name) for name in ("--views", "--preset", "--rot-noise-deg", "--trans-noise")} == {
+        "--views": "4", "--preset": "quick", "--rot-noise-deg": "15", "--trans-noise": "0.3"}, train
+    assert "--procrustes" in evaluate, evaluate
+
+
 def test_the_test_script_and_ci_take_paths_from_where_they_are_called(tmp_path):
     """scripts/test.sh moved to the checkout's root before pytest read its arguments, so `bash ../scripts/test.sh
     test_x.py` from tests/ found no file; .ci/run ran `scripts/test.sh` relative to the caller's folder (rc 127

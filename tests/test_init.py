@@ -7,10 +7,12 @@ import torch
 from conftest import look_at
 
 from warpbags.cameras import pixel_directions, project_points
-from warpbags.init import hull_or_random_points, visual_hull
+from warpbags.init import hull_or_random_points, initial_gaussians, visual_hull
+from warpbags.kernels.sh import SH_C0
 from warpbags.wrapper import mean_neighbour_distances
 
 WIDTH = HEIGHT = 32
+RED = torch.tensor([0.8, 0.1, 0.1])  # the object's colour in `_red_sphere_on_white`
 KS = torch.tensor([[40.0, 0.0, 16.0], [0.0, 40.0, 16.0], [0.0, 0.0, 1.0]]).expand(2, 3, 3)
 
 
@@ -133,3 +135,51 @@ def test_silhouettes_that_share_no_volume_give_random_points_and_say_so():
                                                  generator=torch.Generator().manual_seed(0))
     assert note.startswith("visual hull had only 0 voxels; random points instead (150)") and points.shape == (150, 3)
     assert colors.shape == (150, 3)
+
+
+def _red_sphere_on_white():
+    """Three views (along x, y and z) of the unit sphere, red on a white background: images, masks, viewmats, Ks."""
+    viewmats, Ks, masks = _sphere_silhouettes(torch.tensor([[4.0, 0.0, 0.0], [0.0, 4.0, 0.0], [0.0, 0.0, 4.0]]), 48)
+    images = torch.ones(*masks.shape, 3)
+    images[masks.bool()] = RED
+    return images, masks, viewmats, Ks
+
+
+def test_hull_points_take_the_objects_colour_in_rgb_order():
+    """A point's colour is its mean over the views that see it inside the mask: every point of a red object's hull is
+    that red, in RGB order. The hull is carved from masks dilated by 2 px, so points near its edge fall on the white
+    background in some views; the masks themselves keep those views out of the mean."""
+    images, masks, viewmats, Ks = _red_sphere_on_white()
+    points, colors, note = hull_or_random_points(images, masks, viewmats, Ks, method="hull", count=300, resolution=24,
+                                                 dilation_px=2, missed_views=0,
+                                                 generator=torch.Generator().manual_seed(0))
+    assert note.startswith("visual hull: ") and points.shape == colors.shape == (300, 3), note
+    torch.testing.assert_close(colors, RED.expand(300, 3), rtol=0, atol=1e-6)
+
+
+@pytest.mark.parametrize("opacity, given", [(0.1, {}), (0.3, {"opacity": 0.3})], ids=["default", "given"])
+def test_initial_gaussians_hold_the_given_opacity_and_colours(opacity, given):
+    """Opacities are stored as logits and colours as the DC SH coefficient (colour = SH_C0 * sh0 + 0.5): both must
+    read back as given (3DGS starts at opacity 0.1; a flipped logit starts every Gaussian at 0.9)."""
+    points = torch.rand(40, 3, generator=torch.Generator().manual_seed(1))
+    colors = torch.rand(40, 3, generator=torch.Generator().manual_seed(2))
+    params = initial_gaussians(points, colors, 0, **given)
+    torch.testing.assert_close(torch.sigmoid(params["opacities"]), torch.full((40,), opacity), rtol=0, atol=1e-6)
+    torch.testing.assert_close(SH_C0 * params["sh0"][:, 0] + 0.5, colors, rtol=0, atol=1e-6)
+    torch.testing.assert_close(params["means"], points)
+
+
+def test_sfm_points_keep_their_own_colours():
+    """SfM initialization subsamples the points at random: each picked point must bring its own colour along (here
+    a colour that is a function of the point, so a mismatch shows)."""
+    generator = torch.Generator().manual_seed(0)
+    sfm_points = torch.randn(60, 3, generator=generator, dtype=torch.float64)
+    sfm_colors = torch.sigmoid(sfm_points)  # each point's colour, from its coordinates
+    images = torch.zeros(2, HEIGHT, WIDTH, 3)
+    viewmats = torch.stack([look_at(eye, torch.zeros(3)) for eye in torch.tensor([[4.0, 0.0, 0.5], [0.0, 4.0, 0.5]])])
+    points, colors, note = hull_or_random_points(images, None, viewmats, KS, method="sfm", count=25, resolution=8,
+                                                 dilation_px=0, missed_views=1, generator=generator,
+                                                 sfm_points=sfm_points, sfm_colors=sfm_colors)
+    assert note == "SfM points: 25 of 60" and points.shape == colors.shape == (25, 3)
+    assert torch.cdist(points.double(), sfm_points).min(dim=1).values.max() < 1e-6  # the scene's points, no others
+    torch.testing.assert_close(colors, torch.sigmoid(points.double()).float(), rtol=0, atol=1e-6)

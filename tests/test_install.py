@@ -30,6 +30,18 @@ print(json.dumps({{name: importlib.import_module(name).__file__ for name in {MOD
 """
 
 
+# The packaged maryrose scene read through the installed package (the editable hook dropped as above).
+OPEN_MARYROSE = """
+import json, sys
+sys.meta_path[:] = [finder for finder in sys.meta_path
+                    if not getattr(finder, "__module__", "").startswith("__editable__")]
+from warpbags.data import open_scene
+scene = open_scene("maryrose")
+print(json.dumps({"root": str(scene.root), "views": scene.num_views, "images": list(scene.images.shape),
+                  "masks": None if scene.masks is None else list(scene.masks.shape)}))
+"""
+
+
 @pytest.fixture(scope="module")
 def installed(tmp_path_factory) -> Path:
     """A fresh non-editable install of the checkout, offline (no dependencies, no build isolation)."""
@@ -49,13 +61,18 @@ def installed(tmp_path_factory) -> Path:
     return target
 
 
-def _import_from(directory: Path, site: Path) -> dict[str, str]:
-    """Where each module of MODULES is imported from, by a fresh interpreter started in `directory`."""
+def _run_from(directory: Path, site: Path, script: str) -> dict:
+    """The JSON that `script` prints last, run by a fresh interpreter started in `directory` with `site` on its path."""
     environment = {**os.environ, "PYTHONPATH": str(site)}
-    result = subprocess.run([sys.executable, "-c", IMPORT_AND_LOCATE], cwd=directory, env=environment,
+    result = subprocess.run([sys.executable, "-c", script], cwd=directory, env=environment,
                             capture_output=True, text=True, timeout=300)
     assert result.returncode == 0, result.stderr
-    return {name: Path(path) for name, path in json.loads(result.stdout.splitlines()[-1]).items()}
+    return json.loads(result.stdout.splitlines()[-1])
+
+
+def _import_from(directory: Path, site: Path) -> dict[str, str]:
+    """Where each module of MODULES is imported from, by a fresh interpreter started in `directory`."""
+    return {name: Path(path) for name, path in _run_from(directory, site, IMPORT_AND_LOCATE).items()}
 
 
 def test_installed_package_imports_from_the_repository_root(installed):
@@ -73,3 +90,11 @@ def test_installed_package_imports_from_another_directory(installed, tmp_path):
     assert files["warpbags.kernels"] == installed / "warpbags" / "kernels" / "__init__.py"
     assert files["warpbags.cli.main"] == installed / "warpbags" / "cli" / "main.py"
     assert files["warpbags.configs.train"] == installed / "warpbags" / "configs" / "train.py"
+
+
+def test_installed_package_ships_the_maryrose_scene(installed, tmp_path):
+    """pyproject's package-data puts maryrose's poses, splits, images and masks in the wheel, so that `warpbags info
+    maryrose` and the demo work from an install, away from the checkout."""
+    scene = _run_from(tmp_path, installed, OPEN_MARYROSE)
+    assert Path(scene["root"]) == installed / "warpbags" / "assets" / "maryrose"
+    assert scene["views"] == 69 and scene["images"][0] == 69 and scene["masks"][0] == 69, scene
