@@ -366,6 +366,27 @@ def test_transforms_json_matches_exact_poses(synthetic_dir, tmp_path):
     assert scene.masks is not None
 
 
+def test_a_frame_file_path_without_extension_finds_its_image_of_any_extension_read(synthetic_dir, tmp_path):
+    """Blender writes "./train/r_0" for "./train/r_0.png": a file_path without extension was looked up as .png alone,
+    and JPEGs were "missing (named by the camera file)". It is looked up with each extension the loader reads, also
+    in a downsampled folder; where none exists the file_path is named."""
+    folder = _strip_to_images(synthetic_dir, tmp_path / "jpegs")
+    for path in (folder / "images").glob("*.png"):
+        cv2.imwrite(str(path.with_suffix(".jpg")), cv2.imread(str(path)))
+        path.unlink()
+    opengl = np.linalg.inv(dome_viewmats(SYNTHETIC)) @ np.diag([1.0, -1.0, -1.0, 1.0])
+    frames = [{"file_path": f"images/view_{i:03d}", "transform_matrix": opengl[i].tolist()} for i in range(12)]
+    (folder / "transforms.json").write_text(json.dumps({"camera_angle_x": math.radians(SYNTHETIC.fov_deg), "w": 64,
+                                                        "h": 64, "frames": frames}))
+    assert load_scene(folder, normalize=False).image_names[0] == "images/view_000.jpg"
+    (folder / "images").rename(folder / "images_2")
+    assert load_scene(folder, normalize=False, resolution=2).image_names[0] == "images/view_000.jpg"
+    (folder / "images_2" / "view_003.jpg").unlink()
+    _expect_error(folder, re.escape(f"{folder / 'transforms.json'}: frame file_path 'images/view_003' has no "
+                                    f"extension, and no image {folder / 'images' / 'view_003'}.png, .jpg, .jpeg, .PNG, "
+                                    ".JPG or .JPEG exists"), resolution=2)
+
+
 def test_a_pose_that_is_not_a_rotation_is_refused_at_load(synthetic_dir, tmp_path):
     """A transform_matrix with a scale (some exporters fold one in) would train as a wrong camera, and every reader
     of the run would refuse its poses afterwards: the loader names it."""
@@ -526,6 +547,22 @@ def test_downsampled_resolution_scales_intrinsics(synthetic_dir, synthetic):
     torch.testing.assert_close(half.viewmats, synthetic.viewmats, atol=0.02, rtol=0)
 
 
+def test_downsampled_pngs_of_jpeg_images_are_the_files_read(scene_copy):
+    """images/ of JPEGs and images_2/ of PNGs made from them (some tools convert to PNG when downsampling): at
+    resolution 2 the PNGs are read, not the JPEGs decoded at half their size."""
+    (scene_copy / "images_2").mkdir()
+    for path in sorted((scene_copy / "images").glob("*.png")):
+        image = cv2.imread(str(path))
+        cv2.imwrite(str(path.with_suffix(".jpg")), image)
+        path.unlink()
+        half = cv2.resize(image, (32, 32), interpolation=cv2.INTER_AREA)
+        cv2.imwrite(str(scene_copy / "images_2" / path.name), half[:, ::-1])  # mirrored, told from the JPEG's
+    _rename_in_model(scene_copy, [f"view_{index:03d}.jpg" for index in range(12)])
+    pngs = [cv2.imread(str(path))[..., ::-1] for path in sorted((scene_copy / "images_2").glob("*.png"))]
+    np.testing.assert_array_equal(load_scene(scene_copy, resolution=2).images.numpy(),
+                                  np.stack(pngs).astype(np.float32) / 255)
+
+
 def test_photographs_too_large_for_memory_are_read_at_a_factor_that_fits(synthetic_dir, synthetic, monkeypatch,
                                                                         caplog):
     """A folder of full-size photographs whose float32 images and masks would pass the memory budget (119 photographs
@@ -661,6 +698,77 @@ def test_masks_saved_as_0_and_1_are_read_and_an_empty_mask_is_named(scene_copy):
     _expect_error(scene_copy, r"mask .*view_003.png holds no object pixel")
 
 
+def _palette_png(indices: np.ndarray, colours: list[tuple[int, int, int]], path: Path) -> None:
+    """`indices` saved as a palette PNG listing `colours` (fewer than the indices used: PIL's own label images)."""
+    image = Image.fromarray(indices.astype(np.uint8), "P")
+    image.putpalette([level for colour in colours for level in colour])
+    image.save(path)
+
+
+@pytest.mark.parametrize("save", [
+    # a background-removal cutout: the object's colours, alpha 255 on it and 0 around (its colour is no mask)
+    lambda mask, image, path: cv2.imwrite(str(path), np.dstack([image * mask[..., None], mask * 255])),
+    # a white silhouette on transparency: white everywhere, the object in the alpha alone
+    lambda mask, image, path: cv2.imwrite(str(path), np.dstack([np.full_like(image, 255), mask * 255])),
+    lambda mask, image, path: Image.fromarray(np.dstack([np.full_like(mask, 255), mask * 255]), "LA").save(path),
+    lambda mask, image, path: cv2.imwrite(str(path), np.dstack([image, mask * 255]).astype(np.uint16) * 257),
+    # an alpha opaque everywhere, as editors save a black and white mask, marks nothing: the colour is the mask
+    lambda mask, image, path: cv2.imwrite(str(path), np.dstack([np.dstack([mask * 255] * 3), np.full_like(mask, 255)])),
+], ids=["cutout", "white-on-transparent", "grey-and-alpha", "16-bit-cutout", "opaque-alpha"])
+def test_a_mask_file_with_an_alpha_channel_is_read_by_its_alpha(scene_copy, save):
+    """A mask with an alpha channel was read by its colour: a white silhouette on transparency was the whole image,
+    a cutout the object's bright pixels, silently."""
+    expected = load_scene(scene_copy).masks
+    path = scene_copy / "masks" / "view_003.png"
+    mask = (cv2.imread(str(path), cv2.IMREAD_GRAYSCALE) > 127).astype(np.uint8)
+    image = cv2.imread(str(scene_copy / "images" / "view_003.png"))
+    save(mask, image, path)
+    torch.testing.assert_close(load_scene(scene_copy).masks, expected, rtol=0, atol=0)
+
+
+@pytest.mark.parametrize("save", [
+    # DAVIS-style labels: index 1, coloured (128, 0, 0), grey 38 when read by colour
+    lambda mask, path: _palette_png(mask, [(0, 0, 0), (128, 0, 0)], path),
+    lambda mask, path: _palette_png(mask, [(0, 0, 0)], path),  # index 1 past the palette: black when read by colour
+    lambda mask, path: _palette_png(1 - mask, [(255, 255, 255), (0, 0, 0)], path),  # greys: read by colour
+    lambda mask, path: cv2.imwrite(str(path), mask.astype(np.uint16) * 255),  # 8-bit levels in a 16-bit file
+], ids=["palette-davis", "palette-unlisted", "palette-greys-white-first", "16-bit-0-255"])
+def test_palette_and_16_bit_0_255_masks_are_read_as_their_object(scene_copy, save):
+    """A palette PNG of labels (DAVIS: index 1 the object) and a 16-bit mask holding 0 / 255 were refused as "0
+    everywhere"; a palette PNG is read by index unless its colours are greys."""
+    expected = load_scene(scene_copy).masks
+    path = scene_copy / "masks" / "view_003.png"
+    save((cv2.imread(str(path), cv2.IMREAD_GRAYSCALE) > 127).astype(np.uint8), path)
+    torch.testing.assert_close(load_scene(scene_copy).masks, expected, rtol=0, atol=0)
+
+
+@pytest.mark.parametrize("save, holds", [
+    (lambda mask, path: cv2.imwrite(str(path), mask * 0), r"0 everywhere; 255 or 1 marks the object"),
+    (lambda mask, path: cv2.imwrite(str(path), mask * 100), r"its values are at most 100, under half of 255; 255 or 1"),
+    (lambda mask, path: cv2.imwrite(str(path), mask.astype(np.uint16) * 1000),
+     r"its values are at most 1000, under half of 65535; 65535, 255 or 1 marks the object"),
+    (lambda mask, path: _palette_png(mask * 0, [(128, 0, 0)], path),
+     r"index 0 everywhere; in a palette PNG an index above 0 marks it"),
+    (lambda mask, path: cv2.imwrite(str(path), np.dstack([np.full_like(mask, 255)] * 3 + [mask * 100])),
+     r"its alpha channel, the mask in a file with one, is at most 100 of 255; more than half opaque"),
+], ids=["zeros", "8-bit-0-100", "16-bit-0-1000", "palette-index-0", "faint-alpha"])
+def test_a_mask_without_object_is_named_by_the_values_it_holds(scene_copy, save, holds):
+    """A mask without object was said to be "0 everywhere" whatever it held (a 16-bit mask of 0 / 1000, a palette
+    PNG, an alpha channel): the error says what the file holds, and what marks the object in it."""
+    path = scene_copy / "masks" / "view_003.png"
+    save((cv2.imread(str(path), cv2.IMREAD_GRAYSCALE) > 127).astype(np.uint8), path)
+    _expect_error(scene_copy, rf"mask .*view_003.png holds no object pixel \({holds}")
+
+
+def test_a_mask_whose_object_vanishes_at_a_resolution_says_so(scene_copy):
+    """One object pixel of a 64 px mask is a quarter of a pixel at 32 px: not "0 everywhere", which it is not."""
+    mask = np.zeros((64, 64), np.uint8)
+    mask[10, 10] = 255
+    cv2.imwrite(str(scene_copy / "masks" / "view_003.png"), mask)
+    _expect_error(scene_copy, r"mask .*view_003.png holds no object pixel at 32x32 \(its object is smaller than a "
+                  r"pixel there\)", resolution=2)
+
+
 def test_images_and_calibration_of_another_shape_are_named(scene_copy):
     """A calibration of 64x64 for images cropped (or rotated) to another shape would scale fx and fy apart; a pixel
     less, as the rounding of a reduced size leaves (400 x 300 at 1/8: 50 x 38), is not another shape."""
@@ -684,15 +792,77 @@ def test_an_alpha_channel_in_some_images_only_is_named_where_alphas_are_the_mask
     _expect_error(scene_copy, r"image .*view_004.png has alpha channel, .*view_000.png has none")
 
 
+def _alphas_as_masks(scene: Path) -> np.ndarray:
+    """The scene's masks/ replaced by its images' alpha channels: each mask blurred, for levels about half."""
+    alphas = []
+    for path in sorted((scene / "images").glob("*.png")):
+        mask = cv2.imread(str(scene / "masks" / path.name), cv2.IMREAD_GRAYSCALE)
+        alphas.append(cv2.GaussianBlur(mask, (7, 7), 2))
+        cv2.imwrite(str(path), np.dstack([cv2.imread(str(path)), alphas[-1]]))
+    shutil.rmtree(scene / "masks")
+    return np.stack(alphas)
+
+
+def test_the_alpha_channels_of_the_images_are_their_masks_without_a_masks_folder(scene_copy):
+    alphas = _alphas_as_masks(scene_copy)
+    scene = load_scene(scene_copy)
+    np.testing.assert_array_equal(scene.masks.numpy(), (alphas / 255 > 0.5).astype(np.float32))
+
+
+def test_an_image_whose_alpha_channel_holds_no_object_is_named(scene_copy):
+    """An alpha channel below half everywhere made an empty mask, and training "diverged" at iteration 0."""
+    _alphas_as_masks(scene_copy)
+    path = scene_copy / "images" / "view_003.png"
+    image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    image[..., 3] = np.minimum(image[..., 3], 100)
+    cv2.imwrite(str(path), image)
+    _expect_error(scene_copy, r"image .*view_003.png holds no object pixel \(its alpha channel, the mask without a "
+                  r"masks/ folder, is at most 39% opaque; more than half opaque marks the object\)")
+    image[..., 3] = 0
+    cv2.imwrite(str(path), image)
+    _expect_error(scene_copy, r"image .*view_003.png holds no object pixel \(.* is transparent everywhere")
+
+
 def test_a_mask_in_the_images_subfolder_wins_over_one_of_the_same_stem_at_the_top(scene_copy):
     from warpbags.data.images import _find_by_stem
 
     (scene_copy / "masks" / "cam1").mkdir()
     (scene_copy / "masks" / "cam1" / "view_000.jpg").write_bytes(b"")
-    assert _find_by_stem(scene_copy / "masks", "cam1/view_000.png", (".png", ".jpg")) == (
-        scene_copy / "masks" / "cam1" / "view_000.jpg")
-    assert _find_by_stem(scene_copy / "masks", "cam0/view_000.png", (".png", ".jpg")) == (
+    for stem_shared in (False, True):
+        assert _find_by_stem(scene_copy / "masks", "cam1/view_000.png", (".png", ".jpg"), stem_shared) == (
+            scene_copy / "masks" / "cam1" / "view_000.jpg")
+    assert _find_by_stem(scene_copy / "masks", "cam0/view_000.png", (".png", ".jpg"), stem_shared=False) == (
         scene_copy / "masks" / "view_000.png")
+    assert _find_by_stem(scene_copy / "masks", "cam0/view_000.png", (".png", ".jpg"), stem_shared=True) is None
+
+
+def _rename_in_model(scene: Path, names: list[str]) -> None:
+    """The COLMAP model of `scene` (64 x 64 px) with its images, in their sorted order, named `names`."""
+    model = read_model(scene / "sparse" / "0")
+    write_model(scene / "sparse" / "0", names, model.viewmats, np.stack([camera.K for camera in model.cameras]), 64,
+                64, model.points, model.colors)
+
+
+def test_images_of_one_name_in_two_folders_never_take_each_others_mask(scene_copy):
+    """cam0/view_0.png and cam1/view_0.png (two rigs' cameras) with a flat masks/ of cam0's masks: the fallback to
+    the bare file name gave cam1's views cam0's masks, silently. The bare name is looked up only for an image whose
+    name no other image has; the others' masks are expected in their sub-folders."""
+    expected = load_scene(scene_copy).masks
+    shutil.rmtree(scene_copy / "depths")
+    names = [f"cam{index // 6}/view_{index % 6}.png" for index in range(12)]
+    for index, name in enumerate(names):
+        for folder in ("images", "masks"):
+            (scene_copy / folder / name).parent.mkdir(exist_ok=True)
+            (scene_copy / folder / f"view_{index:03d}.png").rename(scene_copy / folder / name)
+    _rename_in_model(scene_copy, names)
+    torch.testing.assert_close(load_scene(scene_copy).masks, expected, rtol=0, atol=0)  # each in its sub-folder
+    masks = scene_copy / "masks"
+    for name in names[:6]:  # cam0's masks flat, cam1's none
+        (masks / name).rename(masks / Path(name).name)
+    shutil.rmtree(masks / "cam1")
+    expected_path = masks / "cam0" / "view_0"
+    _expect_error(scene_copy, re.escape(f"mask for image cam0/view_0.png is missing: expected {expected_path}.png or "
+                                        ".jpg (images in other folders are named view_0 too"))
 
 
 def test_a_camera_model_it_cannot_undistort_is_refused(scene_copy):

@@ -1,15 +1,18 @@
 """Images, masks and depth maps of a scene folder, read at one resolution, and their undistortion.
 
 `images`, `images_2|4|8` (a missing downsampled folder is made from `images` in memory), `masks/` (same stem, png
-or jpg, 255 or 1 = object), depth maps (`zoe_depth/*.png` 16-bit millimetres, or `depths/*.npy` in scene units).
+or jpg, 255 or 1 = object; a file's alpha channel, or a palette PNG's index above 0, where it has one), depth maps
+(`zoe_depth/*.png` 16-bit millimetres, or `depths/*.npy` in scene units).
 Pixels are read as stored: an EXIF orientation is ignored, as COLMAP ignores it.
 """
 
 from __future__ import annotations
 
+import io
 import math
 import os
 import re
+from collections import Counter
 from pathlib import Path
 
 import cv2
@@ -130,8 +133,8 @@ def _jpeg_cut_short(data: bytes) -> bool:
     return True
 
 
-def _decoded(path: Path, flag: int, what: str) -> np.ndarray | None:
-    """OpenCV's decode of the file at `path` with `flag`, None where it cannot decode it.
+def _file_bytes(path: Path, what: str) -> bytes:
+    """The bytes of the file at `path`, an image or a mask (`what`).
 
     Raises:
         WarpbagsError: the file cannot be read, or is a JPEG cut short (a copy or download that stopped): libjpeg
@@ -143,7 +146,12 @@ def _decoded(path: Path, flag: int, what: str) -> np.ndarray | None:
         raise WarpbagsError(f"{what} {path} is unreadable ({one_line(error)})") from None
     if path.suffix.lower() in JPEG_EXTENSIONS and _jpeg_cut_short(data):
         raise WarpbagsError(f"{what} {path} is cut short (its data ends inside the picture): copy it again")
-    return cv2.imdecode(np.frombuffer(data, dtype=np.uint8), flag)
+    return data
+
+
+def _decoded(path: Path, flag: int, what: str) -> np.ndarray | None:
+    """OpenCV's decode of the file at `path` with `flag`, None where it cannot decode it (raises as `_file_bytes`)."""
+    return cv2.imdecode(np.frombuffer(_file_bytes(path, what), dtype=np.uint8), flag)
 
 
 def read_image(path: Path, reduction: int = 1) -> np.ndarray:
@@ -207,16 +215,37 @@ def read_images(
     return images, alphas, width, height
 
 
-def _find_by_stem(folder: Path, name: str, extensions: tuple[str, ...]) -> Path | None:
+def _shared_stems(names: list[str]) -> set[str]:
+    """The file stems that more than one of the images `names` has (view_0 of cam0/view_0.JPG and cam1/view_0.JPG)."""
+    counts = Counter(Path(name).stem for name in names)
+    return {stem for stem, count in counts.items() if count > 1}
+
+
+def _find_by_stem(folder: Path, name: str, extensions: tuple[str, ...], stem_shared: bool) -> Path | None:
     """`folder/<stem><ext>`, trying the name with its sub-folders, then the bare file name (transforms.json
-    names such as images/frame_001.png look up masks/frame_001.png), then `<name><ext>` (frame_001.png.png)."""
+    names such as images/frame_001.png look up masks/frame_001.png), then `<name><ext>` (frame_001.png.png).
+
+    The bare file name is not tried where another image has the same stem (`stem_shared`: cam0/view_0.JPG and
+    cam1/view_0.JPG): masks/view_0.png would be taken for both, one of them another view's."""
     relative = Path(name)
-    for stem in (relative.with_suffix(""), Path(relative.stem), relative):  # the most specific first
+    bare = () if stem_shared else (Path(relative.stem),)
+    for stem in (relative.with_suffix(""), *bare, relative):  # the most specific first
         for extension in extensions:
             candidate = folder / f"{stem}{extension}"
             if candidate.is_file():
                 return candidate
     return None
+
+
+def _missing(what: str, folder: Path, name: str, extensions: str, stem_shared: bool) -> WarpbagsError:
+    """The error for the missing `what` (a mask, a depth map) of image `name`: the file expected, with the image's
+    sub-folders where its stem is shared (`_find_by_stem` then looks the bare name up for none of those images)."""
+    relative = Path(name)
+    if not stem_shared:
+        return WarpbagsError(f"{what} for image {name} is missing: expected {folder / relative.stem}{extensions}")
+    return WarpbagsError(f"{what} for image {name} is missing: expected {folder / relative.with_suffix('')}"
+                         f"{extensions} (images in other folders are named {relative.stem} too, so a file named "
+                         f"{relative.stem} is taken for none of them)")
 
 
 def _resize_to(array: np.ndarray, width: int, height: int, path: Path, what: str, nearest: bool) -> np.ndarray:
@@ -235,19 +264,76 @@ def _resize_to(array: np.ndarray, width: int, height: int, path: Path, what: str
     return cv2.resize(array, (width, height), interpolation=interpolation)
 
 
-def _read_mask(path: Path, width: int) -> np.ndarray | None:
-    """A mask file as grayscale of its own depth (uint8, or uint16 for a 16-bit PNG, which 8-bit decoding shifted
-    to 0 where it held 0 / 1); a JPEG at 2, 4 or 8 times `width` is decoded at that reduction."""
-    reduction, reduced = 1, False
-    if path.suffix.lower() in JPEG_EXTENSIONS:
+def _read_mask(path: Path, width: int) -> tuple[np.ndarray, str]:
+    """The mask file at `path` as float32 levels in [0, 1], half and above the object, and what it holds where it
+    holds no object (for the error). The levels are, in turn: its alpha channel where that varies (an RGBA cutout,
+    a white silhouette on transparency; an alpha opaque everywhere, as editors save one, marks nothing); the
+    indices of a palette PNG whose colours are not all greys (DAVIS-style: index 1, coloured (128, 0, 0), is the
+    object); else its grey levels (`_grey_levels`). A JPEG at 2, 4 or 8 times `width` is decoded at that reduction.
+
+    Raises:
+        WarpbagsError: the file cannot be read or decoded.
+    """
+    if path.suffix.lower() in JPEG_EXTENSIONS:  # no alpha channel nor palette
         full_width, full_height = image_size(path)
         reduction = round(full_width / width)
         # libjpeg's reduced decode is ceil(size / reduction), the images round(size / reduction): a mask whose sides
         # do not divide is decoded whole and resized as they are (`_resize_to`)
         reduced = (_decoded_reduced(path, reduction) and full_width % reduction == 0
                    and full_height % reduction == 0)
-    return _decoded(path, JPEG_REDUCED_FLAGS[reduction][1] if reduced else
-                    cv2.IMREAD_GRAYSCALE | cv2.IMREAD_ANYDEPTH | _AS_STORED, "mask")
+        mask = _decoded(path, JPEG_REDUCED_FLAGS[reduction][1] if reduced else
+                        cv2.IMREAD_GRAYSCALE | cv2.IMREAD_ANYDEPTH | _AS_STORED, "mask")
+        if mask is None:
+            raise WarpbagsError(f"mask {path} is unreadable")
+        return _grey_levels(mask)
+    data = _file_bytes(path, "mask")
+    mask = cv2.imdecode(np.frombuffer(data, dtype=np.uint8), cv2.IMREAD_UNCHANGED)
+    if mask is None:
+        raise WarpbagsError(f"mask {path} is unreadable")
+    if mask.ndim == 3 and mask.shape[2] == 4 and mask[..., 3].min() != mask[..., 3].max():
+        alpha = mask[..., 3]
+        scale = np.iinfo(alpha.dtype).max
+        return alpha.astype(np.float32) / scale, (f"its alpha channel, the mask in a file with one, is at most "
+                                                  f"{alpha.max()} of {scale}; more than half opaque marks the object")
+    indices = _palette_indices(data, path)
+    if indices is not None:
+        return (indices > 0).astype(np.float32), "index 0 everywhere; in a palette PNG an index above 0 marks it"
+    if mask.ndim == 3:
+        mask = cv2.cvtColor(mask[..., :3], cv2.COLOR_BGR2GRAY)
+    return _grey_levels(mask)
+
+
+def _palette_indices(data: bytes, path: Path) -> np.ndarray | None:
+    """The indices of the palette PNG `data`, unless its colours in use are all greys (a grey mask stored with a
+    palette, read by its levels: a black and white palette may list white first); None for any other file.
+
+    Raises:
+        WarpbagsError: a palette PNG that PIL cannot decode.
+    """
+    try:
+        with Image.open(io.BytesIO(data)) as image:
+            if image.mode != "P":
+                return None
+            indices = np.asarray(image)
+            colours = np.asarray(image.getpalette(), dtype=np.int64).reshape(-1, 3)
+    except OSError as error:
+        raise WarpbagsError(f"mask {path} is unreadable ({one_line(error)})") from None
+    used = np.unique(indices)
+    # an index past the palette's colours is black to OpenCV (PIL saves a label image with none): not a grey level
+    if used.max() < len(colours) and np.all(colours[used] == colours[used, :1]):
+        return None
+    return indices
+
+
+def _grey_levels(mask: np.ndarray) -> tuple[np.ndarray, str]:
+    """A grey mask's levels in [0, 1], and what it holds where it holds no object (`_read_mask`). The full scale is
+    the least of 1, 255 and 65535 that its values reach up to: a 0 / 1 mask (as some segmentation tools save them),
+    0 / 255 also in a 16-bit file, 0 / 65535."""
+    top = int(mask.max())
+    scale = next(level for level in (1, 255, 65535) if top <= level)
+    marks = "65535, 255 or 1" if mask.dtype == np.uint16 else "255 or 1"
+    holds = "0 everywhere" if top == 0 else f"its values are at most {top}, under half of {scale}"
+    return mask.astype(np.float32) / scale, f"{holds}; {marks} marks the object"
 
 
 def mask_folder(root: Path, resolution: int) -> Path | None:
@@ -261,7 +347,7 @@ def mask_folder(root: Path, resolution: int) -> Path | None:
 def read_masks(root: Path, names: list[str], width: int, height: int, resolution: int) -> np.ndarray | None:
     """[C,H,W] float32 0/1 masks from `masks_{resolution}/` or `masks/`, or None without a mask folder. A mask file
     holds 0 / 255 (or grey levels, thresholded at half; 0 / 65535 in 16 bits) or, as some segmentation tools save
-    them, 0 / 1.
+    them, 0 / 1; or the object as its alpha channel, or as the indices above 0 of a palette PNG (`_read_mask`).
 
     Raises:
         WarpbagsError: a mask missing, unreadable, of another size than its image, or without any object pixel.
@@ -269,34 +355,51 @@ def read_masks(root: Path, names: list[str], width: int, height: int, resolution
     folder = mask_folder(root, resolution)
     if folder is None:
         return None
+    shared_stems = _shared_stems(names)
     masks = np.empty((len(names), height, width), dtype=np.float32)
     for index, name in enumerate(names):
-        path = _find_by_stem(folder, name, IMAGE_EXTENSIONS)
+        stem_shared = Path(name).stem in shared_stems
+        path = _find_by_stem(folder, name, IMAGE_EXTENSIONS, stem_shared)
         if path is None:
-            raise WarpbagsError(f"mask for image {name} is missing: expected {folder / Path(name).stem}.png or .jpg")
-        mask = _read_mask(path, width)
-        if mask is None:
-            raise WarpbagsError(f"mask {path} is unreadable")
-        # 0 / 1 masks, else levels of the file's depth (8 or 16 bits)
-        full_scale = 1.0 if mask.max() == 1 else float(np.iinfo(mask.dtype).max)
-        mask = _resize_to(mask.astype(np.float32) / full_scale, width, height, path, "mask", nearest=False)
-        masks[index] = mask >= 0.5
+            raise _missing("mask", folder, name, ".png or .jpg", stem_shared)
+        levels, holds = _read_mask(path, width)
+        masks[index] = _resize_to(levels, width, height, path, "mask", nearest=False) >= 0.5
+        if not masks[index].any() and np.any(levels >= 0.5):
+            raise WarpbagsError(f"mask {path} holds no object pixel at {width}x{height} (its object is smaller than "
+                                "a pixel there)")
         if not masks[index].any():
-            raise WarpbagsError(f"mask {path} holds no object pixel (0 everywhere; 255 or 1 marks the object)")
+            raise WarpbagsError(f"mask {path} holds no object pixel ({holds})")
+    return masks
+
+
+def masks_from_alphas(alphas: np.ndarray, files: list[Path]) -> np.ndarray:
+    """[C,H,W] float32 0/1 masks from the alpha channels of the images `files` (a scene without a mask folder):
+    more than half opaque is the object.
+
+    Raises:
+        WarpbagsError: an alpha channel without any object pixel, as `read_masks` refuses an empty mask file.
+    """
+    masks = (alphas > 0.5).astype(np.float32)
+    for path, alpha, mask in zip(files, alphas, masks):
+        if not mask.any():
+            opacity = "transparent everywhere" if alpha.max() == 0 else f"at most {alpha.max():.0%} opaque"
+            raise WarpbagsError(f"image {path} holds no object pixel (its alpha channel, the mask without a masks/ "
+                                f"folder, is {opacity}; more than half opaque marks the object)")
     return masks
 
 
 def read_depths(root: Path, names: list[str], width: int, height: int) -> tuple[np.ndarray | None, str | None]:
     """`depths/*.npy` (scene units) or `zoe_depth/*.png` (16-bit millimetres, monocular: relative)."""
+    shared_stems = _shared_stems(names)
     for folder, extension, units in ((root / "depths", ".npy", "scene"), (root / "zoe_depth", ".png", "relative")):
         if not folder.is_dir():
             continue
         depths = np.empty((len(names), height, width), dtype=np.float32)
         for index, name in enumerate(names):
-            path = _find_by_stem(folder, name, (extension,))
+            stem_shared = Path(name).stem in shared_stems
+            path = _find_by_stem(folder, name, (extension,), stem_shared)
             if path is None:
-                expected = folder / f"{Path(name).stem}{extension}"
-                raise WarpbagsError(f"depth map for image {name} is missing: expected {expected}")
+                raise _missing("depth map", folder, name, extension, stem_shared)
             if extension == ".npy":
                 depth = read_array(path, "depth map").astype(np.float32)
             else:

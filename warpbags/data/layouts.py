@@ -19,7 +19,7 @@ import torch
 
 from warpbags.cameras import improper_viewmats
 from warpbags.data.colmap import read_model
-from warpbags.data.images import IMAGE_EXTENSIONS, first_existing_image_dir, image_size
+from warpbags.data.images import FACTORS, IMAGE_EXTENSIONS, first_existing_image_dir, image_size, resolution_path
 from warpbags.errors import WarpbagsError
 from warpbags.files import read_array
 
@@ -252,8 +252,6 @@ def _frame_name(root: Path, frame: dict, source: Path) -> str:
     if not isinstance(frame.get("file_path"), str) or not frame["file_path"]:
         raise WarpbagsError(f"{source}: a frame has no file_path (a path, got {json.dumps(frame.get('file_path'))})")
     relative = Path(str(frame["file_path"]))
-    if not relative.suffix:  # Blender writes "./train/r_0" for "./train/r_0.png"
-        relative = relative.with_suffix(".png")
     # Inside the folder as written (a linked images/ or DVC cache is the user's) or once links are resolved (a
     # scene folder reached through a link, named by its real path); else an absolute path elsewhere or one that
     # climbs out of the folder
@@ -262,6 +260,22 @@ def _frame_name(root: Path, frame: dict, source: Path) -> str:
     for path, folder in ((as_written, folder_as_written), (as_written, root.resolve()),
                          ((root / relative).resolve(), root.resolve())):
         if path.is_relative_to(folder):
-            return path.relative_to(folder).as_posix()
+            name = path.relative_to(folder)
+            return (name if name.suffix else _with_image_extension(root, name, frame, source)).as_posix()
     raise WarpbagsError(f"{source}: frame file_path {frame['file_path']!r} is outside the scene folder {root}; "
                         "file paths are relative to it")
+
+
+def _with_image_extension(root: Path, name: Path, frame: dict, source: Path) -> Path:
+    """The image `name` (a frame's file_path without extension: Blender writes "./train/r_0" for "./train/r_0.png")
+    with the first of the extensions the loader reads whose file exists, full-size or downsampled (`images_2/`).
+
+    Raises:
+        WarpbagsError: no such file, named with the frame's file_path and the extensions tried.
+    """
+    for extension in IMAGE_EXTENSIONS:
+        candidate = name.with_suffix(extension)
+        if any(resolution_path(root, root / candidate, factor).is_file() for factor in FACTORS):
+            return candidate
+    raise WarpbagsError(f"{source}: frame file_path {frame['file_path']!r} has no extension, and no image "
+                        f"{root / name}{', '.join(IMAGE_EXTENSIONS[:-1])} or {IMAGE_EXTENSIONS[-1]} exists")

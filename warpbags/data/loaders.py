@@ -6,7 +6,8 @@ Layouts (detected in this order):
 - nerfstudio / instant-ngp / Blender: `transforms.json` (OpenGL camera axes).
 
 Shared by all: `images`, `images_2|4|8` (a missing downsampled folder is made from `images` in memory), `masks/`
-(same stem, png or jpg, 255 or 1 = object), depth maps (`zoe_depth/*.png` 16-bit millimetres, or `depths/*.npy` in
+(same stem, png or jpg, 255 or 1 = object, or the alpha channel, or a palette PNG's index above 0; without masks/,
+the images' alpha channels), depth maps (`zoe_depth/*.png` 16-bit millimetres, or `depths/*.npy` in
 scene units), split files `sparse_{4,6,9,test}.txt`.
 
 This module detects the layout, assembles the `Scene` and normalizes it about the object centre; the camera
@@ -23,8 +24,8 @@ import torch
 
 from warpbags.cameras import camera_centers
 from warpbags.data.images import (FACTORS, IMAGE_MEMORY_BUDGET, default_resolution, factor_within_budget, image_size,
-                                  mask_folder, physical_memory, read_depths, read_images, read_masks, resolution_path,
-                                  scene_bytes, undistort)
+                                  mask_folder, masks_from_alphas, physical_memory, read_depths, read_images, read_masks,
+                                  resolution_path, scene_bytes, undistort)
 from warpbags.data.layouts import LayoutCameras, read_layout_cameras, scaled_intrinsics
 from warpbags.data.scene import ORBIT_RADIUS, Scene, SceneNormalization
 from warpbags.data.splits import read_splits
@@ -79,7 +80,7 @@ def load_scene(
 
     masks = read_masks(root, cameras.image_names, width, height, resolution)
     if masks is None and alphas is not None:
-        masks = (alphas > 0.5).astype(np.float32)
+        masks = masks_from_alphas(alphas, image_files)
     depths, depth_units = (None, None)
     if load_depths:
         depths, depth_units = read_depths(root, cameras.image_names, width, height)
