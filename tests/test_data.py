@@ -45,6 +45,8 @@ from warpbags.data.synthetic import (LIGHT_DIRECTION, LIGHT_IN_CAMERA, OBJECT_CE
 from warpbags.errors import WarpbagsError
 
 SYNTHETIC = SyntheticOptions(views=12, width=64, height=64, num_points=600)
+# Wider than tall: a reader that swaps width and height, or x and y, gives other intrinsics (or refuses the images).
+WIDE = SyntheticOptions(views=8, width=64, height=48, num_points=100)
 
 
 def project(viewmats: torch.Tensor, Ks: torch.Tensor, points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -76,6 +78,12 @@ def tankard(tmp_path_factory):
 def scene_copy(synthetic_dir, tmp_path) -> Path:
     """A writable copy of the synthetic scene, for corrupting."""
     return Path(shutil.copytree(synthetic_dir, tmp_path / "scene"))
+
+
+@pytest.fixture(scope="module")
+def wide_dir(tmp_path_factory) -> Path:
+    """The synthetic scene of `WIDE`: 64 x 48 images."""
+    return generate_synthetic_scene(tmp_path_factory.mktemp("wide") / "scene", WIDE)
 
 
 @pytest.fixture(scope="module")
@@ -298,27 +306,25 @@ def _strip_to_images(scene_dir: Path, out: Path) -> Path:
     return out
 
 
-def test_llff_layout_matches_exact_poses(synthetic_dir, tmp_path):
-    folder = _strip_to_images(synthetic_dir, tmp_path / "llff")
-    viewmats = dome_viewmats(SYNTHETIC)
-    camera_to_world = np.linalg.inv(viewmats)
-    right, down, forward = camera_to_world[:, :3, 0], camera_to_world[:, :3, 1], camera_to_world[:, :3, 2]
-    focal = intrinsics(SYNTHETIC)[0, 0]
-    hwf = np.tile([SYNTHETIC.height, SYNTHETIC.width, focal], (12, 1))
-    matrices = np.stack([down, right, -forward, camera_to_world[:, :3, 3], hwf], axis=2)  # [C,3,5]
-    np.save(folder / "poses_bounds.npy", np.concatenate([matrices.reshape(12, 15), np.ones((12, 2))], 1))
+@pytest.mark.parametrize("scene_name, options", [("synthetic_dir", SYNTHETIC), ("wide_dir", WIDE)])
+def test_llff_layout_matches_exact_poses(request, tmp_path, scene_name, options):
+    """Also on 64 x 48 images: LLFF's hwf column is height, width, focal (read as width, height the calibration
+    would be 48 x 64, for images of 64 x 48)."""
+    folder = _strip_to_images(request.getfixturevalue(scene_name), tmp_path / "llff")
+    np.save(folder / "poses_bounds.npy", _llff_poses_bounds(options))
     scene = load_scene(folder, normalize=False)
-    assert scene.layout == "llff"
-    torch.testing.assert_close(scene.viewmats, torch.from_numpy(viewmats).float(), atol=1e-5, rtol=0)
-    torch.testing.assert_close(scene.Ks[0], torch.from_numpy(intrinsics(SYNTHETIC)).float())
+    assert scene.layout == "llff" and (scene.width, scene.height) == (options.width, options.height)
+    torch.testing.assert_close(scene.viewmats, torch.from_numpy(dome_viewmats(options)).float(), atol=1e-5, rtol=0)
+    torch.testing.assert_close(scene.Ks[0], torch.from_numpy(intrinsics(options)).float())
 
 
-def _llff_poses_bounds() -> np.ndarray:
-    camera_to_world = np.linalg.inv(dome_viewmats(SYNTHETIC))
+def _llff_poses_bounds(options: SyntheticOptions = SYNTHETIC) -> np.ndarray:
+    """The exact cameras of the synthetic scene of `options` as LLFF's poses_bounds.npy rows."""
+    camera_to_world = np.linalg.inv(dome_viewmats(options))
     right, down, forward = camera_to_world[:, :3, 0], camera_to_world[:, :3, 1], camera_to_world[:, :3, 2]
-    hwf = np.tile([SYNTHETIC.height, SYNTHETIC.width, intrinsics(SYNTHETIC)[0, 0]], (12, 1))
+    hwf = np.tile([options.height, options.width, intrinsics(options)[0, 0]], (options.views, 1))
     matrices = np.stack([down, right, -forward, camera_to_world[:, :3, 3], hwf], axis=2)  # [C,3,5]
-    return np.concatenate([matrices.reshape(12, 15), np.ones((12, 2))], 1)
+    return np.concatenate([matrices.reshape(options.views, 15), np.ones((options.views, 2))], 1)
 
 
 @pytest.mark.parametrize("column,value", [(14, math.nan), (14, 0.0), (14, -77.0), (14, math.inf), (4, math.nan)])
@@ -364,6 +370,47 @@ def test_transforms_json_matches_exact_poses(synthetic_dir, tmp_path):
     torch.testing.assert_close(scene.viewmats, torch.from_numpy(viewmats).float(), atol=1e-5, rtol=0)
     torch.testing.assert_close(scene.Ks[0], torch.from_numpy(intrinsics(SYNTHETIC)).float())
     assert scene.masks is not None
+
+
+def _write_transforms(folder: Path, options: SyntheticOptions, fields: dict) -> None:
+    """A transforms.json in `folder` of the exact cameras of the synthetic scene of `options` (frames without
+    extension, in reverse order), with the file-wide `fields` (intrinsics, distortion)."""
+    opengl = np.linalg.inv(dome_viewmats(options)) @ np.diag([1.0, -1.0, -1.0, 1.0])
+    frames = [{"file_path": f"images/view_{index:03d}", "transform_matrix": opengl[index].tolist()}
+              for index in reversed(range(options.views))]
+    (folder / "transforms.json").write_text(json.dumps({**fields, "frames": frames}))
+
+
+@pytest.mark.parametrize("fields, fx, fy, cx, cy", [
+    ({"fl_x": 70.0, "fl_y": 75.0}, 70.0, 75.0, 32.0, 24.0),  # the principal point by default the image's centre
+    ({"fl_x": 70.0, "fl_y": 75.0, "cx": 30.5, "cy": 25.0}, 70.0, 75.0, 30.5, 25.0),
+    ({"camera_angle_x": 2 * math.atan(32 / 70), "camera_angle_y": 2 * math.atan(24 / 75)}, 70.0, 75.0, 32.0, 24.0),
+])
+def test_transforms_json_intrinsics_of_non_square_images_are_read_axis_by_axis(wide_dir, tmp_path, fields, fx, fy,
+                                                                               cx, cy):
+    """64 x 48 images and fl_x != fl_y: fy is fl_y (or from camera_angle_y over the height), cx and cy are read as
+    given, else half the width and half the height."""
+    folder = _strip_to_images(wide_dir, tmp_path / "wide")
+    _write_transforms(folder, WIDE, fields)
+    scene = load_scene(folder, normalize=False)
+    assert scene.layout == "transforms" and (scene.width, scene.height) == (64, 48)
+    torch.testing.assert_close(scene.viewmats, torch.from_numpy(dome_viewmats(WIDE)).float(), atol=1e-5, rtol=0)
+    K = torch.tensor([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
+    torch.testing.assert_close(scene.Ks, K.expand(WIDE.views, 3, 3))
+
+
+def test_transforms_json_distorted_images_are_undistorted_to_the_pinhole_view(wide_dir, tmp_path):
+    """As a distorted COLMAP camera's (below): the k1, k2, p1, p2 of a transforms.json give back the pinhole
+    images, here of 64 x 48."""
+    folder = _strip_to_images(wide_dir, tmp_path / "distorted")
+    K = intrinsics(WIDE)
+    coefficients = {"k1": 0.4, "k2": 0.1, "p1": 0.02, "p2": -0.02}  # 1.4% of the interior mask pixels move
+    _distort_images_and_masks(folder, K, list(coefficients.values()))
+    _write_transforms(folder, WIDE, {"fl_x": K[0, 0], "fl_y": K[1, 1], **coefficients})
+    scene = load_scene(folder, normalize=False)
+    truth = load_scene(wide_dir, load_depths=False)
+    torch.testing.assert_close(scene.Ks, truth.Ks)
+    _assert_undistorted(folder, scene, truth, (slice(None), slice(8, 40), slice(8, 56)))
 
 
 def test_a_frame_file_path_without_extension_finds_its_image_of_any_extension_read(synthetic_dir, tmp_path):
@@ -899,7 +946,6 @@ def test_distorted_images_are_undistorted_to_the_pinhole_view(scene_copy, synthe
     model.read(str(scene_copy / "sparse" / "0"))
     camera = next(iter(model.cameras.values()))
     fx, fy, cx, cy = camera.params
-    K_opencv = np.array([[fx, 0, cx - 0.5], [0, fy, cy - 0.5], [0, 0, 1]])
     params = {
         "SIMPLE_RADIAL": [fx, cx, cy, k1],
         "RADIAL": [fx, cx, cy, k1, k2],
@@ -908,26 +954,40 @@ def test_distorted_images_are_undistorted_to_the_pinhole_view(scene_copy, synthe
     for camera in model.cameras.values():
         camera.model, camera.params = model_name, params[model_name]
     model.write(str(scene_copy / "sparse" / "0"))
-    # each distorted pixel samples the pinhole image where its undistorted ray lands
-    rows, columns = np.mgrid[0:64, 0:64].astype(np.float64)
-    distorted = np.stack([columns.ravel(), rows.ravel()], 1)[:, None, :]
-    criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 50, 1e-10)
-    undistorted = cv2.undistortPoints(distorted, K_opencv, np.array([k1, k2, p1, p2]), P=K_opencv, criteria=criteria)
-    map_x = undistorted[:, 0, 0].reshape(64, 64).astype(np.float32)
-    map_y = undistorted[:, 0, 1].reshape(64, 64).astype(np.float32)
-    for folder, interpolation in (("images", cv2.INTER_LINEAR), ("masks", cv2.INTER_NEAREST)):
-        for path in (scene_copy / folder).iterdir():
-            cv2.imwrite(str(path), cv2.remap(cv2.imread(str(path)), map_x, map_y, interpolation))
+    _distort_images_and_masks(scene_copy, np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1]]), [k1, k2, p1, p2])
     scene = load_scene(scene_copy, load_depths=False)
     torch.testing.assert_close(scene.Ks, synthetic.Ks)
-    interior = (slice(None), slice(8, 56), slice(8, 56))  # away from the borders, which resampling loses
-    files = sorted((scene_copy / "masks").iterdir())
+    _assert_undistorted(scene_copy, scene, synthetic, (slice(None), slice(8, 56), slice(8, 56)))
+
+
+def _distort_images_and_masks(folder: Path, K: np.ndarray, coefficients: list[float]) -> None:
+    """Distort the pinhole renders in `folder`'s images/ and masks/ by OpenCV's forward model of `coefficients`
+    (k1, k2, p1, p2) for intrinsics `K` (pixel centres at +0.5): each distorted pixel samples the pinhole image where
+    its undistorted ray lands."""
+    K_opencv = K.copy()
+    K_opencv[:2, 2] -= 0.5
+    height, width = cv2.imread(str(next((folder / "masks").iterdir()))).shape[:2]
+    rows, columns = np.mgrid[0:height, 0:width].astype(np.float64)
+    distorted = np.stack([columns.ravel(), rows.ravel()], 1)[:, None, :]
+    criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 50, 1e-10)
+    undistorted = cv2.undistortPoints(distorted, K_opencv, np.array(coefficients), P=K_opencv, criteria=criteria)
+    map_x = undistorted[:, 0, 0].reshape(height, width).astype(np.float32)
+    map_y = undistorted[:, 0, 1].reshape(height, width).astype(np.float32)
+    for subfolder, interpolation in (("images", cv2.INTER_LINEAR), ("masks", cv2.INTER_NEAREST)):
+        for path in (folder / subfolder).iterdir():
+            cv2.imwrite(str(path), cv2.remap(cv2.imread(str(path)), map_x, map_y, interpolation))
+
+
+def _assert_undistorted(folder: Path, scene, truth, interior: tuple[slice, ...]) -> None:
+    """`scene`, loaded from `folder` of distorted images and masks, holds `truth`'s pinhole ones inside `interior`
+    (away from the borders, which resampling loses)."""
+    files = sorted((folder / "masks").iterdir())
     distorted_masks = torch.from_numpy(np.stack([cv2.imread(str(path), 0) > 127 for path in files])).float()
-    mismatch_before = (distorted_masks[interior] != synthetic.masks[interior]).float().mean()
-    mismatch_after = (scene.masks[interior] != synthetic.masks[interior]).float().mean()
+    mismatch_before = (distorted_masks[interior] != truth.masks[interior]).float().mean()
+    mismatch_after = (scene.masks[interior] != truth.masks[interior]).float().mean()
     assert mismatch_before > 0.003  # the distortion is visible
     assert mismatch_after < 0.1 * mismatch_before, (mismatch_after, mismatch_before)
-    assert (scene.images[interior] - synthetic.images[interior]).abs().mean() < 0.02  # texture: bilinear twice
+    assert (scene.images[interior] - truth.images[interior]).abs().mean() < 0.02  # texture: bilinear twice
 
 
 def test_zoe_depth_png_millimetres(scene_copy):
@@ -1116,6 +1176,65 @@ def test_cli_info_prints_summary(synthetic_dir):
         assert text in result.output
 
 
+def _info_rows(output: str) -> dict[str, str]:
+    """The rows of `warpbags info`'s table, label to value; a value wrapped onto further lines joined by spaces."""
+    rows, label = {}, None
+    for line in output.splitlines():
+        cells = re.split(r"[│|]", line)
+        if len(cells) != 4:
+            continue
+        name, value = cells[1].strip(), cells[2].strip()
+        if name:
+            label, rows[name] = name, value
+        elif label is not None:
+            rows[label] += " " + value
+    return rows
+
+
+def test_cli_info_prints_the_masks_depth_maps_and_source_radius_it_has(synthetic_dir, scene_copy):
+    """Values, not labels: masks and depth maps yes (no once removed); the source orbit radius, the mean distance
+    of the cameras from the object centre before normalization, is the normalized radius over the scale."""
+    result = CliRunner().invoke(app, ["info", str(synthetic_dir)])
+    assert result.exit_code == 0, result.output
+    rows = _info_rows(result.output)
+    scene = load_scene(synthetic_dir)
+    assert rows["masks"] == "yes" and rows["depth maps"] == f"yes ({scene.depth_units} units)"
+    source = float(re.search(r"source orbit radius (\d+\.\d+)\)", rows["normalization"]).group(1))
+    assert source == pytest.approx(ORBIT_RADIUS / scene.normalization.scale, abs=1e-4)
+    raw = load_scene(synthetic_dir, normalize=False)
+    center = torch.tensor(scene.normalization.center)
+    assert source == pytest.approx(float((raw.camera_centers() - center).norm(dim=1).mean()), abs=1e-3)
+    shutil.rmtree(scene_copy / "masks")
+    shutil.rmtree(scene_copy / "depths")
+    result = CliRunner().invoke(app, ["info", str(scene_copy)])
+    assert result.exit_code == 0, result.output
+    rows = _info_rows(result.output)
+    assert rows["masks"] == "no" and rows["depth maps"] == "no"
+
+
+def test_cli_info_of_a_preset_under_data_root_reads_that_folder(synthetic_dir, tmp_path, monkeypatch):
+    """`info kitchen --data-root DIR` reads DIR/kitchen (a copy of the synthetic scene; $WARPBAGS_DATA names an empty
+    folder, which --data-root overrides) at the preset's 1/4."""
+    shutil.copytree(synthetic_dir, tmp_path / "root" / "kitchen")
+    (tmp_path / "elsewhere").mkdir()
+    monkeypatch.setenv("WARPBAGS_DATA", str(tmp_path / "elsewhere"))
+    monkeypatch.chdir(tmp_path)  # a relative root: the table cuts a long folder short
+    result = CliRunner().invoke(app, ["info", "kitchen", "--data-root", "root"])
+    assert result.exit_code == 0, result.output
+    rows = _info_rows(result.output)
+    assert rows["folder"] == str(Path("root", "kitchen"))
+    assert rows["resolution"] == "16 x 16"
+
+
+def test_cli_info_at_a_resolution_prints_that_resolution(synthetic_dir):
+    """`info SCENE -r 2`: the images and intrinsics at half the scene's 64 x 64."""
+    result = CliRunner().invoke(app, ["info", str(synthetic_dir), "-r", "2"])
+    assert result.exit_code == 0, result.output
+    rows = _info_rows(result.output)
+    assert rows["resolution"] == "32 x 32"
+    assert rows["intrinsics"].startswith(f"fx {intrinsics(SYNTHETIC)[0, 0] / 2:.2f}  fy ")
+
+
 @pytest.mark.parametrize("make_bad", ["missing_folder", "corrupt_cameras", "missing_kitchen"])
 def test_cli_bad_input_exits_cleanly(scene_copy, tmp_path, make_bad):
     arguments = ["info", str(scene_copy)]
@@ -1141,6 +1260,31 @@ def test_cli_synth_writes_a_loadable_scene(tmp_path):
     (tmp_path / "a-file").write_text("")
     onto_a_file = CliRunner().invoke(app, ["synth", str(tmp_path / "a-file"), "--views", "6", "--size", "24"])
     assert onto_a_file.exit_code == 2 and "a-file is a file, not a folder" in " ".join(onto_a_file.output.split())
+
+
+def test_synth_seed_changes_the_textures_and_sfm_points_not_the_object_or_cameras(tmp_path):
+    """--seed picks the texture crops and the SfM points sampled from the masks; the object's shape and the dome of
+    cameras stay (masks, depth maps, poses). Only the crops of the non-square photographs move (the coffee
+    counterweight, the cat bucket): a few percent of the object's pixels."""
+    for seed in (0, 1):
+        result = CliRunner().invoke(app, ["synth", str(tmp_path / f"seed{seed}"), "--views", "4", "--size", "32",
+                                          "--seed", str(seed)])
+        assert result.exit_code == 0, result.output
+    folders = [tmp_path / "seed0", tmp_path / "seed1"]
+    assert [json.loads((folder / "synthetic.json").read_text())["seed"] for folder in folders] == [0, 1]
+    for index in range(4):
+        stem = f"view_{index:03d}"
+        masks = [cv2.imread(str(folder / "masks" / f"{stem}.png")) for folder in folders]
+        depths = [np.load(folder / "depths" / f"{stem}.npy") for folder in folders]
+        images = [cv2.imread(str(folder / "images" / f"{stem}.png")).astype(int) for folder in folders]
+        assert np.array_equal(*masks) and np.array_equal(*depths)
+        changed = np.abs(images[0] - images[1]).max(2) > 10  # levels of 255
+        background = cv2.dilate(masks[0][..., 0], np.ones((3, 3), np.uint8)) == 0  # edge pixels mix object rays
+        assert not changed[background].any(), stem
+        assert changed[masks[0][..., 0] > 0].mean() > 0.02, stem
+    models = [read_model(folder / "sparse" / "0") for folder in folders]
+    np.testing.assert_array_equal(models[0].viewmats, models[1].viewmats)
+    assert models[0].points.shape == models[1].points.shape and not np.allclose(models[0].points, models[1].points)
 
 
 def test_synthetic_preset_generated_once_into_cache(tmp_path, monkeypatch):
