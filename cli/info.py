@@ -13,6 +13,8 @@ from warpbags.cli.common import clean_errors, stdout
 from warpbags.configs.scenes import SCENES
 from warpbags.data import ORBIT_RADIUS, SyntheticOptions, generate_synthetic_scene, open_scene
 from warpbags.data.scene import Scene
+from warpbags.errors import WarpbagsError
+from warpbags.run_folder import RunFolder
 
 
 def scene_summary(scene: Scene) -> Table:
@@ -54,7 +56,24 @@ def info(
     ),
 ) -> None:
     """Print a scene's summary: images, resolution, intrinsics, splits, masks, depth maps, orbit radius."""
-    stdout.print(scene_summary(open_scene(scene, root=data_root, resolution=resolution)))
+    try:
+        loaded = open_scene(scene, root=data_root, resolution=resolution)
+    except WarpbagsError:
+        if scene not in SCENES and (Path(scene) / "config.json").is_file():
+            raise WarpbagsError(_training_run_folder(Path(scene))) from None
+        raise
+    stdout.print(scene_summary(loaded))
+
+
+def _training_run_folder(folder: Path) -> str:
+    """What `info` says of `folder`, a training run's folder (it holds config.json), which holds no scene: the
+    scene folder the run trained on, as its config.json names it."""
+    try:
+        scene_root = RunFolder(folder).read_info().get("scene_root")
+    except WarpbagsError:  # a damaged config.json: the folder is still a run's, only its scene is unknown
+        scene_root = None
+    trained_on = f"its scene folder is {scene_root}" if scene_root else "its config.json names no scene folder"
+    return f"{folder} is a training run folder (it holds config.json), not a scene: info takes a scene; {trained_on}"
 
 
 def synth(

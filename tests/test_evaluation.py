@@ -315,6 +315,10 @@ def test_export_writes_the_training_cameras_with_the_inputs_calibration_as_a_col
     write_model(scene / "sparse" / "0", source.image_names, source.viewmats, Ks, 128, 128, distortions=distortions)
     (scene / "images").rename(scene / "images_2")
     run, _ = _run_on_scene(finished_run, tmp_path, scene, resolution=2)
+    # a base colour far above white and one far below black: the points' colours are clamped, not wrapped
+    params = read_ply(run / "gaussians.ply")
+    params["sh0"][:2] = torch.tensor([10.0, -10.0])[:, None, None]
+    write_ply(run / "gaussians.ply", params)
 
     result = runner.invoke(app, ["export", str(run), "--out", str(tmp_path / "export")])
     assert result.exit_code == 0, result.output
@@ -333,7 +337,14 @@ def test_export_writes_the_training_cameras_with_the_inputs_calibration_as_a_col
         np.testing.assert_allclose(camera.distortion, [0.01, -0.002, 0.0, 0.0])
     gaussians = read_ply(tmp_path / "export" / "gaussians.ply")
     assert len(model.points) == len(gaussians["means"])
-    np.testing.assert_allclose(np.sort(model.points, axis=0), np.sort(gaussians["means"].numpy(), axis=0), atol=1e-5)
+    means = gaussians["means"].numpy().astype(np.float64)
+    # each point is a Gaussian's centre in its base colour: 255 * (0.5 + C0 * f_dc), clamped to [0, 255] and rounded
+    by_position, by_centre = np.lexsort(model.points.T), np.lexsort(means.T)
+    np.testing.assert_allclose(model.points[by_position], means[by_centre], atol=1e-5)
+    C0 = 0.28209479177387814  # the SH basis of degree 0, 1 / (2 sqrt(pi))
+    base = np.clip(0.5 + C0 * gaussians["sh0"][:, 0, :].numpy().astype(np.float64), 0.0, 1.0)
+    np.testing.assert_array_equal(model.colors[by_position], np.round(255 * base[by_centre]).astype(np.uint8))
+    assert {tuple(color) for color in base[:2]} == {(1.0, 1.0, 1.0), (0.0, 0.0, 0.0)}
 
 
 def test_exported_image_names_with_spaces_are_kept_in_a_binary_model(finished_run, tmp_path):
@@ -358,6 +369,52 @@ def test_exported_image_names_with_spaces_are_kept_in_a_binary_model(finished_ru
     assert names == sorted(spaced[name] for name in info["image_names"])
     result = runner.invoke(app, ["export", str(run), "--out", str(tmp_path / "export")])  # over the earlier export
     assert result.exit_code == 0, result.output
+
+
+def _write_cut_short(monkeypatch, file_name: str, keep) -> None:
+    """pycolmap writes its models with `file_name` cut to `keep(data)` bytes of its data: what a full disk or a
+    file-size limit leaves, of which pycolmap's writers say nothing."""
+    from warpbags.data.colmap import _pycolmap
+
+    reconstruction_class = _pycolmap().Reconstruction
+    for method in ("write_text", "write_binary"):
+        def write_cut_short(reconstruction, folder, real_write=getattr(reconstruction_class, method)):
+            real_write(reconstruction, folder)
+            written = Path(folder) / file_name
+            if written.is_file():
+                data = written.read_bytes()
+                written.write_bytes(data[:keep(data)])
+
+        monkeypatch.setattr(reconstruction_class, method, write_cut_short)
+
+
+def _last_line_start(data: bytes) -> int:
+    return data.rindex(b"\n", 0, len(data) - 1) + 1
+
+
+@pytest.mark.parametrize("keep, found", [(lambda data: _last_line_start(data) + 6, "is damaged"),
+                                         (_last_line_start, "is incomplete")], ids=["within-a-line", "at-a-line-end"])
+def test_a_colmap_model_cut_short_is_one_line_and_leaves_the_earlier_export(finished_run, tmp_path, monkeypatch,
+                                                                            keep, found):
+    """pycolmap's writers ignore I/O errors: under a file-size limit, `export` said it wrote sparse/0 and the model cut
+    short replaced the earlier export's."""
+    out = tmp_path / "export"
+    assert runner.invoke(app, ["export", str(finished_run), "--out", str(out)]).exit_code == 0
+    earlier = {path: path.read_bytes() for path in out.rglob("*") if path.is_file()}
+    _write_cut_short(monkeypatch, "points3D.txt", keep)
+    result = runner.invoke(app, ["export", str(finished_run), "--out", str(out)])
+    lines = _lines(result)
+    assert result.exit_code == 2 and len(lines) == 1, result.output
+    assert f"the COLMAP model written to {out / 'sparse' / '0.partial'} {found}" in lines[0]
+    assert {path: path.read_bytes() for path in out.rglob("*") if path.is_file()} == earlier  # the staging gone too
+    result = runner.invoke(app, ["export", str(finished_run), "--out", str(tmp_path / "fresh")])
+    assert result.exit_code == 2 and not (tmp_path / "fresh").exists()  # a new folder: nothing of it is left
+
+
+def test_a_binary_colmap_model_cut_short_is_named(tmp_path, monkeypatch):
+    _write_cut_short(monkeypatch, "points3D.bin", lambda data: len(data) - 3)
+    with pytest.raises(WarpbagsError, match=f"^the COLMAP model written to {re.escape(str(tmp_path))} is damaged"):
+        write_model(tmp_path, ["a.png"], np.eye(4)[None], np.eye(3)[None], 8, 8, np.zeros((2, 3)), binary=True)
 
 
 def test_exported_image_names_are_relative_to_one_image_folder_for_a_transforms_json_scene(finished_run, tmp_path):
@@ -457,7 +514,7 @@ def test_a_turntable_of_an_odd_size_keeps_every_pixel_in_its_video(finished_run,
     info = json.loads((run / "config.json").read_text())
     (run / "config.json").write_text(json.dumps({**info, "width": 63, "height": 47}))
     assert runner.invoke(app, ["render", str(run), "--frames", "2"]).exit_code == 0
-    assert cv2.imread(str(run / "turntable" / "frame_000.png")).shape[:2] == (47, 63)
+    assert cv2.imread(str(run / "turntable" / "frame_0000.png")).shape[:2] == (47, 63)
     capture = cv2.VideoCapture(str(run / "turntable.mp4"))
     assert (capture.get(cv2.CAP_PROP_FRAME_WIDTH), capture.get(cv2.CAP_PROP_FRAME_HEIGHT)) == (64, 48)
 
@@ -467,14 +524,14 @@ def test_a_damaged_turntable_frame_is_left_out_of_the_report_by_name(finished_ru
 
     run = _copy_of(finished_run, tmp_path / "run")
     assert runner.invoke(app, ["render", str(run), "--frames", "6", "--no-video"]).exit_code == 0
-    (run / "turntable" / "frame_000.png").write_bytes(b"not a png")
+    (run / "turntable" / "frame_0000.png").write_bytes(b"not a png")
     result = runner.invoke(app, ["eval", str(run), "--refine-iters", "0"])
     assert result.exit_code == 0, result.output
     report = (run / "report.md").read_text()
-    assert "Not readable as images, left out: `turntable/frame_000.png`" in report
+    assert "Not readable as images, left out: `turntable/frame_0000.png`" in report
     assert "![turntable](turntable_strip.png)" in report
     strip = cv2.imread(str(run / "turntable_strip.png"))
-    frame = cv2.imread(str(run / "turntable" / "frame_001.png"))
+    frame = cv2.imread(str(run / "turntable" / "frame_0001.png"))
     assert strip.shape[1] == 5 * round(frame.shape[1] * 128 / frame.shape[0])  # the five readable frames
 
 
@@ -488,7 +545,7 @@ def test_turntable_is_rendered_on_the_runs_background_and_names_what_it_lacks(fi
     (black / "config.json").write_text(json.dumps(info))
     result = runner.invoke(app, ["render", str(black), "--frames", "2", "--no-video"])
     assert result.exit_code == 0, result.output
-    frame = cv2.imread(str(black / "turntable" / "frame_000.png"))
+    frame = cv2.imread(str(black / "turntable" / "frame_0000.png"))
     assert frame[0, 0].max() == 0 and frame.max() > 50  # black around the object, as in training and the viewer
     del info["width"]
     (black / "config.json").write_text(json.dumps(info))
@@ -516,6 +573,100 @@ def test_turntable_video_that_opencv_cannot_open_is_one_line_and_no_file(finishe
     assert not list(run.glob("turntable*.mp4"))
 
 
+@pytest.mark.parametrize("damage", ["cut-short", "frames-lost"])
+def test_a_turntable_video_that_fails_to_write_is_one_line_and_the_earlier_render_stays(finished_run, tmp_path,
+                                                                                        monkeypatch, damage):
+    """OpenCV's video writer reports no write error: under a file-size limit, `render` replaced a good video with one
+    no player opens, and said it wrote it."""
+    import cv2
+
+    run = _copy_of(finished_run, tmp_path / "run")
+    assert runner.invoke(app, ["render", str(run), "--frames", "3"]).exit_code == 0
+    earlier = {path: path.read_bytes() for path in [run / "turntable.mp4", *(run / "turntable").iterdir()]}
+    real_writer = cv2.VideoWriter
+
+    class FailingWriter:
+        """OpenCV's writer, whose video is cut short when released or which loses every second frame."""
+
+        def __init__(self, path, *args):
+            self.path, self.writer, self.frames = Path(path), real_writer(path, *args), 0
+
+        def isOpened(self):  # noqa: N802 - OpenCV's name
+            return self.writer.isOpened()
+
+        def write(self, image):
+            self.frames += 1
+            if damage == "cut-short" or self.frames % 2:
+                self.writer.write(image)
+
+        def release(self):
+            self.writer.release()
+            if damage == "cut-short" and self.path.is_file():
+                self.path.write_bytes(self.path.read_bytes()[:1000])
+
+    monkeypatch.setattr(cv2, "VideoWriter", FailingWriter)
+    result = runner.invoke(app, ["render", str(run), "--frames", "4"])
+    lines = _lines(result)
+    assert result.exit_code == 2 and len(lines) == 1, result.output
+    found = "does not open as a video" if damage == "cut-short" else "holds 2 of its 4 frames"
+    assert f"could not write the turntable video {run / 'turntable.mp4'}: the video written {found}" in lines[0]
+    assert {path: path.read_bytes() for path in [run / "turntable.mp4", *(run / "turntable").iterdir()]} == earlier
+    assert not list(run.glob("*.tmp*"))
+
+
+def test_a_turntable_frame_that_fails_to_write_is_one_line_and_the_earlier_render_stays(finished_run, tmp_path):
+    """OpenCV's imwrite reports no write error: under a file-size limit, `render --no-video` put frames cut short in
+    place of the earlier render's and said it wrote them."""
+    import resource
+    import signal
+
+    run = _copy_of(finished_run, tmp_path / "run")
+    assert runner.invoke(app, ["render", str(run), "--frames", "3", "--no-video"]).exit_code == 0
+    earlier = {path: path.read_bytes() for path in (run / "turntable").iterdir()}
+    soft, hard = resource.getrlimit(resource.RLIMIT_FSIZE)
+    ignored = signal.signal(signal.SIGXFSZ, signal.SIG_IGN)  # a write past the limit fails, not the process
+    resource.setrlimit(resource.RLIMIT_FSIZE, (min(len(data) for data in earlier.values()) - 1, hard))
+    try:
+        result = runner.invoke(app, ["render", str(run), "--frames", "3", "--no-video"])
+    finally:
+        resource.setrlimit(resource.RLIMIT_FSIZE, (soft, hard))
+        signal.signal(signal.SIGXFSZ, ignored)
+    lines = _lines(result)
+    assert result.exit_code == 2 and len(lines) == 1, result.output
+    assert f"could not write the turntable frame {run / 'turntable' / 'frame_0000.png'}: File too large" in lines[0]
+    assert {path: path.read_bytes() for path in (run / "turntable").iterdir()} == earlier
+
+
+def test_turntable_frame_names_sort_in_frame_order():
+    from warpbags.export import MAX_TURNTABLE_FRAMES, turntable_frame_name
+
+    names = [turntable_frame_name(index) for index in range(MAX_TURNTABLE_FRAMES)]
+    assert names[:2] == ["frame_0000.png", "frame_0001.png"] and sorted(names) == names  # frame_1000 after frame_999
+
+
+def test_a_render_removes_the_3_digit_frames_of_an_earlier_warpbags(finished_run, tmp_path):
+    run = _copy_of(finished_run, tmp_path / "run")
+    (run / "turntable").mkdir()
+    for name in ("frame_000.png", "frame_001.png", "frame_002.png", "notes.txt"):
+        (run / "turntable" / name).write_bytes(b"an earlier render")
+    assert runner.invoke(app, ["render", str(run), "--frames", "2", "--no-video"]).exit_code == 0
+    assert sorted(path.name for path in (run / "turntable").iterdir()) == ["frame_0000.png", "frame_0001.png",
+                                                                           "notes.txt"]
+
+
+def test_the_report_takes_the_frames_of_an_earlier_warpbags_in_frame_order(finished_run, tmp_path):
+    """An earlier warpbags named frames with 3 digits: frame_1000.png sorts before frame_999.png by name. The report's
+    frames are named here in the order it picks them, as it names those it cannot read."""
+    run = _copy_of(finished_run, tmp_path / "run")
+    (run / "turntable").mkdir()
+    names = [f"frame_{index:03d}.png" for index in range(996, 1002)]
+    for name in names:
+        (run / "turntable" / name).write_bytes(b"not a png")
+    assert runner.invoke(app, ["eval", str(run), "--refine-iters", "0"]).exit_code == 0
+    listed = ", ".join(f"`turntable/{name}`" for name in names)
+    assert f"Not readable as images, left out: {listed}" in (run / "report.md").read_text()
+
+
 def test_turntable_orbits_about_the_up_axis():
     from warpbags.camera_paths import turntable_viewmats
     from warpbags.cameras import camera_centers
@@ -537,6 +688,21 @@ def test_eval_of_a_folder_that_is_not_a_run_is_one_line(tmp_path):
     result = runner.invoke(app, ["eval", str(tmp_path)])
     assert result.exit_code == 2
     assert len(result.output.strip().splitlines()) == 1 and "not a training run" in result.output
+
+
+def test_info_of_a_training_run_folder_names_the_scene_folder_it_trained_on(finished_run, tmp_path):
+    """`info` takes scenes: of a run folder, it said "no cameras in RUN: expected sparse/0/cameras.bin ..."."""
+    scene_root = json.loads((finished_run / "config.json").read_text())["scene_root"]
+    result = runner.invoke(app, ["info", str(finished_run)])
+    lines = _lines(result)
+    assert result.exit_code == 2 and len(lines) == 1, result.output
+    assert (f"{finished_run} is a training run folder (it holds config.json), not a scene: info takes a scene; its "
+            f"scene folder is {scene_root}") in " ".join(result.output.split())
+    run = tmp_path / "run"  # a config.json damaged: still a run's folder, of a scene it cannot name
+    run.mkdir()
+    (run / "config.json").write_text("{")
+    result = runner.invoke(app, ["info", str(run)])
+    assert result.exit_code == 2 and "training run folder" in result.output and "names no scene folder" in result.output
 
 
 @pytest.mark.parametrize("device, message", [("tpu", "--device must be cpu or cuda, got 'tpu'"),

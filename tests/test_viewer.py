@@ -141,6 +141,33 @@ def test_read_ply_of_another_tool_layout(run_dir, tmp_path):
         read_ply(tmp_path / "gap.ply")
 
 
+@pytest.mark.parametrize("sh_degree", [0, 1])
+def test_written_ply_has_the_3dgs_property_layout_in_its_order(tmp_path, sh_degree):
+    """Viewers of a fixed layout (SIBR, the 3DGS reference viewer) read the properties by position, not by name."""
+    count, coefficients = 5, (sh_degree + 1) ** 2 - 1
+    params = {"means": torch.randn(count, 3), "quats": torch.randn(count, 4), "scales": torch.randn(count, 3),
+              "opacities": torch.randn(count), "sh0": torch.randn(count, 1, 3)}
+    if coefficients:
+        params["shN"] = torch.randn(count, coefficients, 3)
+    write_ply(tmp_path / "gaussians.ply", params)
+    header, data = (tmp_path / "gaussians.ply").read_bytes().split(b"end_header\n")
+    rest = [f"f_rest_{index}" for index in range(3 * coefficients)]
+    names = ["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2", *rest, "opacity",
+             "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"]
+    assert header.decode("ascii").splitlines() == ["ply", "format binary_little_endian 1.0", f"element vertex {count}",
+                                                   *(f"property float {name}" for name in names)]
+    table = np.frombuffer(data, dtype=[(name, "<f4") for name in names])
+    assert len(table) == count and not table["nx"].any()
+    np.testing.assert_array_equal(table["f_dc_1"], params["sh0"][:, 0, 1].numpy())
+    for channel in range(3):  # f_rest channel-major: all of red's coefficients, then green's, then blue's
+        for k in range(coefficients):
+            np.testing.assert_array_equal(table[f"f_rest_{coefficients * channel + k}"],
+                                          params["shN"][:, k, channel].numpy())
+    np.testing.assert_array_equal(table["opacity"], params["opacities"].numpy())  # a logit, scales logs: as given
+    np.testing.assert_array_equal(table["scale_2"], params["scales"][:, 2].numpy())
+    np.testing.assert_array_equal(table["rot_0"], params["quats"][:, 0].numpy())
+
+
 # ------------------------------------------------------------------------------------------------ cameras
 def test_camera_conversions_follow_viser_conventions():
     viewmats = random_viewmats(5, generator(1)).numpy()

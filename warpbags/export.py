@@ -161,7 +161,8 @@ def export_run(path: str | Path, out: str | Path | None = None, colmap: bool = T
 
     Raises:
         WarpbagsError: the run is unfinished or unreadable; `out` may not receive the export; with `colmap`, its
-            scene folder is gone or changed. Nothing is written then.
+            scene folder is gone or changed. Nothing is written then. With `colmap`, the model does not read back
+            as written (a full disk): an earlier export is left as it was.
 
     Returns:
         The output folder, and with `colmap` the scene's image folder the model's image names are relative to.
@@ -183,25 +184,34 @@ def export_run(path: str | Path, out: str | Path | None = None, colmap: bool = T
 
 def _write_export(run: TrainingRun, out: Path, normalization: SceneNormalization,
                   calibration: Calibration | None) -> tuple[Path, Path | None]:
-    """`export_run`'s files into the existing folder `out`."""
+    """`export_run`'s files into the existing folder `out`. The COLMAP model is staged in sparse/0.partial/ and
+    read back (`write_model`) before anything else is written, and replaces sparse/0/ last: a write that fails (a
+    full disk) leaves an earlier export's model, and with a failed model its other files too."""
     gaussians = to_source_frame(run.params, normalization)
-    write_ply(out / "gaussians.ply", gaussians)
     poses = normalization.invert_viewmats(run.poses_final.double()).numpy()
-    with atomic_output(out / "poses_final.npy") as temporary:
-        np.save(temporary, poses)
-    if calibration is not None:
-        colors = (0.5 + SH_C0 * gaussians["sh0"][:, 0, :].double()).clamp(0, 1).numpy()
-        model, staging = out / "sparse" / "0", out / "sparse" / "0.partial"  # a failed write leaves no model
-        shutil.rmtree(staging, ignore_errors=True)
-        write_model(staging, calibration.image_names, poses, calibration.Ks, calibration.sizes[:, 0],
-                    calibration.sizes[:, 1], gaussians["means"].double().numpy(), np.round(colors * 255).astype(np.uint8),
-                    binary=any(" " in name or "\t" in name for name in calibration.image_names),
-                    distortions=calibration.distortions)
-        shutil.rmtree(model, ignore_errors=True)
-        staging.rename(model)
-        return out, Path(run.info["scene_root"]) / calibration.image_folder
-    shutil.rmtree(out / "sparse", ignore_errors=True)  # an earlier export's model, which these poses no longer match
-    return out, None
+    model, staging = out / "sparse" / "0", out / "sparse" / "0.partial"
+    made = missing_folders(staging)
+    try:
+        if calibration is not None:
+            shutil.rmtree(staging, ignore_errors=True)  # one that a killed export left
+            colors = (0.5 + SH_C0 * gaussians["sh0"][:, 0, :].double()).clamp(0, 1).numpy()
+            write_model(staging, calibration.image_names, poses, calibration.Ks, calibration.sizes[:, 0],
+                        calibration.sizes[:, 1], gaussians["means"].double().numpy(),
+                        np.round(colors * 255).astype(np.uint8),
+                        binary=any(" " in name or "\t" in name for name in calibration.image_names),
+                        distortions=calibration.distortions)
+        write_ply(out / "gaussians.ply", gaussians)
+        with atomic_output(out / "poses_final.npy") as temporary:
+            np.save(temporary, poses)
+    except BaseException:
+        shutil.rmtree(made[-1] if made else staging, ignore_errors=True)  # sparse/ too where this export made it
+        raise
+    if calibration is None:  # an earlier export's model, which these poses no longer match, is removed
+        shutil.rmtree(out / "sparse", ignore_errors=True)
+        return out, None
+    shutil.rmtree(model, ignore_errors=True)
+    staging.rename(model)
+    return out, Path(run.info["scene_root"]) / calibration.image_folder
 
 
 MAX_TURNTABLE_FRAMES = 3600  # 5 minutes of the video's 12 fps
@@ -211,21 +221,48 @@ TURNTABLE_STAGING = ".partial"  # in turntable/, where the frames wait until all
 
 def _video_writer(path: Path, width: int, height: int) -> cv2.VideoWriter:
     """OpenCV's mp4v writer at 12 fps for frames of width x height (an odd side repeats its last row or column)."""
+    # read when OpenCV first starts FFmpeg: FFmpeg's own lines ("moov atom not found" of a video `_check_video` finds
+    # cut short) would come before the one line that reports the failure
+    os.environ.setdefault("OPENCV_FFMPEG_LOGLEVEL", "-8")  # AV_LOG_QUIET
     writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"mp4v"), 12, (width + width % 2, height + height % 2))
     if not writer.isOpened():
         raise WarpbagsError(f"OpenCV cannot write an mp4v video to {path}: pass --no-video for the frames alone")
     return writer
 
 
+def _check_video(path: Path, frames: int, target: Path) -> None:
+    """Open the video just written to `path` (to replace `target`) and count its frames: OpenCV's writer reports no
+    write error, so a full disk or a file-size limit leaves a video cut short that no player opens.
+
+    Raises:
+        WarpbagsError: it does not open, or holds other than `frames` frames; `target` named.
+    """
+    capture = cv2.VideoCapture(str(path))
+    try:
+        count = int(capture.get(cv2.CAP_PROP_FRAME_COUNT)) if capture.isOpened() else None
+    finally:
+        capture.release()
+    if count != frames:
+        found = "does not open as a video" if count is None else f"holds {count} of its {frames} frames"
+        raise WarpbagsError(f"could not write the turntable video {target}: the video written {found} (a full disk "
+                            "or a file-size limit?); an earlier render is kept as it was")
+
+
+def turntable_frame_name(index: int) -> str:
+    """The file name of turntable frame `index`: 4 digits, so that the names of up to `MAX_TURNTABLE_FRAMES` frames
+    sort in frame order (frame_0999.png before frame_1000.png)."""
+    return f"frame_{index:04d}.png"
+
+
 @torch_threads(1)
 def render_turntable(path: str | Path, frames: int = 36, video: bool = True) -> Path:
-    """Novel views on a full orbit of the object: `<run>/turntable/frame_XXX.png` and, with `video`,
+    """Novel views on a full orbit of the object: `<run>/turntable/frame_XXXX.png` and, with `video`,
     `<run>/turntable.mp4` (OpenCV, mp4v, 12 fps; without it, an earlier render's video is removed). The orbit
     starts at training camera 0 and turns about the training cameras' common up axis through the object centre.
 
     The frames are rendered `TURNTABLE_BATCH` at a time into a staging folder and replace an earlier render's only
-    when all are written (the video likewise): a render stopped or failed leaves the earlier one as it was. Other
-    files in turntable/ are kept. Returns the frame folder.
+    when all are written (the video likewise, once it opens as a video of all frames): a render stopped or failed
+    (a full disk) leaves the earlier one as it was. Other files in turntable/ are kept. Returns the frame folder.
     """
     if not 1 <= frames <= MAX_TURNTABLE_FRAMES:
         raise WarpbagsError(f"--frames must be in [1, {MAX_TURNTABLE_FRAMES}] ({MAX_TURNTABLE_FRAMES // 12 // 60} "
@@ -236,8 +273,9 @@ def render_turntable(path: str | Path, frames: int = 36, video: bool = True) -> 
     if run.intrinsics is None:
         raise WarpbagsError(f"{run.path / 'intrinsics.npy'} is missing: written by an older warpbags")
     out = writable_folder(run.path / "turntable", "for the turntable frames")
-    names = [f"frame_{index:03d}.png" for index in range(frames)]
-    for name in names + [path.name for path in out.glob("frame_*.png")]:  # written, or removed as stale
+    names = [turntable_frame_name(index) for index in range(frames)]
+    # written, or removed as stale (an earlier render's, 3 digits where an earlier warpbags named it)
+    for name in names + [path.name for path in out.glob("frame_*.png")]:
         writable_file(out / name, "to write a turntable frame to")
     video_path = run.path / "turntable.mp4"
     if video or video_path.exists():  # written, or removed as stale (an earlier render's shows other frames)
@@ -253,7 +291,8 @@ def render_turntable(path: str | Path, frames: int = 36, video: bool = True) -> 
         with contextlib.ExitStack() as stack:
             writer = None
             if video:  # written beside, it replaces an earlier render's video when every frame is in it
-                writer = _video_writer(stack.enter_context(atomic_output(video_path)), width, height)
+                written_video = stack.enter_context(atomic_output(video_path))
+                writer = _video_writer(written_video, width, height)
                 stack.callback(writer.release)
             for start in range(0, frames, TURNTABLE_BATCH):
                 batch = slice(start, min(start + TURNTABLE_BATCH, frames))
@@ -263,18 +302,31 @@ def render_turntable(path: str | Path, frames: int = 36, video: bool = True) -> 
                 pixels = (images.clamp(0, 1).numpy() * 255 + 0.5).astype(np.uint8)
                 for name, image in zip(names[batch], pixels):
                     frame = staging / name
-                    if not cv2.imwrite(str(frame), cv2.cvtColor(image, cv2.COLOR_RGB2BGR)):
-                        raise WarpbagsError(f"could not write {frame}")
+                    encoded, png = cv2.imencode(".png", cv2.cvtColor(image, cv2.COLOR_RGB2BGR))
+                    if not encoded:
+                        raise WarpbagsError(f"OpenCV could not encode {frame} as a PNG")
+                    # written by Python, which raises on a failed write (a full disk, a file-size limit): OpenCV's
+                    # imwrite reports none and leaves a PNG cut short
+                    try:
+                        frame.write_bytes(png.tobytes())
+                    except OSError as error:
+                        raise WarpbagsError(f"could not write the turntable frame {out / name}: "
+                                            f"{error.strerror or error}; an earlier render is kept as it was") from None
                     if writer is not None:
                         # mp4v holds even sizes only (OpenCV would drop an odd size's last row or column)
                         padded = np.pad(image, ((0, height % 2), (0, width % 2), (0, 0)), mode="edge")
                         writer.write(cv2.cvtColor(padded, cv2.COLOR_RGB2BGR))
+            if writer is not None:  # finished, and checked before it replaces the earlier video
+                writer.release()
+                _check_video(written_video, frames, video_path)
     except BaseException:
         shutil.rmtree(staging, ignore_errors=True)
         raise
     if not video:
         video_path.unlink(missing_ok=True)
-    for stale in out.glob("frame_*.png"):  # an earlier render of more frames must not leave its tail behind
+    # an earlier render of more frames must not leave its tail behind, nor one of 3-digit names (an earlier
+    # warpbags's) its frames beside these
+    for stale in out.glob("frame_*.png"):
         stale.unlink()
     for name in names:
         os.replace(staging / name, out / name)

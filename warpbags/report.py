@@ -137,7 +137,8 @@ def write_run_report(run_dir: Path, result: dict, training_alignment: str, recor
         render = "render" if refined is None else f"render after {refined['iters']} refinement iterations"
         lines += ["", f"## Held-out views: truth | {render} | 4x error", ""]
         lines += [f"![{path.stem}](eval/{path.name})" for path in comparisons]
-    frames = sorted((run_dir / "turntable").glob("frame_*.png"))
+    # in frame order: shorter names first, since an earlier warpbags padded to 3 digits (frame_999, frame_1000)
+    frames = sorted((run_dir / "turntable").glob("frame_*.png"), key=lambda path: (len(path.name), path.name))
     if frames:
         picks = frames[:: max(1, len(frames) // 6)][:6]
         unreadable = image_strip(picks, run_dir / "turntable_strip.png")

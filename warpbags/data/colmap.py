@@ -113,25 +113,33 @@ def _camera_from_pycolmap(camera: pycolmap.Camera, source: Path) -> ColmapCamera
     return ColmapCamera(int(camera.width), int(camera.height), K, distortion, model)
 
 
+def _read_reconstruction(model_dir: Path, extension: str) -> pycolmap.Reconstruction:
+    """The pycolmap reconstruction of `model_dir/*.{extension}` ("bin" or "txt").
+
+    Raises:
+        WarpbagsError: pycolmap cannot read it, with the last line of its reason.
+    """
+    reconstruction = _pycolmap().Reconstruction()
+    try:
+        if extension == "bin":
+            reconstruction.read_binary(str(model_dir))
+        else:
+            reconstruction.read_text(str(model_dir))
+    except Exception as error:  # ValueError/RuntimeError with a multi-line C++ message; a .bin file cut short
+        # raises MemoryError (a count read from where the file ends) or IndexError
+        reason = str(error).strip().splitlines()[-1] if str(error).strip() else type(error).__name__
+        raise WarpbagsError(f"cannot read COLMAP model {model_dir}/*.{extension}: {reason}") from None
+    return reconstruction
+
+
 def read_model(model_dir: Path) -> ColmapModel:
     """Read `model_dir/{cameras,images,points3D}.{bin,txt}`.
 
     Raises:
         WarpbagsError: a file is missing or unreadable, or a camera model is unsupported.
     """
-    pycolmap = _pycolmap()
-
     extension = find_model_files(model_dir)
-    reconstruction = pycolmap.Reconstruction()
-    try:
-        if extension == "bin":
-            reconstruction.read_binary(str(model_dir))
-        else:
-            reconstruction.read_text(str(model_dir))
-    except Exception as error:  # pycolmap raises ValueError/RuntimeError with a multi-line C++ message
-        reason = str(error).strip().splitlines()[-1] if str(error).strip() else type(error).__name__
-        raise WarpbagsError(f"cannot read COLMAP model {model_dir}/*.{extension}: {reason}") from None
-
+    reconstruction = _read_reconstruction(model_dir, extension)
     registered = [image for image in reconstruction.images.values() if image.has_pose]
     if not registered:
         raise WarpbagsError(f"{model_dir / f'images.{extension}'} holds no posed images")
@@ -179,6 +187,9 @@ def write_model(
         points: [P,3] optional points; colors: [P,3] uint8.
         binary: .bin files (default) or .txt.
         distortions: [C,4] OpenCV (k1, k2, p1, p2) per image; None = none.
+
+    Raises:
+        WarpbagsError: the model does not read back as written (`_check_written`): its files are left as they are.
     """
     pycolmap = _pycolmap()
 
@@ -210,3 +221,25 @@ def write_model(
         reconstruction.write_binary(str(model_dir))
     else:
         reconstruction.write_text(str(model_dir))
+    _check_written(model_dir, "bin" if binary else "txt", reconstruction)
+
+
+def _check_written(model_dir: Path, extension: str, written: pycolmap.Reconstruction) -> None:
+    """Read the model just written to `model_dir` back: pycolmap's writers ignore I/O errors, so a full disk or a
+    file-size limit leaves files cut short that they report as written. A text file cut within a line fails to read;
+    one cut at a line's end reads as fewer cameras, images or points.
+
+    Raises:
+        WarpbagsError: the model cannot be read back, or holds other counts than `written`; the folder named.
+    """
+    try:
+        again = _read_reconstruction(model_dir, extension)
+    except WarpbagsError as error:
+        raise WarpbagsError(f"the COLMAP model written to {model_dir} is damaged (a full disk or a file-size "
+                            f"limit?): {error}") from None
+    read_back, expected = ((model.num_cameras(), model.num_images(), model.num_points3D())
+                           for model in (again, written))
+    if read_back != expected:
+        raise WarpbagsError(f"the COLMAP model written to {model_dir} is incomplete (a full disk or a file-size "
+                            "limit?): it reads back as {} cameras, {} images and {} points of {}, {} and {}".format(
+                                *read_back, *expected))
