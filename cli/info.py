@@ -21,7 +21,7 @@ def scene_summary(scene: Scene) -> Table:
     """A two-column rich table describing `scene`."""
     table = Table(title=f"scene {scene.name}", show_header=False, title_justify="left")
     table.add_column(style="bold cyan")
-    table.add_column()
+    table.add_column(overflow="fold")  # a long folder goes on to the next line, not cut short with an ellipsis
     Ks = scene.Ks
     table.add_row("folder", str(scene.root))
     table.add_row("layout", scene.layout)
