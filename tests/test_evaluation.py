@@ -637,6 +637,33 @@ def test_a_turntable_frame_that_fails_to_write_is_one_line_and_the_earlier_rende
     assert {path: path.read_bytes() for path in (run / "turntable").iterdir()} == earlier
 
 
+@pytest.mark.parametrize("name", ["picture.png", "picture.jpg"])
+def test_an_image_write_past_a_file_size_limit_raises(tmp_path, name):
+    """`files.write_image`, which the turntable frames, eval's pictures and `warpbags synth` write with: a write that a
+    full disk or a file-size limit cuts short raises OSError. OpenCV's imwrite returned True over this 16 px PNG cut
+    to 100 bytes (it reports some failed writes and not others)."""
+    import resource
+    import signal
+
+    import cv2
+
+    from warpbags.files import write_image
+
+    pixels = np.random.default_rng(0).integers(0, 256, (16, 16, 3), dtype=np.uint8)  # noise: no format shrinks it
+    soft, hard = resource.getrlimit(resource.RLIMIT_FSIZE)
+    ignored = signal.signal(signal.SIGXFSZ, signal.SIG_IGN)  # a write past the limit fails, not the process
+    resource.setrlimit(resource.RLIMIT_FSIZE, (100, hard))
+    try:
+        with pytest.raises(OSError):
+            write_image(tmp_path / name, pixels)
+    finally:
+        resource.setrlimit(resource.RLIMIT_FSIZE, (soft, hard))
+        signal.signal(signal.SIGXFSZ, ignored)
+    write_image(tmp_path / name, pixels)
+    read = cv2.imread(str(tmp_path / name))
+    assert read.shape == pixels.shape and (np.array_equal(read, pixels) or name.endswith(".jpg"))
+
+
 def test_turntable_frame_names_sort_in_frame_order():
     from warpbags.export import MAX_TURNTABLE_FRAMES, turntable_frame_name
 

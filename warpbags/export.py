@@ -23,7 +23,8 @@ from warpbags.data.scene import SceneNormalization
 from warpbags.data.images import image_size, resolution_path
 from warpbags.data.layouts import read_layout_cameras, scaled_intrinsics
 from warpbags.errors import WarpbagsError
-from warpbags.files import atomic_output, missing_folders, temporary_name, writable_file, writable_folder
+from warpbags.files import (atomic_output, missing_folders, temporary_name, writable_file, writable_folder,
+                            write_image)
 from warpbags.gaussians import render_gaussians, sh_degree_of, to_source_frame, write_ply
 from warpbags.kernels.sh import SH_C0
 from warpbags.run_folder import TrainingRun, load_run, require_info, run_normalization
@@ -302,13 +303,8 @@ def render_turntable(path: str | Path, frames: int = 36, video: bool = True) -> 
                 pixels = (images.clamp(0, 1).numpy() * 255 + 0.5).astype(np.uint8)
                 for name, image in zip(names[batch], pixels):
                     frame = staging / name
-                    encoded, png = cv2.imencode(".png", cv2.cvtColor(image, cv2.COLOR_RGB2BGR))
-                    if not encoded:
-                        raise WarpbagsError(f"OpenCV could not encode {frame} as a PNG")
-                    # written by Python, which raises on a failed write (a full disk, a file-size limit): OpenCV's
-                    # imwrite reports none and leaves a PNG cut short
                     try:
-                        frame.write_bytes(png.tobytes())
+                        write_image(frame, cv2.cvtColor(image, cv2.COLOR_RGB2BGR))
                     except OSError as error:
                         raise WarpbagsError(f"could not write the turntable frame {out / name}: "
                                             f"{error.strerror or error}; an earlier render is kept as it was") from None

@@ -11,6 +11,7 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
+import cv2
 import numpy as np
 
 from warpbags.errors import WarpbagsError
@@ -102,6 +103,21 @@ def finite_json(value, indent: int | None = 2) -> str:
         return item
 
     return json.dumps(finite(value), indent=indent, allow_nan=False)
+
+
+def write_image(path: str | Path, pixels: np.ndarray) -> None:
+    """Write uint8 `pixels` ([H, W] grey or [H, W, 3] BGR, as OpenCV takes them) to `path`, in the image format of its
+    suffix. Python writes the encoded bytes and raises on a failed write (a full disk, a file-size limit); OpenCV's
+    imwrite reports none and leaves a file cut short.
+
+    Raises:
+        WarpbagsError: OpenCV cannot encode the pixels in that format. OSError: the write failed.
+    """
+    path = Path(path)
+    encoded, data = cv2.imencode(path.suffix, pixels)
+    if not encoded:
+        raise WarpbagsError(f"OpenCV could not encode {path} as {path.suffix}")
+    path.write_bytes(data.tobytes())
 
 
 def read_array(path: Path, what: str) -> np.ndarray:

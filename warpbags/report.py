@@ -11,8 +11,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from warpbags.errors import WarpbagsError
-from warpbags.files import atomic_output
+from warpbags.files import atomic_output, write_image
 from warpbags.run_folder import RunFolder
 
 
@@ -67,8 +66,7 @@ def image_strip(paths: list[Path], out: Path, height: int = 128) -> list[Path]:
                                  interpolation=cv2.INTER_AREA))
     if images:
         with atomic_output(out) as temporary:
-            if not cv2.imwrite(str(temporary), np.concatenate(images, axis=1)):
-                raise WarpbagsError(f"could not write {out}")
+            write_image(temporary, np.concatenate(images, axis=1))
     return unreadable
 
 
@@ -78,8 +76,7 @@ def write_image_grid(path: Path, rows: list[list]) -> None:
                            for row in rows], axis=0)
     pixels = (np.clip(grid, 0, 1) * 255 + 0.5).astype(np.uint8)
     with atomic_output(path) as temporary:
-        if not cv2.imwrite(str(temporary), cv2.cvtColor(pixels, cv2.COLOR_RGB2BGR)):
-            raise WarpbagsError(f"could not write {path}")
+        write_image(temporary, cv2.cvtColor(pixels, cv2.COLOR_RGB2BGR))
 
 
 # What `write_run_report` writes into the run folder (curves.png with a log, the strip with turntable frames).

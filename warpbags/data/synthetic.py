@@ -36,7 +36,7 @@ from warpbags.cameras import camera_centers
 from warpbags.data.colmap import write_model
 from warpbags.data.scene import DEFAULT_SPLIT_SIZES, farthest_views
 from warpbags.errors import WarpbagsError, one_line, sigterm_stops
-from warpbags.files import writable_folder
+from warpbags.files import writable_folder, write_image
 from warpbags.lie import so3_exp
 
 GENERATOR_VERSION = 3  # bump whenever the geometry or rendering changes: cache folders are keyed on it
@@ -495,8 +495,7 @@ def _write_scene(staging: Path, options: SyntheticOptions) -> None:
         image_bgr = cv2.cvtColor(np.round(image * 255).astype(np.uint8), cv2.COLOR_RGB2BGR)
         for written, pixels in ((staging / "images" / name, image_bgr),
                                 (staging / "masks" / name, (mask * 255).astype(np.uint8))):
-            if not cv2.imwrite(str(written), pixels):
-                raise OSError(f"OpenCV could not write {written}")
+            write_image(written, pixels)
         np.save(staging / "depths" / f"{stem}.npy", depth)
         rows, cols = np.nonzero(mask > 0.5)
         pick = rng.choice(len(rows), size=min(per_view, len(rows)), replace=False)
