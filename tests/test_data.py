@@ -761,10 +761,17 @@ def _palette_png(indices: np.ndarray, colours: list[tuple[int, int, int]], path:
     lambda mask, image, path: cv2.imwrite(str(path), np.dstack([image, mask * 255]).astype(np.uint16) * 257),
     # an alpha opaque everywhere, as editors save a black and white mask, marks nothing: the colour is the mask
     lambda mask, image, path: cv2.imwrite(str(path), np.dstack([np.dstack([mask * 255] * 3), np.full_like(mask, 255)])),
-], ids=["cutout", "white-on-transparent", "grey-and-alpha", "16-bit-cutout", "opaque-alpha"])
-def test_a_mask_file_with_an_alpha_channel_is_read_by_its_alpha(scene_copy, save):
+    # nor does one a pixel short of opaque, and a black and white mask on a transparent canvas is its colour too
+    lambda mask, image, path: cv2.imwrite(str(path), np.dstack([np.dstack([mask * 255] * 3), np.pad(
+        np.full((63, 64), 255, np.uint8), ((0, 1), (0, 0)), constant_values=254)])),
+    lambda mask, image, path: cv2.imwrite(str(path), np.dstack([np.dstack([mask * 255] * 3),
+                                                                 np.pad(np.full((60, 60), 255, np.uint8), 2)])),
+], ids=["cutout", "white-on-transparent", "grey-and-alpha", "16-bit-cutout", "opaque-alpha", "nearly-opaque-alpha",
+        "transparent-border"])
+def test_a_mask_file_with_an_alpha_channel_is_read_by_its_alpha_where_that_marks_the_background(scene_copy, save):
     """A mask with an alpha channel was read by its colour: a white silhouette on transparency was the whole image,
-    a cutout the object's bright pixels, silently."""
+    a cutout the object's bright pixels, silently. An alpha that marks no background, or the alpha of a mask drawn in
+    black and white, is not the mask: read by the alpha, those were the whole image."""
     expected = load_scene(scene_copy).masks
     path = scene_copy / "masks" / "view_003.png"
     mask = (cv2.imread(str(path), cv2.IMREAD_GRAYSCALE) > 127).astype(np.uint8)
@@ -778,11 +785,15 @@ def test_a_mask_file_with_an_alpha_channel_is_read_by_its_alpha(scene_copy, save
     lambda mask, path: _palette_png(mask, [(0, 0, 0), (128, 0, 0)], path),
     lambda mask, path: _palette_png(mask, [(0, 0, 0)], path),  # index 1 past the palette: black when read by colour
     lambda mask, path: _palette_png(1 - mask, [(255, 255, 255), (0, 0, 0)], path),  # greys: read by colour
+    # a colour mask quantized to a palette, its object first: no label image (index 0 is not black), read by colour
+    lambda mask, path: _palette_png(1 - mask, [(0, 255, 0), (0, 0, 0)], path),
     lambda mask, path: cv2.imwrite(str(path), mask.astype(np.uint16) * 255),  # 8-bit levels in a 16-bit file
-], ids=["palette-davis", "palette-unlisted", "palette-greys-white-first", "16-bit-0-255"])
+], ids=["palette-davis", "palette-unlisted", "palette-greys-white-first", "palette-colour-object-first",
+        "16-bit-0-255"])
 def test_palette_and_16_bit_0_255_masks_are_read_as_their_object(scene_copy, save):
     """A palette PNG of labels (DAVIS: index 1 the object) and a 16-bit mask holding 0 / 255 were refused as "0
-    everywhere"; a palette PNG is read by index unless its colours are greys."""
+    everywhere"; a palette PNG is read by index where it is a label image (index 0 black, the labels coloured), by
+    colour otherwise."""
     expected = load_scene(scene_copy).masks
     path = scene_copy / "masks" / "view_003.png"
     save((cv2.imread(str(path), cv2.IMREAD_GRAYSCALE) > 127).astype(np.uint8), path)
@@ -794,7 +805,7 @@ def test_palette_and_16_bit_0_255_masks_are_read_as_their_object(scene_copy, sav
     (lambda mask, path: cv2.imwrite(str(path), mask * 100), r"its values are at most 100, under half of 255; 255 or 1"),
     (lambda mask, path: cv2.imwrite(str(path), mask.astype(np.uint16) * 1000),
      r"its values are at most 1000, under half of 65535; 65535, 255 or 1 marks the object"),
-    (lambda mask, path: _palette_png(mask * 0, [(128, 0, 0)], path),
+    (lambda mask, path: _palette_png(mask * 0, [(0, 0, 0), (128, 0, 0)], path),
      r"index 0 everywhere; in a palette PNG an index above 0 marks it"),
     (lambda mask, path: cv2.imwrite(str(path), np.dstack([np.full_like(mask, 255)] * 3 + [mask * 100])),
      r"its alpha channel, the mask in a file with one, is at most 100 of 255; more than half opaque"),
@@ -863,11 +874,11 @@ def test_an_image_whose_alpha_channel_holds_no_object_is_named(scene_copy):
     image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
     image[..., 3] = np.minimum(image[..., 3], 100)
     cv2.imwrite(str(path), image)
-    _expect_error(scene_copy, r"image .*view_003.png holds no object pixel \(its alpha channel, the mask without a "
-                  r"masks/ folder, is at most 39% opaque; more than half opaque marks the object\)")
+    _expect_error(scene_copy, r"image .*view_003.png holds no object pixel at 64x64 \(its alpha channel, the mask "
+                  r"without a masks/ folder, is at most 39% opaque there; more than half opaque marks the object\)")
     image[..., 3] = 0
     cv2.imwrite(str(path), image)
-    _expect_error(scene_copy, r"image .*view_003.png holds no object pixel \(.* is transparent everywhere")
+    _expect_error(scene_copy, r"image .*view_003.png holds no object pixel at 64x64 \(.* is transparent everywhere")
 
 
 def test_a_mask_in_the_images_subfolder_wins_over_one_of_the_same_stem_at_the_top(scene_copy):

@@ -266,10 +266,12 @@ def _resize_to(array: np.ndarray, width: int, height: int, path: Path, what: str
 
 def _read_mask(path: Path, width: int) -> tuple[np.ndarray, str]:
     """The mask file at `path` as float32 levels in [0, 1], half and above the object, and what it holds where it
-    holds no object (for the error). The levels are, in turn: its alpha channel where that varies (an RGBA cutout,
-    a white silhouette on transparency; an alpha opaque everywhere, as editors save one, marks nothing); the
-    indices of a palette PNG whose colours are not all greys (DAVIS-style: index 1, coloured (128, 0, 0), is the
-    object); else its grey levels (`_grey_levels`). A JPEG at 2, 4 or 8 times `width` is decoded at that reduction.
+    holds no object (for the error). The levels are, in turn: its alpha channel where that marks a background (some
+    pixel under half opaque) and its colour is not a black-and-white mask itself (`_two_level`): an RGBA cutout of
+    the photograph, a silhouette on transparency (an alpha opaque everywhere, as editors save one, or a black and
+    white mask on a transparent canvas is read by its colour); the indices of a palette PNG whose index 0 is black
+    and whose colours are not all greys (DAVIS and VOC style: index 1, coloured (128, 0, 0), is the object); else
+    its grey levels (`_grey_levels`). A JPEG at 2, 4 or 8 times `width` is decoded at that reduction.
 
     Raises:
         WarpbagsError: the file cannot be read or decoded.
@@ -290,11 +292,13 @@ def _read_mask(path: Path, width: int) -> tuple[np.ndarray, str]:
     mask = cv2.imdecode(np.frombuffer(data, dtype=np.uint8), cv2.IMREAD_UNCHANGED)
     if mask is None:
         raise WarpbagsError(f"mask {path} is unreadable")
-    if mask.ndim == 3 and mask.shape[2] == 4 and mask[..., 3].min() != mask[..., 3].max():
-        alpha = mask[..., 3]
-        scale = np.iinfo(alpha.dtype).max
-        return alpha.astype(np.float32) / scale, (f"its alpha channel, the mask in a file with one, is at most "
-                                                  f"{alpha.max()} of {scale}; more than half opaque marks the object")
+    if mask.ndim == 3 and mask.shape[2] == 4:
+        alpha, scale = mask[..., 3], np.iinfo(mask.dtype).max
+        if alpha.min() < scale / 2 and not _two_level(cv2.cvtColor(mask[..., :3], cv2.COLOR_BGR2GRAY)):
+            return alpha.astype(np.float32) / scale, (f"its alpha channel, the mask in a file with one, is at most "
+                                                      f"{alpha.max()} of {scale}; more than half opaque marks the "
+                                                      "object")
+        mask = mask[..., :3]
     indices = _palette_indices(data, path)
     if indices is not None:
         return (indices > 0).astype(np.float32), "index 0 everywhere; in a palette PNG an index above 0 marks it"
@@ -304,8 +308,10 @@ def _read_mask(path: Path, width: int) -> tuple[np.ndarray, str]:
 
 
 def _palette_indices(data: bytes, path: Path) -> np.ndarray | None:
-    """The indices of the palette PNG `data`, unless its colours in use are all greys (a grey mask stored with a
-    palette, read by its levels: a black and white palette may list white first); None for any other file.
+    """The indices of the palette PNG `data` where it is a label image (DAVIS, VOC: index 0 black, colours in its
+    palette; or indices past its palette); None for any other file, and for a palette of greys or one whose index 0
+    is not black (a grey or a quantized colour mask stored with a palette, which may list its object first: read by
+    its colour).
 
     Raises:
         WarpbagsError: a palette PNG that PIL cannot decode.
@@ -319,10 +325,21 @@ def _palette_indices(data: bytes, path: Path) -> np.ndarray | None:
     except OSError as error:
         raise WarpbagsError(f"mask {path} is unreadable ({one_line(error)})") from None
     used = np.unique(indices)
-    # an index past the palette's colours is black to OpenCV (PIL saves a label image with none): not a grey level
-    if used.max() < len(colours) and np.all(colours[used] == colours[used, :1]):
+    listed = used[used < len(colours)]
+    if len(listed) < len(used):  # PIL saves a label image without colours; OpenCV reads its indices as black
+        return indices
+    if colours[0].any() or np.all(colours == colours[:, :1]):
         return None
     return indices
+
+
+def _two_level(grey: np.ndarray) -> bool:
+    """Whether grey levels are a black-and-white picture (a mask drawn in colour): black and white pixels both,
+    and at most 2% of them between 10% and 90% of full scale, where an antialiased edge puts a mask's few (a
+    photograph has many; one colour everywhere is no mask)."""
+    scale = np.iinfo(grey.dtype).max
+    dark, bright = grey <= 0.1 * scale, grey >= 0.9 * scale
+    return bool(dark.any() and bright.any() and grey.size - np.count_nonzero(dark | bright) <= 0.02 * grey.size)
 
 
 def _grey_levels(mask: np.ndarray) -> tuple[np.ndarray, str]:
@@ -382,9 +399,11 @@ def masks_from_alphas(alphas: np.ndarray, files: list[Path]) -> np.ndarray:
     masks = (alphas > 0.5).astype(np.float32)
     for path, alpha, mask in zip(files, alphas, masks):
         if not mask.any():
+            # the alphas as read, at the scene's resolution: an object pixel of the file may be a fraction of one
             opacity = "transparent everywhere" if alpha.max() == 0 else f"at most {alpha.max():.0%} opaque"
-            raise WarpbagsError(f"image {path} holds no object pixel (its alpha channel, the mask without a masks/ "
-                                f"folder, is {opacity}; more than half opaque marks the object)")
+            raise WarpbagsError(f"image {path} holds no object pixel at {alpha.shape[1]}x{alpha.shape[0]} (its alpha "
+                                f"channel, the mask without a masks/ folder, is {opacity} there; more than half "
+                                "opaque marks the object)")
     return masks
 
 
