@@ -59,21 +59,24 @@ def info(
     try:
         loaded = open_scene(scene, root=data_root, resolution=resolution)
     except WarpbagsError:
-        if scene not in SCENES and (Path(scene) / "config.json").is_file():
-            raise WarpbagsError(_training_run_folder(Path(scene))) from None
+        trained_on = None if scene in SCENES else _run_scene_folder(Path(scene))
+        if trained_on is not None:
+            raise WarpbagsError(f"{scene} is a training run folder, not a scene: info takes a scene; the run's scene "
+                                f"folder is {trained_on}") from None
         raise
     stdout.print(scene_summary(loaded))
 
 
-def _training_run_folder(folder: Path) -> str:
-    """What `info` says of `folder`, a training run's folder (it holds config.json), which holds no scene: the
-    scene folder the run trained on, as its config.json names it."""
+def _run_scene_folder(folder: Path) -> str | None:
+    """The scene folder of the training run in `folder` (its config.json's scene_root); None where `folder` holds
+    no readable run config.json (a scene folder may hold a config.json of its own: its error is the one to show)."""
+    if not (folder / "config.json").is_file():
+        return None
     try:
         scene_root = RunFolder(folder).read_info().get("scene_root")
-    except WarpbagsError:  # a damaged config.json: the folder is still a run's, only its scene is unknown
-        scene_root = None
-    trained_on = f"its scene folder is {scene_root}" if scene_root else "its config.json names no scene folder"
-    return f"{folder} is a training run folder (it holds config.json), not a scene: info takes a scene; {trained_on}"
+    except WarpbagsError:
+        return None
+    return scene_root if isinstance(scene_root, str) else None
 
 
 def synth(

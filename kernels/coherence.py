@@ -20,10 +20,10 @@ from typing import Any
 import warp as wp
 
 # A point at or behind this depth in a view lies outside its silhouette cone, which opens in front of the camera:
-# it is charged BEHIND_CAMERA_DISTANCE (image sizes) for that view, a pixel that far off the image lies within 0.2 deg
-# of 90 deg off the axis at any field of view warpbags reads (a camera turned away from the object: a start
-# without the mask-centroid turn, `camera.centroid_start` false). Projected with a stand-in depth, as
-# `warpbags.cameras.project_points` does, it could land inside the mask and be charged nothing.
+# it is charged BEHIND_CAMERA_DISTANCE (image sizes) for that view, as a pixel that far off the image would be (within
+# 0.2 deg of 90 deg off the axis at fields of view above 16 deg, 0.7 deg at 5 deg). Projected with a stand-in depth,
+# as `warpbags.cameras.project_points` does, it could land inside the mask and be charged nothing (an L-BFGS trial
+# step of the coherence solve, or a camera turned away from the object).
 MIN_DEPTH = 1.0e-6
 BEHIND_CAMERA_DISTANCE = 1.0e3
 

@@ -662,6 +662,8 @@ def test_an_image_write_past_a_file_size_limit_raises(tmp_path, name):
     write_image(tmp_path / name, pixels)
     read = cv2.imread(str(tmp_path / name))
     assert read.shape == pixels.shape and (np.array_equal(read, pixels) or name.endswith(".jpg"))
+    with pytest.raises(WarpbagsError, match=r"OpenCV could not encode .*picture\.xyz"):  # OpenCV raised cv2.error
+        write_image(tmp_path / "picture.xyz", pixels)
 
 
 def test_turntable_frame_names_sort_in_frame_order():
@@ -718,18 +720,21 @@ def test_eval_of_a_folder_that_is_not_a_run_is_one_line(tmp_path):
 
 
 def test_info_of_a_training_run_folder_names_the_scene_folder_it_trained_on(finished_run, tmp_path):
-    """`info` takes scenes: of a run folder, it said "no cameras in RUN: expected sparse/0/cameras.bin ..."."""
+    """`info` takes scenes: of a run folder, it said "no cameras in RUN: expected sparse/0/cameras.bin ...". A scene
+    folder that holds a config.json of its own (a capture app's) keeps its own error."""
     scene_root = json.loads((finished_run / "config.json").read_text())["scene_root"]
     result = runner.invoke(app, ["info", str(finished_run)])
     lines = _lines(result)
     assert result.exit_code == 2 and len(lines) == 1, result.output
-    assert (f"{finished_run} is a training run folder (it holds config.json), not a scene: info takes a scene; its "
-            f"scene folder is {scene_root}") in " ".join(result.output.split())
-    run = tmp_path / "run"  # a config.json damaged: still a run's folder, of a scene it cannot name
-    run.mkdir()
-    (run / "config.json").write_text("{")
-    result = runner.invoke(app, ["info", str(run)])
-    assert result.exit_code == 2 and "training run folder" in result.output and "names no scene folder" in result.output
+    assert (f"{finished_run} is a training run folder, not a scene: info takes a scene; the run's scene folder is "
+            f"{scene_root}") in " ".join(result.output.split())
+    capture = tmp_path / "capture"
+    shutil.copytree(scene_root, capture)
+    (capture / "config.json").write_text('{"note": "capture settings"}')
+    (capture / "masks" / "view_003.png").unlink()
+    result = runner.invoke(app, ["info", str(capture)])
+    assert result.exit_code == 2 and "mask for image view_003.png is missing" in " ".join(result.output.split()), \
+        result.output
 
 
 @pytest.mark.parametrize("device, message", [("tpu", "--device must be cpu or cuda, got 'tpu'"),

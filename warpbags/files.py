@@ -14,7 +14,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from warpbags.errors import WarpbagsError
+from warpbags.errors import WarpbagsError, one_line
 
 
 def temporary_name(name: str) -> str:
@@ -114,9 +114,12 @@ def write_image(path: str | Path, pixels: np.ndarray) -> None:
         WarpbagsError: OpenCV cannot encode the pixels in that format. OSError: the write failed.
     """
     path = Path(path)
-    encoded, data = cv2.imencode(path.suffix, pixels)
+    try:
+        encoded, data = cv2.imencode(path.suffix, pixels)
+    except cv2.error as error:  # no encoder for the suffix, pixels the format cannot hold
+        raise WarpbagsError(f"OpenCV could not encode {path}: {one_line(error)}") from None
     if not encoded:
-        raise WarpbagsError(f"OpenCV could not encode {path} as {path.suffix}")
+        raise WarpbagsError(f"OpenCV could not encode {path}")
     path.write_bytes(data.tobytes())
 
 

@@ -57,8 +57,9 @@ class SyntheticOptions:
     Attributes:
         views: number of cameras on the dome (32-100 for real use; fewer is allowed for tests).
         width, height: image size in pixels.
-        seed: seeds the sampled SfM points and the textures: the tankard's wood grain, and the excavator's crops of
-            its non-square photographs (coffee, chelsea; its square ones are used whole, whatever the seed).
+        seed: seeds the sampled SfM points, each view's light and colour gains where they are jittered, and the
+            textures: the tankard's wood grain, and the excavator's crops of its non-square photographs (coffee,
+            chelsea; its square ones are used whole, whatever the seed).
         radius: camera distance from the object centre (world units; the loader normalizes it away).
         fov_deg: horizontal field of view.
         min_elevation_deg, max_elevation_deg: camera elevation range above the base plane.
