@@ -83,8 +83,8 @@ class DensifyConfig:
 
     Attributes:
         start, stop, every: densify (clone/split/prune) every `every` iterations in [start, stop) of each round,
-            never at the coarse stage's last iteration (nothing would train the Gaussians it adds before the model
-            is saved; nor is the opacity reset done there).
+            never at a round's last iteration (nothing would train the Gaussians it adds before the round's model is
+            saved or scored and replaced; nor is the opacity reset done there).
         grad_threshold: mean view-space positional gradient norm (NDC-scaled, as 3DGS) above which a
             Gaussian is cloned (small) or split (large).
         percent_dense: the clone/split size boundary, as a fraction of the scene extent.
