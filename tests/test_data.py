@@ -1274,6 +1274,18 @@ def test_cli_synth_writes_a_loadable_scene(tmp_path):
     assert onto_a_file.exit_code == 2 and "a-file is a file, not a folder" in " ".join(onto_a_file.output.split())
 
 
+def _same_object_views(folders: list[Path], index: int) -> tuple[list, list, np.ndarray]:
+    """View `index` of two synthetic scene folders that show the same object from the same cameras: their masks and
+    depth maps are asserted equal; returns the masks, the images (int levels) and the first's background pixels
+    (edge pixels, which mix object rays, left out)."""
+    stem = f"view_{index:03d}"
+    masks = [cv2.imread(str(folder / "masks" / f"{stem}.png")) for folder in folders]
+    depths = [np.load(folder / "depths" / f"{stem}.npy") for folder in folders]
+    assert np.array_equal(*masks) and np.array_equal(*depths), stem
+    images = [cv2.imread(str(folder / "images" / f"{stem}.png")).astype(int) for folder in folders]
+    return masks, images, cv2.dilate(masks[0][..., 0], np.ones((3, 3), np.uint8)) == 0
+
+
 def test_synth_seed_changes_the_textures_and_sfm_points_not_the_object_or_cameras(tmp_path):
     """--seed picks the texture crops and the SfM points sampled from the masks; the object's shape and the dome of
     cameras stay (masks, depth maps, poses). Only the crops of the non-square photographs move (the coffee
@@ -1285,15 +1297,10 @@ def test_synth_seed_changes_the_textures_and_sfm_points_not_the_object_or_camera
     folders = [tmp_path / "seed0", tmp_path / "seed1"]
     assert [json.loads((folder / "synthetic.json").read_text())["seed"] for folder in folders] == [0, 1]
     for index in range(4):
-        stem = f"view_{index:03d}"
-        masks = [cv2.imread(str(folder / "masks" / f"{stem}.png")) for folder in folders]
-        depths = [np.load(folder / "depths" / f"{stem}.npy") for folder in folders]
-        images = [cv2.imread(str(folder / "images" / f"{stem}.png")).astype(int) for folder in folders]
-        assert np.array_equal(*masks) and np.array_equal(*depths)
+        masks, images, background = _same_object_views(folders, index)
         changed = np.abs(images[0] - images[1]).max(2) > 10  # levels of 255
-        background = cv2.dilate(masks[0][..., 0], np.ones((3, 3), np.uint8)) == 0  # edge pixels mix object rays
-        assert not changed[background].any(), stem
-        assert changed[masks[0][..., 0] > 0].mean() > 0.02, stem
+        assert not changed[background].any(), index
+        assert changed[masks[0][..., 0] > 0].mean() > 0.02, index
     models = [read_model(folder / "sparse" / "0") for folder in folders]
     np.testing.assert_array_equal(models[0].viewmats, models[1].viewmats)
     assert models[0].points.shape == models[1].points.shape and not np.allclose(models[0].points, models[1].points)
@@ -1352,12 +1359,7 @@ def test_synthetic_lighting_changes_the_images_and_nothing_else(tmp_path, settin
     assert result.exit_code == 0, result.output
     folders = [tmp_path / "plain", tmp_path / "lit"]
     for index in range(4):
-        stem = f"view_{index:03d}"
-        masks = [cv2.imread(str(folder / "masks" / f"{stem}.png")) for folder in folders]
-        depths = [np.load(folder / "depths" / f"{stem}.npy") for folder in folders]
-        images = [cv2.imread(str(folder / "images" / f"{stem}.png")).astype(int) for folder in folders]
-        assert np.array_equal(*masks) and np.array_equal(*depths)
-        background = cv2.dilate(masks[0][..., 0], np.ones((3, 3), np.uint8)) == 0  # edge pixels mix object rays
+        _, images, background = _same_object_views(folders, index)
         assert np.array_equal(images[0][background], images[1][background])
         assert np.abs(images[0] - images[1])[~background].mean() > 3  # levels of 255
 
