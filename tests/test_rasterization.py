@@ -512,20 +512,20 @@ def test_float32_backward_matches_float64_reference(block, monkeypatch):
 
 
 def test_pixel_block_fits_the_tile():
-    from warpbags.wrapper import _pixel_block
+    from warpbags.wrapper import pixel_block_for
 
     cpu = torch.device("cpu")
-    assert _pixel_block(cpu, 4, (4, 2)) == (4, 2)
-    assert _pixel_block(cpu, 2, (4, 4)) == (2, 2)  # a block never spans two tiles
-    assert _pixel_block(cpu, 4, (3, 1)) == (2, 1)  # each side the largest power of two dividing the tile size
-    assert _pixel_block(torch.device("cuda"), 16, None) == (1, 1)  # one pixel per thread on CUDA
-    assert _pixel_block(cpu, 4, None) == (4, 4) and _pixel_block(cpu, 8, None) == (4, 4)  # the CPU default
-    assert _pixel_block(cpu, 2, None) == (2, 2)
+    assert pixel_block_for(cpu, 4, (4, 2)) == (4, 2)
+    assert pixel_block_for(cpu, 2, (4, 4)) == (2, 2)  # a block never spans two tiles
+    assert pixel_block_for(cpu, 4, (3, 1)) == (2, 1)  # each side the largest power of two dividing the tile size
+    assert pixel_block_for(torch.device("cuda"), 16, None) == (1, 1)  # one pixel per thread on CUDA
+    assert pixel_block_for(cpu, 4, None) == (4, 4) and pixel_block_for(cpu, 8, None) == (4, 4)  # the CPU default
+    assert pixel_block_for(cpu, 2, None) == (2, 2)
     # a tile of 6 or 18 px (divisible by 3, not 4) gets 2 px sides: a 3x3 block has no kernel
-    assert _pixel_block(cpu, 6, None) == (2, 2) and _pixel_block(cpu, 18, None) == (2, 2)
-    assert _pixel_block(cpu, 9, None) == (1, 1) and _pixel_block(cpu, 12, None) == (4, 4)
+    assert pixel_block_for(cpu, 6, None) == (2, 2) and pixel_block_for(cpu, 18, None) == (2, 2)
+    assert pixel_block_for(cpu, 9, None) == (1, 1) and pixel_block_for(cpu, 12, None) == (4, 4)
     with pytest.raises(ValueError, match="pixel block"):
-        _pixel_block(cpu, 16, (8, 4))  # 32 pixels per thread: not built
+        pixel_block_for(cpu, 16, (8, 4))  # 32 pixels per thread: not built
 
 
 def test_cost_balanced_ranges_cover_the_tiles_in_order():
