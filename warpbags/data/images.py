@@ -292,19 +292,17 @@ def _read_mask(path: Path, width: int) -> tuple[np.ndarray, str]:
     mask = cv2.imdecode(np.frombuffer(data, dtype=np.uint8), cv2.IMREAD_UNCHANGED)
     if mask is None:
         raise WarpbagsError(f"mask {path} is unreadable")
+    grey = cv2.cvtColor(mask[..., :3], cv2.COLOR_BGR2GRAY) if mask.ndim == 3 else mask
     if mask.ndim == 3 and mask.shape[2] == 4:
         alpha, scale = mask[..., 3], np.iinfo(mask.dtype).max
-        if alpha.min() < scale / 2 and not _two_level(cv2.cvtColor(mask[..., :3], cv2.COLOR_BGR2GRAY)):
+        if alpha.min() < scale / 2 and not _two_level(grey):
             return alpha.astype(np.float32) / scale, (f"its alpha channel, the mask in a file with one, is at most "
                                                       f"{alpha.max()} of {scale}; more than half opaque marks the "
                                                       "object")
-        mask = mask[..., :3]
     indices = _palette_indices(data, path)
     if indices is not None:
         return (indices > 0).astype(np.float32), "index 0 everywhere; in a palette PNG an index above 0 marks it"
-    if mask.ndim == 3:
-        mask = cv2.cvtColor(mask[..., :3], cv2.COLOR_BGR2GRAY)
-    return _grey_levels(mask)
+    return _grey_levels(grey)
 
 
 def _palette_indices(data: bytes, path: Path) -> np.ndarray | None:
