@@ -894,6 +894,19 @@ def test_a_mask_in_the_images_subfolder_wins_over_one_of_the_same_stem_at_the_to
     assert _find_by_stem(scene_copy / "masks", "cam0/view_000.png", (".png", ".jpg"), stem_shared=True) is None
 
 
+def test_masks_and_depth_maps_are_found_whatever_the_case_of_their_extension(scene_copy):
+    """view_000.Png and view_001.NPY were "missing" on a case-sensitive file system (only .png/.PNG were tried)."""
+    reference = load_scene(scene_copy, normalize=False)
+    (scene_copy / "masks" / "view_000.png").rename(scene_copy / "masks" / "view_000.Png")
+    (scene_copy / "depths" / "view_001.npy").rename(scene_copy / "depths" / "view_001.NPY")
+    (scene_copy / "masks" / "view_0001.png").write_bytes(b"")  # another stem that starts alike is not taken
+    scene = load_scene(scene_copy, normalize=False)
+    np.testing.assert_array_equal(scene.masks, reference.masks)
+    np.testing.assert_array_equal(scene.depths, reference.depths)
+    (scene_copy / "masks" / "view_000.Png").rename(scene_copy / "masks" / "view_000.tiff")
+    _expect_error(scene_copy, r"mask for image view_000.png is missing: expected .*masks/view_000.png or .jpg")
+
+
 def _rename_in_model(scene: Path, names: list[str]) -> None:
     """The COLMAP model of `scene` (64 x 64 px) with its images, in their sorted order, named `names`."""
     model = read_model(scene / "sparse" / "0")

@@ -230,11 +230,29 @@ def _find_by_stem(folder: Path, name: str, extensions: tuple[str, ...], stem_sha
     relative = Path(name)
     bare = () if stem_shared else (Path(relative.stem),)
     for stem in (relative.with_suffix(""), *bare, relative):  # the most specific first
-        for extension in extensions:
-            candidate = folder / f"{stem}{extension}"
-            if candidate.is_file():
-                return candidate
+        path = _with_extension(folder, stem, extensions)
+        if path is not None:
+            return path
     return None
+
+
+def _with_extension(folder: Path, stem: Path, extensions: tuple[str, ...]) -> Path | None:
+    """`folder/<stem><ext>` for the first of `extensions` that exists, whatever the case of its extension: tools
+    that save masks as view.Png or depth maps as view.NPY are common, and on a case-sensitive file system only the
+    listed spellings would be found."""
+    for extension in extensions:
+        candidate = folder / f"{stem}{extension}"
+        if candidate.is_file():
+            return candidate
+    directory = (folder / stem).parent
+    if not directory.is_dir():
+        return None
+    found = {}
+    for entry in sorted(directory.iterdir()):
+        name, suffix = entry.name[:len(stem.name)], entry.name[len(stem.name):]
+        if name == stem.name and entry.is_file():
+            found.setdefault(suffix.lower(), entry)
+    return next((found[extension.lower()] for extension in extensions if extension.lower() in found), None)
 
 
 def _missing(what: str, folder: Path, name: str, extensions: str, stem_shared: bool) -> WarpbagsError:
