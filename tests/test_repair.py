@@ -221,7 +221,7 @@ def test_resumed_repair_stage_names_an_unreadable_saved_file(tmp_path):
     pairs.save(folder / "pairs.pt")
     torch.save(state, folder / "repairer.pt")
     stage = resume()
-    assert messages[0] == f"repair: loaded 2 pairs and the fitted repairer from {folder}"
+    assert messages[:2] == [f"repair: loaded 2 pairs from {folder}", f"repair: loaded the fitted repairer from {folder}"]
     assert stage.repair == config.repair and not hasattr(stage, "config")
 
     saved = (folder / "repairer.pt").read_bytes()

@@ -109,32 +109,17 @@ class RepairStage:
         pairs_path, repairer_path = self.folder / "pairs.pt", self.folder / "repairer.pt"
         if repairer is not None:
             self.repairer = repairer
-        elif pairs_path.is_file() and repairer_path.is_file():  # a resumed run: reuse what it made
-            self.repairer = make_repairer(self.repair, config.seed, device)
-            pairs = _load_saved(pairs_path, RepairPairs.load)
-            # saved on whichever device the run used before
-            _load_saved(repairer_path, lambda path: self.repairer.load_state_dict(
-                torch.load(path, map_location="cpu", weights_only=False)))
-            log(f"repair: loaded {len(pairs.kinds)} pairs and the fitted repairer from {self.folder}")
         else:
+            fitted = pairs_path.is_file() and repairer_path.is_file()  # a resumed run whose repairer was fitted
             self.repairer = make_repairer(self.repair, config.seed, device)
-            if pairs_path.is_file():  # a run stopped during the fit: the pairs, the costly part, are kept
-                pairs = _load_saved(pairs_path, RepairPairs.load)
-                log(f"repair: loaded {len(pairs.kinds)} pairs from {self.folder}")
+            pairs = self._training_pairs(pairs_path, coarse, viewmats, config, should_stop)
+            if fitted:
+                # saved on whichever device the run used before
+                _load_saved(repairer_path, lambda path: self.repairer.load_state_dict(
+                    torch.load(path, map_location="cpu", weights_only=False)))
+                log(f"repair: loaded the fitted repairer from {self.folder}")
             else:
-                log(f"repair: building training pairs ({len(viewmats)} leave-one-out models, "
-                    f"{self.repair.loo_iters} iterations each)")
-                pairs = build_pairs(coarse, viewmats, config, should_stop, log)
-                pairs.save(pairs_path)
-            stops = "should_stop" in inspect.signature(self.repairer.fit).parameters  # a plugin's may not take it
-            stats = (self.repairer.fit(pairs, log, should_stop=should_stop) if stops else
-                     self.repairer.fit(pairs, log))
-            with atomic_output(repairer_path) as temporary:
-                torch.save(self.repairer.state_dict(), temporary)
-            with atomic_output(self.folder / "fit.json") as temporary:
-                temporary.write_text(finite_json({"pairs": {kind: pairs.kinds.count(kind) for kind in set(pairs.kinds)},
-                                                  **stats}, indent=2))
-            self._save_pair_samples(pairs)
+                self._fit(pairs, should_stop)
         self.lpips, unavailable = load_lpips() if self.repair.weight_lpips > 0 else (None, None)
         if self.lpips is not None:
             self.lpips.to(device)
@@ -143,6 +128,33 @@ class RepairStage:
         self.viewmats: torch.Tensor | None = None  # [K,4,4] current pseudo cameras
         self.targets: torch.Tensor | None = None  # [K,H,W,3] their repaired renders
         self.weights: torch.Tensor | None = None  # [K] their distance weights
+
+    def _training_pairs(self, path: Path, coarse: GaussianModel, viewmats: torch.Tensor, config: TrainConfig,
+                        should_stop: Callable[[], bool]) -> RepairPairs:
+        """The repairer's training pairs: those an earlier start of this run saved at `path` (the costly part of the
+        stage: a run stopped during the fit keeps them), else built from leave-one-out models of `coarse` at the
+        [C,4,4] `viewmats` and saved there."""
+        if path.is_file():
+            pairs = _load_saved(path, RepairPairs.load)
+            self.log(f"repair: loaded {len(pairs.kinds)} pairs from {self.folder}")
+            return pairs
+        self.log(f"repair: building training pairs ({len(viewmats)} leave-one-out models, "
+                 f"{self.repair.loo_iters} iterations each)")
+        pairs = build_pairs(coarse, viewmats, config, should_stop, self.log)
+        pairs.save(path)
+        return pairs
+
+    def _fit(self, pairs: RepairPairs, should_stop: Callable[[], bool]) -> None:
+        """Fit the repairer on `pairs` and save it, its fit statistics (fit.json) and a sample sheet of the pairs."""
+        stops = "should_stop" in inspect.signature(self.repairer.fit).parameters  # a plugin's may not take it
+        stats = (self.repairer.fit(pairs, self.log, should_stop=should_stop) if stops else
+                 self.repairer.fit(pairs, self.log))
+        with atomic_output(self.folder / "repairer.pt") as temporary:
+            torch.save(self.repairer.state_dict(), temporary)
+        with atomic_output(self.folder / "fit.json") as temporary:
+            temporary.write_text(finite_json({"pairs": {kind: pairs.kinds.count(kind) for kind in set(pairs.kinds)},
+                                              **stats}, indent=2))
+        self._save_pair_samples(pairs)
 
     def refresh(self, model: GaussianModel, viewmats: torch.Tensor, iteration: int) -> None:
         """Draw new pseudo cameras between the training cameras at [C,4,4] `viewmats`, render them with `model` and
