@@ -265,6 +265,22 @@ def test_reprojection_errors_tell_a_turn_about_the_camera_from_one_about_the_obj
     torch.testing.assert_close(reprojection_errors(moved, truth, Ks, points, similarity.inverse()), orbit)
 
 
+def test_reprojection_errors_of_a_camera_turned_away_are_infinite_not_zero():
+    """A camera turned 179 deg about its own centre sees none of the object: its points were left out and the RMS of
+    nothing read 0 px, what an exact camera reads (`warpbags agree` showed a diverged camera as "the object does not
+    move"). A reference camera that sees no point has no error to give."""
+    gen = generator(23)
+    truth = _look_at_origin(random_viewmats(3, gen))
+    Ks = torch.tensor([[400.0, 0.0, 64.0], [0.0, 400.0, 64.0], [0.0, 0.0, 1.0]], dtype=F64).expand(3, 3, 3)
+    points = 0.5 * unit_vectors(200, gen)
+    identity = Sim3.identity(dtype=F64)
+    turn = torch.eye(4, dtype=F64).expand(3, 4, 4).clone()
+    turn[1, :3, :3] = so3_exp(torch.tensor([0.0, math.radians(179.0), 0.0], dtype=F64))
+    errors = reprojection_errors(turn @ truth, truth, Ks, points, identity)
+    assert errors[0] < 1e-9 and errors[2] < 1e-9 and errors[1] == math.inf
+    assert reprojection_errors(truth, turn @ truth, Ks, points, identity)[1].isnan()
+
+
 def test_alignment_for_falls_back_to_pairwise_only_where_procrustes_cannot_fit():
     gen = generator(5)
     three, two, nine = random_viewmats(3, gen), random_viewmats(2, gen), random_viewmats(9, gen)

@@ -12,7 +12,7 @@ from typing import Literal
 
 import torch
 
-from warpbags.cameras import camera_centers, moved_keeping_target, project_points, viewmats_from_centers
+from warpbags.cameras import MIN_DEPTH, camera_centers, moved_keeping_target, project_points, viewmats_from_centers
 from warpbags.lie import rotation_error_deg
 
 __all__ = ["Sim3", "align_viewmats", "alignment_for", "centre_floor_errors", "pose_errors", "procrustes_unfit",
@@ -303,13 +303,17 @@ def reprojection_errors(viewmats_est: torch.Tensor, viewmats_ref: torch.Tensor, 
     project `points` ([N, 3], reference frame): the image motion of the object that the pose error causes.
 
     Degrees alone do not say it: a camera 0.5 deg off about its own centre moves a telephoto image by pixels, but 0.5
-    deg along the orbit about the object it looks at moves it by the object's parallax only. Points behind either
-    camera are left out; intrinsics [C, 3, 3] set the pixels' size.
+    deg along the orbit about the object it looks at moves it by the object's parallax only. The RMS is over the
+    points in front of the reference camera; it is infinite for an estimated camera with any of them at or behind
+    it (a camera turned away from the object: its image of them is unbounded, not 0), and NaN for a reference camera
+    that sees none. Intrinsics [C, 3, 3] set the pixels' size.
     """
     with torch.no_grad():
         Ks = Ks.to(points)
         pixels_est, depth_est = project_points(align_viewmats(viewmats_est, sim3).to(points), Ks, points)
         pixels_ref, depth_ref = project_points(viewmats_ref.to(points), Ks, points)
-        seen = ((depth_est > 1e-6) & (depth_ref > 1e-6)).to(points.dtype)  # project_points' pixels are valid there
-        squared = ((pixels_est - pixels_ref) ** 2).sum(-1) * seen
-        return (squared.sum(-1) / seen.sum(-1).clamp_min(1)).sqrt()
+        seen = depth_ref > MIN_DEPTH  # project_points' pixels are valid in front of the camera
+        squared = torch.where(seen, ((pixels_est - pixels_ref) ** 2).sum(-1), 0.0)
+        rms = (squared.sum(-1) / seen.sum(-1)).sqrt()  # NaN where the reference sees no point
+        lost = (seen & (depth_est <= MIN_DEPTH)).any(-1)
+        return torch.where(lost, torch.inf, rms)

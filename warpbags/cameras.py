@@ -51,6 +51,10 @@ def camera_centers(viewmats: torch.Tensor) -> torch.Tensor:
     return -(rotations.transpose(-1, -2) @ translations[..., None])[..., 0]
 
 
+# Points at or behind this depth have no image in a camera: `project_points` gives them finite, meaningless pixels.
+MIN_DEPTH = 1.0e-6
+
+
 def project_points(viewmats: torch.Tensor, Ks: torch.Tensor, points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """Pinhole projection of world points into every camera.
 
@@ -59,11 +63,11 @@ def project_points(viewmats: torch.Tensor, Ks: torch.Tensor, points: torch.Tenso
 
     Returns:
         (pixels [C, P, 2] in the image's continuous coordinates (pixel centres at +0.5), depths [C, P]). Points at
-        or behind depth 1e-6 get finite but meaningless pixels: mask them by depth.
+        or behind `MIN_DEPTH` get finite but meaningless pixels: mask them by depth.
     """
     cam = points[None] @ viewmats[:, :3, :3].transpose(1, 2) + viewmats[:, None, :3, 3]  # [C, P, 3]
     depths = cam[..., 2]
-    safe = torch.where(depths > 1e-6, depths, torch.ones_like(depths))
+    safe = torch.where(depths > MIN_DEPTH, depths, torch.ones_like(depths))
     u = Ks[:, None, 0, 0] * cam[..., 0] / safe + Ks[:, None, 0, 2]
     v = Ks[:, None, 1, 1] * cam[..., 1] / safe + Ks[:, None, 1, 2]
     return torch.stack([u, v], dim=-1), depths
