@@ -77,6 +77,8 @@ class Trainer:
         self.config, self.log = config, log
         self.run_folder = RunFolder(out_dir)
         self.schedule = Schedule(config)
+        # the turns of the worst-fit camera that round `camera.hypotheses_round` is trained once more with
+        self.hypothesis_turns = hypothesis_turns(config.camera.hypothesis_axes, config.camera.hypothesis_angles)
         self.num_cameras = scene.num_views
         self.full_scene = scene
         self._levels: dict[int, TrainingViews] = {}  # the training views at each pyramid level used so far
@@ -367,7 +369,7 @@ class Trainer:
 
     def _search_view_hypotheses(self) -> list[tuple[dict, torch.Tensor]] | None:
         """`camera.hypotheses_round`: train the round that starts now once with the worst-fit camera as it is and
-        once per turn of `hypothesis_turns`, and keep the trial of lowest mean loss over the round's last tenth if
+        once per turn of `self.hypothesis_turns`, and keep the trial of lowest mean loss over the round's last tenth if
         it beats the unturned camera's by more than `camera.hypothesis_margin` (relative). The trainer is left at
         the kept trial's end. Returns its (log record, poses) per iteration, or None on Ctrl-C (the trainer is then
         back at the round's start)."""
@@ -385,11 +387,10 @@ class Trainer:
             self.cameras.load_state(copy.deepcopy(start_cameras))
             self.generator.set_state(start_generator)
 
-        turns = hypothesis_turns(camera_config.hypothesis_axes, camera_config.hypothesis_angles)
         self.log(f"round {round_index} (0-based): camera {camera} fits worst; the round is trained unturned and with "
-                 f"each of {len(turns)} turns of it about the object")
+                 f"each of {len(self.hypothesis_turns)} turns of it about the object")
         unturned, best = None, None
-        for label, rotation in [("not turned", None), *turns]:
+        for label, rotation in [("not turned", None), *self.hypothesis_turns]:
             back_to_start()
             if rotation is not None:
                 self.cameras.turn_about_object(camera, rotation.to(self.cameras.base_viewmats))
@@ -427,8 +428,7 @@ class Trainer:
         if self.config.pose_opt and 0 < round_index < self.schedule.rounds:
             start = self.schedule.round_starts[round_index]
             if self.iteration <= start:
-                turns = hypothesis_turns(self.config.camera.hypothesis_axes, self.config.camera.hypothesis_angles)
-                left += len(turns) * (self.schedule.round_end(start) - start)
+                left += len(self.hypothesis_turns) * (self.schedule.round_end(start) - start)
         return left
 
     def _hypotheses_due(self) -> bool:
