@@ -21,6 +21,7 @@ from warpbags.gaussians import render_gaussians, sh_degree_of
 from warpbags.blur import gaussian_blur
 from warpbags.cameras import camera_centers
 from warpbags.repair import RepairPairs, UNetRepairer, make_repairer
+from warpbags.repair.network import repairer_factory
 from warpbags.repair.pairs import LEAVE_ONE_OUT, NOISE, NOISY_PARAMETERS, NoiseStatistics, perturbed_gaussians
 from warpbags.repair.stage import RepairStage, distance_weights
 from warpbags.trainer import Trainer, training_scene
@@ -95,14 +96,23 @@ def test_make_repairer_loads_a_plugin_and_rejects_bad_ones(tmp_path, monkeypatch
         "    def repair(self, images): return images\n"
         "    def state_dict(self): return {}\n"
         "    def load_state_dict(self, state): pass\n"
-        "def not_a_repairer(config, seed, device): return object()\n")
+        "def not_a_repairer(config, seed, device): return object()\n"
+        "class TakesConfigOnly:\n"
+        "    def __init__(self, config): pass\n"
+        "def failing(config, seed, device): raise FileNotFoundError('weights.safetensors')\n")
     monkeypatch.syspath_prepend(str(tmp_path))
     assert make_repairer(RepairConfig(repairer="my_repairers:Passthrough"), seed=3).seed == 3
     assert isinstance(make_repairer(RepairConfig()), UNetRepairer)
     for spec, message in [("my_repairers:not_a_repairer", "lacks"), ("my_repairers:missing", "cannot load"),
-                          ("no_such_module:factory", "cannot load"), ("diffusion", "package.module:factory")]:
-        with pytest.raises(WarpbagsError, match=message):
+                          ("no_such_module:factory", "cannot load"), ("diffusion", "package.module:factory"),
+                          ("my_repairers:TakesConfigOnly", r"cannot be called as factory\(config, seed, device\)"),
+                          ("my_repairers:failing", r"building it failed \(FileNotFoundError: weights.safetensors\)")]:
+        with pytest.raises(WarpbagsError, match=message) as error:
             make_repairer(RepairConfig(repairer=spec))
+        assert "\n" not in str(error.value)
+    # the signature is checked where a run starts (`repairer_factory`), not after its coarse stage
+    with pytest.raises(WarpbagsError, match="cannot be called as factory"):
+        repairer_factory("my_repairers:TakesConfigOnly")
 
 
 # ------------------------------------------------------------------------------------------------ 3D noise
@@ -266,6 +276,29 @@ def test_a_stop_during_the_repairer_fit_stops_it_and_the_saved_pairs_are_reused(
     assert not (folder / "repairer.pt").exists()
 
 
+def test_the_fitted_repairer_is_saved_last_so_a_resume_finishes_what_a_failed_fit_left(tmp_path):
+    """repairer.pt, which a resumed run takes for a finished fit, was written before fit.json and samples/pairs.png:
+    a run whose fit.json could not be written resumed without ever writing either."""
+    config = tiny_config(fit_steps=2)
+    folder = tmp_path / "repair"
+    folder.mkdir()
+    g = torch.Generator().manual_seed(0)
+    RepairPairs(torch.rand(4, 16, 16, 3, generator=g), torch.rand(4, 16, 16, 3, generator=g),
+                [LEAVE_ONE_OUT, NOISE, LEAVE_ONE_OUT, NOISE], [0, 0, 1, 1], NoiseStatistics({}, {})).save(folder / "pairs.pt")
+    (folder / "fit.json").mkdir()  # fit.json cannot be written (as on a full disk)
+    coarse = SimpleNamespace(training_views=torch.zeros(0))
+
+    def start() -> RepairStage:
+        return RepairStage(config, folder, coarse, torch.eye(4)[None], torch.Generator(), log=lambda message: None)
+
+    with pytest.raises(OSError):
+        start()
+    assert not (folder / "repairer.pt").exists()
+    (folder / "fit.json").rmdir()
+    start()
+    assert all((folder / name).is_file() for name in ("fit.json", "samples/pairs.png", "repairer.pt"))
+
+
 def test_repair_stage_resumes_to_the_same_result(scene_dir, tmp_path):
     straight = make_trainer(scene_dir, tmp_path / "straight")
     straight.train()
@@ -303,7 +336,9 @@ def test_cli_trains_with_repair_and_rejects_contradictions(scene_dir, tmp_path):
                            (["--set", "repair.noise_dropout=[0.9,0.2]"], "repair.noise_dropout must be (low, high)"),
                            (["--set", "background=black", "--repair-iters", "2"], "white background"),
                            (["--set", "repair"], "expected name=value"),
-                           (["--repairer", "nowhere:factory", "--repair-iters", "2"], "cannot load")]:
+                           (["--repairer", "nowhere:factory", "--repair-iters", "2"], "cannot load"),
+                           (["--no-repair", "--repairer", "unet"], "--repairer unet would be unused: the repair stage "
+                                                                      "is off")]:
         result = runner.invoke(app, ["train", *common, *extra, "--out", str(tmp_path / "bad")])
         assert result.exit_code == 2 and message in result.output, (extra, result.output)
         assert "Traceback" not in result.output

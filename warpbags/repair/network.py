@@ -13,6 +13,7 @@ LoRA model loaded from local weights, whose `fit` trains the LoRA on the pairs).
 from __future__ import annotations
 
 import importlib
+import inspect
 import math
 from typing import Callable, Protocol, runtime_checkable
 
@@ -21,7 +22,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from warpbags.configs.train import RepairConfig
-from warpbags.errors import WarpbagsError
+from warpbags.errors import WarpbagsError, one_line
 from warpbags.repair.pairs import NOISE, RepairPairs
 from warpbags.threads import host_threads, torch_threads
 
@@ -229,7 +230,8 @@ def repairer_factory(spec: str) -> Callable[[RepairConfig, int, str], Repairer]:
     """The factory `spec` names: "unet" (`UNetRepairer`) or "package.module:factory", imported.
 
     Raises:
-        WarpbagsError: a malformed spec, or a factory that cannot be imported.
+        WarpbagsError: a malformed spec, a factory that cannot be imported or not called as factory(config, seed,
+            device).
     """
     if spec == "unet":
         return UNetRepairer
@@ -237,18 +239,30 @@ def repairer_factory(spec: str) -> Callable[[RepairConfig, int, str], Repairer]:
     if not module_name or not attribute:
         raise WarpbagsError(f"--repairer must be unet or package.module:factory, got {spec!r}")
     try:
-        return getattr(importlib.import_module(module_name), attribute)
+        factory = getattr(importlib.import_module(module_name), attribute)
     except (ImportError, AttributeError) as error:
         raise WarpbagsError(f"--repairer {spec}: cannot load it ({error})") from None
+    try:  # checked where the run starts (Trainer), not where the repair stage does, after the coarse stage
+        inspect.signature(factory).bind(RepairConfig(), 0, "cpu")
+    except TypeError as error:
+        raise WarpbagsError(f"--repairer {spec}: cannot be called as factory(config, seed, device) ({error})") from None
+    except ValueError:
+        pass  # a callable without an inspectable signature: the call itself will tell
+    return factory
 
 
 def make_repairer(config: RepairConfig, seed: int = 0, device: str = "cpu") -> Repairer:
     """The repairer `config.repairer` names, built as factory(config, seed, device).
 
     Raises:
-        WarpbagsError: the factory cannot be imported, or what it returns lacks the `Repairer` methods.
+        WarpbagsError: the factory cannot be imported or called, it raises, or what it returns lacks the `Repairer`
+            methods.
     """
-    repairer = repairer_factory(config.repairer)(config, seed, device)
+    factory = repairer_factory(config.repairer)
+    try:
+        repairer = factory(config, seed, device)
+    except Exception as error:  # a plugin's own failure, named in one line as every CLI error is
+        raise WarpbagsError(f"--repairer {config.repairer}: building it failed ({one_line(error)})") from None
     if not isinstance(repairer, Repairer):
         raise WarpbagsError(f"--repairer {config.repairer}: returned {type(repairer).__name__}, which lacks "
                             "fit/repair/state_dict/load_state_dict")

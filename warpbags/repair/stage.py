@@ -145,16 +145,17 @@ class RepairStage:
         return pairs
 
     def _fit(self, pairs: RepairPairs, should_stop: Callable[[], bool]) -> None:
-        """Fit the repairer on `pairs` and save it, its fit statistics (fit.json) and a sample sheet of the pairs."""
+        """Fit the repairer on `pairs` and save its fit statistics (fit.json), a sample sheet of the pairs and, last,
+        the repairer itself: a resumed run takes repairer.pt as a finished fit and writes none of the others."""
         stops = "should_stop" in inspect.signature(self.repairer.fit).parameters  # a plugin's may not take it
         stats = (self.repairer.fit(pairs, self.log, should_stop=should_stop) if stops else
                  self.repairer.fit(pairs, self.log))
-        with atomic_output(self.folder / "repairer.pt") as temporary:
-            torch.save(self.repairer.state_dict(), temporary)
         with atomic_output(self.folder / "fit.json") as temporary:
             temporary.write_text(finite_json({"pairs": {kind: pairs.kinds.count(kind) for kind in set(pairs.kinds)},
                                               **stats}, indent=2))
         self._save_pair_samples(pairs)
+        with atomic_output(self.folder / "repairer.pt") as temporary:
+            torch.save(self.repairer.state_dict(), temporary)
 
     def refresh(self, model: GaussianModel, viewmats: torch.Tensor, iteration: int) -> None:
         """Draw new pseudo cameras between the training cameras at [C,4,4] `viewmats`, render them with `model` and
