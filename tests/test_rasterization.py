@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import math
+import re
 
+import numpy as np
 import pytest
 import torch
 from conftest import DEVICES, random_scene
@@ -37,12 +39,13 @@ def _split(inputs):
     return tensors, inputs["width"], inputs["height"]
 
 
-def _render_both(inputs, sh_degree=None, tile_size=4):
+def _render_both(inputs, sh_degree=None, tile_size=4, **planes_and_eps2d):
     tensors, w, h = _split(inputs)
     ours, alpha, _ = warpbags.rasterization(**tensors, width=w, height=h, sh_degree=sh_degree, render_mode="RGB+D",
-                                            tile_size=tile_size)
+                                            tile_size=tile_size, **planes_and_eps2d)
     ref_tensors, _, _ = _split(inputs)
-    ref_rgb, ref_depth, ref_alpha = render_reference(**ref_tensors, width=w, height=h, sh_degree=sh_degree)
+    ref_rgb, ref_depth, ref_alpha = render_reference(**ref_tensors, width=w, height=h, sh_degree=sh_degree,
+                                                     **planes_and_eps2d)
     return (tensors, torch.cat([ours, alpha], -1)), (ref_tensors, torch.cat([ref_rgb, ref_depth, ref_alpha], -1))
 
 
@@ -65,6 +68,23 @@ def test_matches_dense_reference_float32():
     inputs64 = {k: (v.double() if isinstance(v, torch.Tensor) else v) for k, v in inputs.items()}
     _, (_, ref) = _render_both(inputs64)
     torch.testing.assert_close(ours.double(), ref, rtol=1e-4, atol=2e-4)
+
+
+def test_near_plane_and_eps2d_match_dense_reference():
+    """No other test sets either (a `rasterization` that ignored them passed): a near plane through the ball culls
+    its nearer Gaussians, a smaller low-pass sharpens every splat."""
+    near_plane, eps2d = 3.0, 0.1
+    inputs = _inputs(random_scene(n=40, cams=2, width=26, height=19, seed=6), 2)
+    _, _, meta = warpbags.rasterization(**{k: v for k, v in inputs.items() if k != "pose_deltas"})
+    depths = meta["depths"][meta["radii"] > 0]
+    assert (depths < near_plane - 0.1).sum() > 10 and (depths > near_plane + 0.1).sum() > 10  # it cuts the ball
+    (ours_in, ours), (ref_in, ref) = _render_both(inputs, near_plane=near_plane, eps2d=eps2d)
+    assert ref[..., 4].max() > 0.5
+    torch.testing.assert_close(ours, ref, rtol=1e-9, atol=1e-9)
+    cotangent = torch.randn(ours.shape, generator=torch.Generator().manual_seed(7), dtype=ours.dtype)
+    (ours * cotangent).sum().backward()
+    (ref * cotangent).sum().backward()
+    assert_gradients_close(ours_in, ref_in)
 
 
 def test_early_termination_matches_reference_and_gradients():
@@ -322,12 +342,86 @@ def test_gradient_reaches_each_camera_only_through_its_pixels():
         (dict(sh_degree=4), "sh_degree"),
         (dict(backgrounds=torch.zeros(3, 3, dtype=torch.float64)), "backgrounds"),
         (dict(pose_deltas=torch.zeros(2, 3, dtype=torch.float64)), "pose_deltas"),
+        # float32 Ks with float64 means reached Warp, whose bad overload failed every later render in the process
+        (dict(Ks=torch.eye(3).expand(2, 3, 3)), "Ks is torch.float32 on cpu; expected torch.float64 on cpu"),
+        (dict(backgrounds=torch.zeros(2, 3)), "backgrounds is torch.float32 on cpu; expected torch.float64 on cpu"),
+        (dict(backgrounds=torch.zeros(2, 3, dtype=torch.float64, device="meta")),
+         "backgrounds is torch.float64 on meta; expected torch.float64 on cpu"),
+        (dict(colors=torch.zeros(5, 3)), "colors is torch.float32 on cpu; expected torch.float64 on cpu"),
+        (dict(colors=torch.zeros(5, 1, dtype=torch.float64)),
+         "colors must be [N, 3] or [C, N, 3] RGB (or set sh_degree), got [5, 1]"),
+        # a [4, 4] viewmats counted 4 cameras and blamed Ks ("Ks must have shape [4, 3, 3]")
+        (dict(viewmats=torch.eye(4, dtype=torch.float64)), "viewmats must have shape [C, 4, 4], got [4, 4]"),
+        # scalars reached Warp or torch unchecked: a float or bool was a Warp type error, a negative size a torch
+        # error after the projection ran, cpu_threads=-1 a range error; a negative near plane rendered what is
+        # behind the camera
+        (dict(width=-5), "width must be an int >= 0, got -5"),
+        (dict(height=-1), "height must be an int >= 0, got -1"),
+        (dict(width=24.0), "width must be an int >= 0, got 24.0"),
+        (dict(sh_degree=True, colors=torch.zeros(5, 4, 3, dtype=torch.float64)),
+         "sh_degree must be an int from 0 to 3, got True"),
+        (dict(sh_degree=-1), "sh_degree must be an int from 0 to 3, got -1"),
+        (dict(cpu_threads=-1), "cpu_threads must be an int >= 1, got -1"),
+        (dict(cpu_threads=0), "cpu_threads must be an int >= 1, got 0"),
+        (dict(cpu_threads=2.5), "cpu_threads must be an int >= 1, got 2.5"),
+        (dict(near_plane=-5.0), "the planes must satisfy 0 < near_plane < far_plane, got near_plane=-5.0, "
+                                "far_plane=10000000000.0"),
+        (dict(near_plane=0.0), "got near_plane=0.0"),
+        (dict(near_plane=2.0, far_plane=1.0), "got near_plane=2.0, far_plane=1.0"),
+        (dict(near_plane=math.nan), "got near_plane=nan"),
+        (dict(eps2d=-0.1), "eps2d must be >= 0 (pixels^2), got -0.1"),
     ],
 )
 def test_bad_arguments_are_named(override, message):
+    """Each refused before any kernel runs, with the argument and its value; the next render is unaffected."""
     scene = random_scene(n=5, cams=2)
-    with pytest.raises(ValueError, match=message):
-        warpbags.rasterization(**scene, **override)
+    before, _, _ = warpbags.rasterization(**scene)
+    with pytest.raises(ValueError, match=re.escape(message)):
+        warpbags.rasterization(**{**scene, **override})
+    after, _, _ = warpbags.rasterization(**scene)
+    assert torch.equal(after, before)
+
+
+def test_numpy_integers_and_a_zero_size_image_are_accepted():
+    """Integers reach Warp as Python ints (a numpy integer was a Warp type error); a zero-size image renders as an
+    empty one."""
+    scene = random_scene(n=10, cams=2, width=24, height=20, sh_degree=1)
+    expected, _, _ = warpbags.rasterization(**scene, sh_degree=1)
+    out, _, meta = warpbags.rasterization(**{**scene, "width": np.int64(24), "height": np.int32(20)},
+                                          sh_degree=np.int64(1), cpu_threads=np.int64(2))
+    assert torch.equal(out, expected) and type(meta["width"]) is int and type(meta["height"]) is int
+    means = scene["means"].clone().requires_grad_(True)
+    out, alpha, _ = warpbags.rasterization(**{**scene, "means": means, "width": 0}, sh_degree=1)
+    assert out.shape == (2, 20, 0, 3) and alpha.shape == (2, 20, 0, 1)
+    out.sum().backward()
+    assert torch.equal(means.grad, torch.zeros_like(means))
+
+
+def test_second_derivatives_are_refused_by_name():
+    """Every backward writes its gradients with Warp kernels into fresh buffers, constants to torch: under
+    create_graph a Hessian-vector product silently lacked the render's term. Each stage refuses; first derivatives
+    still work."""
+    from warpbags.wrapper import apply_pose_deltas, fused_photometric_loss, project_gaussians, spherical_harmonics
+
+    scene = random_scene(n=10, cams=2, width=12, height=10, sh_degree=1, seed=4)
+    means = scene["means"].clone().requires_grad_(True)
+    deltas = torch.full((2, 6), 0.01, dtype=torch.float64, requires_grad=True)
+    images = torch.rand(2, 10, 12, 3, dtype=torch.float64, requires_grad=True)
+    stages = {
+        "rasterize_to_pixels": (means, lambda: warpbags.rasterization(**{**scene, "means": means}, sh_degree=1,
+                                                                      pose_deltas=deltas)[0]),
+        "project_gaussians": (means, lambda: project_gaussians(means, scene["quats"], scene["scales"],
+                                                               scene["opacities"], scene["viewmats"], scene["Ks"],
+                                                               12, 10)[0]),
+        "spherical_harmonics": (means, lambda: spherical_harmonics(means, scene["colors"], scene["viewmats"], 1)),
+        "kernel apply_pose_deltas_kernel": (deltas, lambda: apply_pose_deltas(scene["viewmats"], deltas)),
+        "fused_photometric_loss": (images, lambda: fused_photometric_loss(images, torch.rand_like(images), 0.2)[0]),
+    }
+    for name, (leaf, output) in stages.items():
+        with pytest.raises(RuntimeError, match=f"^{name}: first derivatives only"):
+            torch.autograd.grad(output().square().sum(), leaf, create_graph=True)
+        (gradient,) = torch.autograd.grad(output().square().sum(), leaf)
+        assert gradient.abs().sum() > 0, name
 
 
 def test_tile_sizes_cameras_and_dtypes_the_kernels_cannot_take_are_named():

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import operator
 from typing import Any
 
 import torch
@@ -56,17 +57,17 @@ def rasterization(
             (3DGS convention: colour = max(SH(dir) + 0.5, 0), dir from the camera centre to the Gaussian).
         viewmats: [C, 4, 4] world-to-camera matrices, OpenCV axes (x right, y down, z forward).
         Ks: [C, 3, 3] pinhole intrinsics; pixel centres are at (x + 0.5, y + 0.5).
-        width, height: image size in pixels.
+        width, height: image size in pixels (0 gives an empty image).
         sh_degree: active SH degree (0-3), with (sh_degree + 1)^2 <= K; None means `colors` is RGB.
         backgrounds: [C, 3] colours composited behind the Gaussians (default black).
         pose_deltas: [C, 6] se(3) corrections [wx, wy, wz, vx, vy, vz] (rotation first), used as
             `exp(pose_deltas) @ viewmats`.
-        near_plane, far_plane: camera-z culling range.
+        near_plane, far_plane: camera-z culling range, 0 < near_plane < far_plane.
         render_mode: "RGB", "D" (alpha-weighted depth), "ED" (expected depth, D / alpha), "RGB+D" or "RGB+ED".
         tile_size: tile edge in pixels; default 16 on CUDA, 4 on CPU.
-        eps2d: low-pass added to the 2D covariance (pixels^2), as 3DGS.
-        cpu_threads: host threads for CPU tensors, in every stage, forward and backward (default: every usable
-            core, or the limit of `threads.limited_host_threads` around the caller).
+        eps2d: low-pass added to the 2D covariance (pixels^2, >= 0), as 3DGS.
+        cpu_threads: host threads (>= 1) for CPU tensors, in every stage, forward and backward (default: every
+            usable core, or the limit of `threads.limited_host_threads` around the caller).
 
     Returns:
         render_colors: [C, H, W, D] with D = 3 (RGB), 1 (D, ED) or 4 (RGB+D, RGB+ED).
@@ -75,6 +76,8 @@ def rasterization(
             `retain_grad()` on it for densification), "conics", "depths", "radii" [C, N], "colors" [C, N, 3], "bins"
             (tile intersections), "tile_size", "width", "height", "n_cameras".
     """
+    width, height, sh_degree, cpu_threads = _checked_scalars(width, height, sh_degree, near_plane, far_plane, eps2d,
+                                                             cpu_threads)
     _check_inputs(means, quats, scales, opacities, colors, viewmats, Ks, sh_degree, backgrounds, pose_deltas, render_mode)
     if pose_deltas is not None:
         viewmats = apply_pose_deltas(viewmats, pose_deltas)
@@ -114,11 +117,46 @@ def rasterization(
     return render_colors, alpha, meta
 
 
+def _checked_scalars(width, height, sh_degree, near_plane, far_plane, eps2d, cpu_threads):
+    """The integer arguments as Python ints (numpy integers too: Warp takes no other integer type), after checking
+    every scalar argument. Unchecked, a float or bool was a Warp type error once the projection had run, a negative
+    size a torch error, and a negative near plane rendered the Gaussians behind the camera."""
+    width = _integer_argument("width", width, 0)  # a zero-size image renders as an empty one, with zero gradients
+    height = _integer_argument("height", height, 0)
+    if sh_degree is not None:
+        sh_degree = _integer_argument("sh_degree", sh_degree, 0, 3)
+    if cpu_threads is not None:
+        cpu_threads = _integer_argument("cpu_threads", cpu_threads, 1)
+    if not 0 < near_plane < far_plane:  # also refuses NaN
+        raise ValueError(f"the planes must satisfy 0 < near_plane < far_plane, got near_plane={near_plane!r}, "
+                         f"far_plane={far_plane!r}")
+    if not eps2d >= 0:
+        raise ValueError(f"eps2d must be >= 0 (pixels^2), got {eps2d!r}")
+    return width, height, sh_degree, cpu_threads
+
+
+def _integer_argument(name: str, value, lowest: int, highest: int | None = None) -> int:
+    """`value` as an int if it is an integer (by `operator.index`; not a bool, which Warp refuses as an int) from
+    `lowest` to `highest`."""
+    if not isinstance(value, bool):
+        try:
+            integer = operator.index(value)
+        except TypeError:
+            pass
+        else:
+            if lowest <= integer and (highest is None or integer <= highest):
+                return integer
+    allowed = f">= {lowest}" if highest is None else f"from {lowest} to {highest}"
+    raise ValueError(f"{name} must be an int {allowed}, got {value!r}")
+
+
 def _check_inputs(means, quats, scales, opacities, colors, viewmats, Ks, sh_degree, backgrounds, pose_deltas, render_mode):
     if means.dtype not in (torch.float32, torch.float64):  # first: the other tensors are checked against it
         raise ValueError(f"means must be float32 or float64, got {means.dtype}")
+    if viewmats.dim() != 3 or tuple(viewmats.shape[1:]) != (4, 4):  # before the camera count is read from it
+        raise ValueError(f"viewmats must have shape [C, 4, 4], got {list(viewmats.shape)}")
     n, cams = means.shape[0], viewmats.shape[0]
-    if viewmats.dim() == 3 and cams == 0:
+    if cams == 0:
         raise ValueError("viewmats must hold at least one camera, got [0, 4, 4]")
     expected = {
         "means": (means, (n, 3)),
@@ -141,8 +179,6 @@ def _check_inputs(means, quats, scales, opacities, colors, viewmats, Ks, sh_degr
         if tuple(colors.shape) not in ((n, 3), (cams, n, 3)):
             raise ValueError(f"colors must be [N, 3] or [C, N, 3] RGB (or set sh_degree), got {list(colors.shape)}")
     else:
-        if not 0 <= sh_degree <= 3:
-            raise ValueError(f"sh_degree must be 0-3, got {sh_degree}")
         if colors.dim() != 3 or colors.shape[0] != n or colors.shape[2] != 3 or colors.shape[1] < (sh_degree + 1) ** 2:
             raise ValueError(f"colors must be [N, K>={(sh_degree + 1) ** 2}, 3] SH coefficients, got {list(colors.shape)}")
     if colors.dtype != means.dtype or colors.device != means.device:

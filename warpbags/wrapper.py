@@ -6,7 +6,8 @@ backward runs that Tape's backward, the adjoint kernel Warp generates. Nothing i
 gradients. The projection (kernels/project.py: Warp's adjoint took three times the forward), spherical harmonics
 (kernels/sh.py: Warp's adjoint 1.7 times the hand-written one) and the rasterizer (kernels/rasterize.py) have
 hand-written backward kernels, as has the photometric loss (kernels/loss.py: L1 and SSIM fused in row and column
-passes). Binning is not differentiable.
+passes). Binning is not differentiable. Every backward here gives first derivatives only: its gradients are
+Warp kernels' results, constants to torch, so under `create_graph` it refuses (`_first_derivatives_only`).
 
 Tensors stay where they are: CPU tensors run on Warp's "cpu" device, CUDA tensors on the matching CUDA device and
 the current torch stream, without host copies (binning reads back one number, the intersection count that
@@ -308,6 +309,16 @@ def _run_stage(stage: _Stage, dim, shape: tuple, **inputs) -> tuple[torch.Tensor
 _SAVED = object()  # stands for a tensor argument kept with save_for_backward
 
 
+def _first_derivatives_only(function: str) -> None:
+    """Called first in every backward here. The gradients come out of Warp kernels into fresh buffers, outside
+    torch's graph: under `create_graph` (grad mode on in the backward) they would be constants, and a second
+    derivative (a Hessian-vector product) would silently lack every term through `function`. The same rule as
+    `threads._JoinedTerm`."""
+    if torch.is_grad_enabled():
+        raise RuntimeError(f"{function}: first derivatives only (the backward is a Warp kernel, outside torch's graph; "
+                           "create_graph / double backward is not supported)")
+
+
 class _DifferentiableStage(torch.autograd.Function):
     """A `_Stage` under autograd, for the pose transforms (per camera, float outputs, one launch): backward records
     the stage's launch on a Warp Tape and runs the Tape's backward (the kernel's Warp-generated adjoint) with torch's
@@ -330,6 +341,7 @@ class _DifferentiableStage(torch.autograd.Function):
 
     @staticmethod
     def backward(ctx, *v_outputs):
+        _first_derivatives_only(f"kernel {ctx.stage.kernel.key}")
         stage = ctx.stage
         saved = ctx.saved_tensors  # reading them runs autograd's version check
         tensor_count = len(saved) - len(stage.outputs)
@@ -457,6 +469,7 @@ class _ProjectGaussians(torch.autograd.Function):
 
     @staticmethod
     def backward(ctx, v_means2d, v_conics, v_depths, _v_radii):
+        _first_derivatives_only("project_gaussians")
         means, quats, scales, viewmats, Ks, radii = ctx.saved_tensors
         grads = _backward_over_ranges(
             _PROJECTION, project_gaussians_backward_kernel, gaussians=dict(means=means, quats=quats, scales=scales),
@@ -519,6 +532,7 @@ class _SHColors(torch.autograd.Function):
 
     @staticmethod
     def backward(ctx, v_colors):
+        _first_derivatives_only("spherical_harmonics")
         means, coeffs, viewmats, colors = ctx.saved_tensors
         grads = _backward_over_ranges(
             _SH_COLORS, sh_to_colors_backward_kernel, gaussians=dict(means=means, coeffs=coeffs),
@@ -989,6 +1003,7 @@ class _FusedPhotometricLoss(torch.autograd.Function):
 
     @staticmethod
     def backward(ctx, v_loss, _v_l1, _v_ssim):
+        _first_derivatives_only("fused_photometric_loss")
         planes, partials = ctx.saved_tensors
         batch, height, width, _ = ctx.shape
         rows, runs = batch * height, -(-width // RUN)
@@ -1198,6 +1213,7 @@ class _RasterizeToPixels(torch.autograd.Function):
 
     @staticmethod
     def backward(ctx, v_out_colors, v_out_depths, v_out_alphas, _v_transmittance, _v_isect_end):
+        _first_derivatives_only("rasterize_to_pixels")
         *inputs, tile_offsets, isect_ids, final_transmittance, isect_end = ctx.saved_tensors
         splats = _flat_splats(*inputs)
         workers = ctx.workers
