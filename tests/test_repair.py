@@ -24,6 +24,7 @@ from warpbags.repair import RepairPairs, UNetRepairer, make_repairer
 from warpbags.repair.network import repairer_factory
 from warpbags.repair.pairs import LEAVE_ONE_OUT, NOISE, NOISY_PARAMETERS, NoiseStatistics, perturbed_gaussians
 from warpbags.repair.stage import RepairStage, distance_weights
+from warpbags.model import GaussianModel, TrainingViews
 from warpbags.trainer import Trainer, training_scene
 
 TINY = SyntheticOptions(views=16, width=96, height=96)
@@ -113,6 +114,63 @@ def test_make_repairer_loads_a_plugin_and_rejects_bad_ones(tmp_path, monkeypatch
     # the signature is checked where a run starts (`repairer_factory`), not after its coarse stage
     with pytest.raises(WarpbagsError, match="cannot be called as factory"):
         repairer_factory("my_repairers:TakesConfigOnly")
+
+
+@pytest.mark.parametrize("left_out", [0, 2])
+def test_a_leave_one_out_model_never_trains_on_the_view_it_leaves_out(scene_dir, monkeypatch, left_out):
+    """The leave-one-out pairs show the repairer what a model that never saw a view renders there: the first render
+    of the view, and the "unseen" copy whose parameters give the 3D-noise statistics, must come from Gaussians
+    initialized and fitted without it; only the "seen" copy takes it back. Fitting the "unseen" model to every
+    training view (`others = list(range(views.num_views))` in `leave_one_out`) left the pairs without their
+    failures and went unseen: each model's Gaussians are followed here through their initialization, every step's
+    sampled views and `continue_from`, and the views each render of the left-out view was fitted to are checked."""
+    from warpbags.repair.pairs import leave_one_out
+
+    config = tiny_config(loo_iters=12, loo_snapshot=4, loo_samples=2)  # samples at iterations 4 (pure) and 5 (seen)
+    scene = training_scene(load_scene(scene_dir, name="tiny"), config)
+    names = scene.image_names
+    models, renders = [], []  # every model made; (image names its Gaussians were fitted to, rendered view's name)
+    initialized, sample_views = GaussianModel.initialized.__func__, GaussianModel.sample_views
+    continue_from, render_views = GaussianModel.continue_from, GaussianModel.render_views
+
+    def initialized_from(cls, config, training_views, *args, **kwargs):
+        model = initialized(cls, config, training_views, *args, **kwargs)
+        model.fitted_to, model.steps = set(training_views.scene.image_names), 0  # the hull is carved from them
+        models.append(model)
+        return model
+
+    def sampled(self):
+        views = sample_views(self)
+        self.fitted_to |= {self.training_views.scene.image_names[view] for view in views.tolist()}
+        self.steps += 1
+        return views
+
+    def continued(self, other):
+        continue_from(self, other)
+        self.fitted_to, self.steps = set(other.fitted_to), other.steps  # other's Gaussians, and what made them
+
+    def rendered(self, viewmats, Ks=None, *args, **kwargs):
+        (view,) = [i for i, pose in enumerate(scene.viewmats) if torch.allclose(pose.float(), viewmats[0].float(),
+                                                                               atol=1e-5)]
+        renders.append((set(self.fitted_to), names[view]))
+        return render_views(self, viewmats, Ks, *args, **kwargs)
+
+    monkeypatch.setattr(GaussianModel, "initialized", classmethod(initialized_from))
+    monkeypatch.setattr(GaussianModel, "sample_views", sampled)
+    monkeypatch.setattr(GaussianModel, "continue_from", continued)
+    monkeypatch.setattr(GaussianModel, "render_views", rendered)
+
+    coarse = SimpleNamespace(training_views=TrainingViews.of(scene, config, torch.device("cpu")))
+    samples, differences = leave_one_out(coarse, scene.viewmats, config, left_out)
+
+    others = set(names) - {names[left_out]}
+    assert len(samples) == len(renders) == 2 and all(name == names[left_out] for _, name in renders)
+    assert renders[0][0] == others  # the first render: Gaussians fitted to the other views alone
+    assert renders[1][0] == set(names)  # the seen copy took the view back (the recording sees it)
+    unseen = [model for model in models if model.steps == config.repair.loo_iters and names[left_out] not in
+              model.fitted_to]
+    assert len(unseen) == 1 and unseen[0].fitted_to == others  # the model the noise statistics compare with
+    assert set(differences) and all(torch.isfinite(value).all() for value in differences.values())
 
 
 # ------------------------------------------------------------------------------------------------ 3D noise
