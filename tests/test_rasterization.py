@@ -49,17 +49,22 @@ def _render_both(inputs, sh_degree=None, tile_size=4, **planes_and_eps2d):
     return (tensors, torch.cat([ours, alpha], -1)), (ref_tensors, torch.cat([ref_rgb, ref_depth, ref_alpha], -1))
 
 
-@pytest.mark.parametrize("cams,sh_degree,tile_size", [(1, None, 4), (3, None, 8), (2, 3, 16), (3, 1, 4)])
-def test_matches_dense_reference_forward_and_backward_float64(cams, sh_degree, tile_size):
-    inputs = _inputs(random_scene(n=40, cams=cams, width=26, height=19, sh_degree=sh_degree, seed=cams), cams)
-    (ours_in, ours), (ref_in, ref) = _render_both(inputs, sh_degree, tile_size)
-    assert ref[..., 4].max() > 0.5, "scene should cover part of the image"
+def _assert_matches_reference(inputs, sh_degree=None, tile_size=4, **planes_and_eps2d):
+    """Our float64 image, depth and alpha equal the dense reference's, and so do the gradients of every input under
+    one random cotangent."""
+    (ours_in, ours), (ref_in, ref) = _render_both(inputs, sh_degree, tile_size, **planes_and_eps2d)
+    assert ref[..., 4].max() > 0.5, "the scene should cover part of the image"
     torch.testing.assert_close(ours, ref, rtol=1e-9, atol=1e-9)
-
     cotangent = torch.randn(ours.shape, generator=torch.Generator().manual_seed(7), dtype=ours.dtype)
     (ours * cotangent).sum().backward()
     (ref * cotangent).sum().backward()
     assert_gradients_close(ours_in, ref_in)
+
+
+@pytest.mark.parametrize("cams,sh_degree,tile_size", [(1, None, 4), (3, None, 8), (2, 3, 16), (3, 1, 4)])
+def test_matches_dense_reference_forward_and_backward_float64(cams, sh_degree, tile_size):
+    inputs = _inputs(random_scene(n=40, cams=cams, width=26, height=19, sh_degree=sh_degree, seed=cams), cams)
+    _assert_matches_reference(inputs, sh_degree, tile_size)
 
 
 def test_matches_dense_reference_float32():
@@ -78,13 +83,7 @@ def test_near_plane_and_eps2d_match_dense_reference():
     _, _, meta = warpbags.rasterization(**{k: v for k, v in inputs.items() if k != "pose_deltas"})
     depths = meta["depths"][meta["radii"] > 0]
     assert (depths < near_plane - 0.1).sum() > 10 and (depths > near_plane + 0.1).sum() > 10  # it cuts the ball
-    (ours_in, ours), (ref_in, ref) = _render_both(inputs, near_plane=near_plane, eps2d=eps2d)
-    assert ref[..., 4].max() > 0.5
-    torch.testing.assert_close(ours, ref, rtol=1e-9, atol=1e-9)
-    cotangent = torch.randn(ours.shape, generator=torch.Generator().manual_seed(7), dtype=ours.dtype)
-    (ours * cotangent).sum().backward()
-    (ref * cotangent).sum().backward()
-    assert_gradients_close(ours_in, ref_in)
+    _assert_matches_reference(inputs, near_plane=near_plane, eps2d=eps2d)
 
 
 def test_early_termination_matches_reference_and_gradients():
@@ -498,13 +497,7 @@ def test_pixel_blocks_match_dense_reference_float64(block, tile_size, monkeypatc
     """26 x 19 pixels: neither side divides by the tile or the block, so edge blocks hold pixels outside the image."""
     monkeypatch.setitem(warpbags.wrapper.DEFAULT_PIXEL_BLOCK, "cpu", block)
     inputs = _inputs(random_scene(n=40, cams=2, width=26, height=19, seed=6), 2)
-    (ours_in, ours), (ref_in, ref) = _render_both(inputs, tile_size=tile_size)
-    assert ref[..., 4].max() > 0.5
-    torch.testing.assert_close(ours, ref, rtol=1e-9, atol=1e-9)
-    cotangent = torch.randn(ours.shape, generator=torch.Generator().manual_seed(7), dtype=ours.dtype)
-    (ours * cotangent).sum().backward()
-    (ref * cotangent).sum().backward()
-    assert_gradients_close(ours_in, ref_in)
+    _assert_matches_reference(inputs, tile_size=tile_size)
 
 
 @pytest.mark.parametrize("block", [(1, 1), (2, 2), (4, 2)])
