@@ -1356,6 +1356,7 @@ def test_synthetic_cache_keeps_the_scene_another_process_finished_first(tmp_path
     folder = ensure_synthetic_scene(options, cache_dir=cache)
     assert folder == cache / options.folder_name() and (folder / "synthetic.json").is_file()
     assert [path.name for path in cache.iterdir()] == [folder.name]  # no staging folder left behind
+    assert ensure_synthetic_scene(options, cache_dir=str(cache)) == folder  # a str folder too (was a TypeError)
 
 
 @pytest.mark.parametrize("settings, flags, suffix", [

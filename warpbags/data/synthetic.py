@@ -532,14 +532,15 @@ def default_cache_dir() -> Path:
     return base / "warpbags"
 
 
-def ensure_synthetic_scene(options: SyntheticOptions = SyntheticOptions(), cache_dir: Path | None = None) -> Path:
+def ensure_synthetic_scene(options: SyntheticOptions = SyntheticOptions(),
+                           cache_dir: str | os.PathLike | None = None) -> Path:
     """The cached synthetic scene folder for `options`, generated on first use.
 
     Safe for processes that ask for the same scene at once (benchmarks run side by side): each renders into its own
     staging folder, and one that finds the folder completed by another when it is done keeps that copy, which is
     the same scene (the folder name holds every generator setting).
     """
-    folder = (cache_dir or default_cache_dir()) / options.folder_name()
+    folder = (Path(cache_dir) if cache_dir else default_cache_dir()) / options.folder_name()
     if (folder / "synthetic.json").is_file():
         return folder
     logging.getLogger("warpbags.data").warning("generating the synthetic scene into %s (first use)", folder)
