@@ -1,4 +1,5 @@
-"""Losses: the fused photometric loss (kernels/loss.py) against the plain torch formula it replaces; LPIPS loading."""
+"""Losses: the fused photometric loss (kernels/loss.py) against the plain torch formula it replaces; LPIPS loading;
+the depth term's median normalization."""
 
 from __future__ import annotations
 
@@ -125,3 +126,26 @@ def test_ssim_matches_an_independent_gaussian_filter_ssim():
     expected = ((2 * mu_x * mu_y + c1) * (2 * cov + c2) / ((mu_x**2 + mu_y**2 + c1) * (var_x + var_y + c2))).mean()
     assert ssim(images, targets).item() == pytest.approx(float(expected), rel=1e-10, abs=1e-12)
     assert 0.1 < expected < 0.9  # neither identical nor unrelated images
+
+
+def test_the_mad_depth_loss_shifts_each_side_by_its_median():
+    """The "mad" depth term (GaussianObject's) shifts each side's disparities by their median and scales them by the
+    mean absolute deviation from it, so that a few far-off disparities (edges, floaters) do not move the shift.
+    Checked by a value computed by hand on a skewed side: 16 rendered disparities of 1 and one of 18 (median 1,
+    mean 2) against the target disparities 1, 2, ..., 17 (median 9, mean absolute deviation 72/17): normalized,
+    0 (16 times) and 17 against (k - 9) 17/72, a mean absolute difference of 16/9. Shifted by the mean instead
+    (reviewer's mutant MC) it is 95/72 (1.32)."""
+    from warpbags.losses import depth_loss
+
+    rendered = torch.tensor([1.0] * 16 + [18.0], dtype=torch.float64)
+    target = torch.arange(1, 18, dtype=torch.float64)
+    shape = (1, 1, 17)
+    value = depth_loss((1 / rendered).reshape(shape), torch.ones(shape, dtype=torch.float64),
+                       (1 / target).reshape(shape), None, mode="mad")
+    assert value.item() == pytest.approx(16 / 9, rel=1e-12)
+    # the same with the sides swapped, and with a target that is a scale and shift of the rendered disparities: 0
+    swapped = depth_loss((1 / target).reshape(shape), torch.ones(shape, dtype=torch.float64),
+                         (1 / rendered).reshape(shape), None, mode="mad")
+    assert swapped.item() == pytest.approx(16 / 9, rel=1e-12)
+    assert depth_loss((1 / rendered).reshape(shape), torch.ones(shape, dtype=torch.float64),
+                      (1 / (3 * rendered + 2)).reshape(shape), None, mode="mad").item() == pytest.approx(0, abs=1e-12)

@@ -29,7 +29,7 @@ from warpbags import trainer as trainer_module
 from warpbags.losses import depth_loss, ssim
 from warpbags.pose_history import read_pose_history
 from warpbags.strategy import replace_rows
-from warpbags.schedule import Schedule
+from warpbags.schedule import Schedule, exponential_lr
 from warpbags.trainer import Trainer, saved_run_config, start_or_resume, training_scene
 
 TINY = SyntheticOptions(views=16, width=96, height=96)
@@ -214,6 +214,28 @@ def test_the_chamfer_computed_beside_the_render_is_the_steps_own(scene_dir, tmp_
     model.config = dataclasses.replace(model.config, lambda_chamfer=0.0)
     model.loss(views, trainer.cameras(views), settings)[0].backward()
     assert not torch.equal(trainer.cameras.rotations.grad, with_chamfer)
+
+
+def test_the_training_loss_is_the_weighted_sum_of_its_terms(scene_dir, tmp_path):
+    """While the depth term is on, loss = (1 - lambda_depth) photometric + lambda_mask mask + lambda_chamfer chamfer
+    + lambda_depth depth (`TrainConfig`: the photometric weight is 1 - lambda_depth), photometric =
+    (1 - lambda_dssim) L1 + lambda_dssim (1 - SSIM). Nothing checked the sum: dropping `- lambda_depth *
+    photometric` (reviewer's mutant MF) passed every test. Each weight is set to a value of its own; with the depth
+    term off the photometric weight is 1."""
+    weights = dict(lambda_dssim=0.3, lambda_mask=0.07, lambda_chamfer=0.6, lambda_depth=0.4)
+    trainer = make_trainer(scene_dir, tmp_path, **weights, lambda_mask_distance=0.0, camera={"coherence_iters": 0})
+    views, viewmats = torch.arange(trainer.num_cameras), trainer.current_viewmats()
+    for iteration, depth in ((0, True), (trainer.config.depth_until, False)):
+        settings = trainer.schedule.at(iteration)
+        assert settings.depth is depth and settings.silhouette
+        loss, terms, _ = trainer.model.loss(views, viewmats, settings)
+        assert set(terms) == {"l1", "ssim", "mask", "chamfer", *(["depth"] if depth else [])}, terms
+        assert min(terms["l1"], 1 - terms["ssim"], terms["mask"], terms["chamfer"], terms.get("depth", 1)) > 1e-3
+        photometric = (1 - weights["lambda_dssim"]) * terms["l1"] + weights["lambda_dssim"] * (1 - terms["ssim"])
+        silhouettes = weights["lambda_mask"] * terms["mask"] + weights["lambda_chamfer"] * terms["chamfer"]
+        expected = silhouettes + ((1 - weights["lambda_depth"]) * photometric + weights["lambda_depth"] * terms["depth"]
+                                  if depth else photometric)
+        assert loss.item() == pytest.approx(expected, rel=1e-5, abs=1e-7), (iteration, terms)
 
 
 @pytest.mark.parametrize("init, note", [("sfm", "SfM points: 500 of "), ("random", "random points (500)"),
@@ -471,6 +493,29 @@ def test_poses_thrown_out_of_any_alignment_are_a_divergence_and_a_late_pose_star
     assert Schedule(tiny_config(iters=20, rounds=2, pose_opt_start=0)).rounds_without_pose_window() == []
 
 
+def test_a_pose_start_after_the_coarse_stage_says_the_poses_move_in_the_repair_stage_only(scene_dir, tmp_path):
+    """With a repair stage, a `pose_opt_start` past the coarse iterations but before the run's end was said to leave
+    the poses "where the start procedures put them" (compared with `iters`, not `total_iters`), though they move
+    through the rest of the repair stage; at or past the run's last iteration they do stay."""
+    scene = load_scene(scene_dir, name="tiny")
+    for pose_opt_start, moves in ((10, True), (13, False), (20, False)):
+        notes = []
+        config = tiny_config(iters=8, pose_opt_start=pose_opt_start, repair={"iters": 5},
+                             camera={"coherence_iters": 0})
+        assert config.total_iters == 13
+        Trainer(training_scene(scene, config), config, tmp_path / str(pose_opt_start), log=notes.append)
+        said = [note for note in notes if note.startswith("pose optimization starts at")]
+        assert len(said) == 1, notes
+        if moves:
+            assert (f"pose optimization starts at iteration {pose_opt_start}, after the coarse stage's 8: the poses "
+                    "move in the repair stage only") in said[0]
+            assert any(Schedule(config).poses_move(i) for i in range(8, 13))
+        else:
+            assert (f"pose optimization starts at iteration {pose_opt_start}, after the run's 13: the poses stay "
+                    "where the start procedures put them") in said[0]
+            assert not any(Schedule(config).poses_move(i) for i in range(13))
+
+
 def test_a_log_record_describes_the_step_it_logs(scene_dir, tmp_path):
     """Record "iter" n is the n-th step (index n - 1): its pose flag and SH degree are that step's schedule's."""
     trainer = make_trainer(scene_dir, tmp_path, iters=6, pose_opt_start=3, sh_degree=1, sh_degree_every=2)
@@ -666,6 +711,37 @@ def test_a_config_json_changed_after_the_run_started_is_refused_on_resume(scene_
     assert result.exit_code == 2 and len(errors) == 1 and "Traceback" not in result.output, result.output
     assert "checkpoint_000002.pt was saved with camera.parameterization = 'object', the config resumed with" in message
     assert make_trainer(scene_dir, tmp_path, iters=4, checkpoint_every=3, render_threads=2).resume()
+
+
+def test_a_run_saved_with_a_value_its_config_now_mends_resumes_where_it_would_have_ended(scene_dir, tmp_path):
+    """A run started before `validate` refused --blur-px without --blur-until saved blur_sigma_px 4.0 with
+    blur_until 0 (a blur never applied) in config.json and in its checkpoints. `TrainConfig.from_dict` mends
+    config.json's value to 0.0, and the checkpoint's unmended 4.0 was then taken for an edit of config.json: "was
+    saved with blur_sigma_px = 4.0 ... restore it", so the run could never be resumed. It resumes, and ends as the
+    run did uninterrupted."""
+    out = tmp_path / "run"
+    trainer = make_trainer(scene_dir, out, iters=4, checkpoint_every=2, pose_opt_start=0, rot_noise_deg=3.0)
+    trainer.write_run_files()
+    trainer.train()
+    checkpoints = out / "checkpoints"
+    uninterrupted = torch.load(checkpoints / "checkpoint_000004.pt", weights_only=False)
+    info = json.loads((out / "config.json").read_text())
+    assert info["config"]["blur_sigma_px"] == 0.0 and info["config"]["blur_until"] == 0
+    info["config"]["blur_sigma_px"] = 4.0
+    (out / "config.json").write_text(json.dumps(info))
+    state = torch.load(checkpoints / "checkpoint_000002.pt", weights_only=False)
+    state["config"]["blur_sigma_px"] = 4.0
+    torch.save(state, checkpoints / "checkpoint_000002.pt")
+    (checkpoints / "checkpoint_000004.pt").unlink()  # the run stopped after its checkpoint at 2
+    result = runner.invoke(app, ["train", "--resume", "--out", str(out)])
+    assert result.exit_code == 0, result.output
+    assert "restore it" not in result.output
+    assert [json.loads(line)["iter"] for line in (out / "log.jsonl").read_text().splitlines()] == [1, 2, 3, 4]
+    resumed = torch.load(checkpoints / "checkpoint_000004.pt", weights_only=False)
+    for name, value in uninterrupted["params"].items():
+        torch.testing.assert_close(resumed["params"][name], value, rtol=0, atol=0)
+    for name, value in uninterrupted["cameras"]["module"].items():
+        torch.testing.assert_close(resumed["cameras"]["module"][name], value, rtol=0, atol=0)
 
 
 def test_a_full_disk_while_training_is_one_line_naming_the_checkpoint_kept(scene_dir, tmp_path, monkeypatch):
@@ -1075,6 +1151,78 @@ def test_the_repair_stage_keeps_the_coarse_stages_real_view_loss_and_warms_its_p
         assert Schedule(load_preset("quick", iters=80, rounds=2, silhouette_until=until, repair=repair)
                         ).at(85).silhouette is expected
 
+
+def test_the_pose_lr_decays_exponentially_to_its_final_value_over_each_rounds_window():
+    """`lr.pose_final` is documented as the lr at the end of each round's pose window, reached by an exponential
+    decay restarted every round. Nothing checked the decay's end or its shape: measured over window length instead of
+    length - 1 the last step stopped short of `pose_final` (reviewer's mutant MA), and without the decay every step
+    took `lr.pose` (MB). Rounds of 36 with windows of 27 iterations: 9-35 (a quarter in) and 36-62 (the first three
+    quarters); the warm-up (4 steps) is over at the checked iterations."""
+    config = load_preset("quick", iters=72, rounds=2, pose_round_windows=((0.25, 1.0), (0.0, 0.75)),
+                         lr={"pose": 1e-2, "pose_final": 4e-4, "pose_warmup": 4})
+    schedule = Schedule(config)
+    assert [schedule.pose_window(i) for i in (9, 36)] == [(9, 36), (36, 63)]
+    for start, end in ((9, 36), (36, 63)):
+        assert schedule.at(start).pose_lr == pytest.approx(config.lr.pose / 4, rel=1e-12)  # the ramp's first step
+        assert schedule.at(end - 1).pose_lr == pytest.approx(config.lr.pose_final, rel=1e-12)
+        halfway = start + (end - start - 1) // 2
+        assert schedule.at(halfway).pose_lr == pytest.approx(math.sqrt(config.lr.pose * config.lr.pose_final),
+                                                             rel=1e-12)
+        lrs = [schedule.at(i).pose_lr for i in range(start + 4, end)]  # after the ramp: a falling geometric series
+        assert all(later < earlier for earlier, later in zip(lrs, lrs[1:]))
+        assert [later / earlier for earlier, later in zip(lrs, lrs[1:])] == pytest.approx(
+            [(config.lr.pose_final / config.lr.pose) ** (1 / (end - start - 1))] * (len(lrs) - 1), rel=1e-9)
+
+
+def test_the_sh_degree_restarts_at_every_rounds_start_and_climbs_within_it():
+    """Each round's fresh Gaussians start at SH degree 0 and gain a degree every `sh_degree_every` iterations of the
+    round. Counted from the start of training (reviewer's mutant MH), a later round's fresh Gaussians started at a
+    high degree; the existing checks (a one-round run, the last round's final degree) passed."""
+    config = load_preset("quick", iters=60, rounds=3, sh_degree=3, sh_degree_every=4)
+    schedule = Schedule(config)
+    for round_start in (0, 20, 40):
+        degrees = [schedule.at(round_start + k).sh_degree for k in range(20)]
+        assert degrees == [min(3, k // 4) for k in range(20)], (round_start, degrees)
+        assert schedule.at(round_start).round_iteration == 0
+    repaired = Schedule(load_preset("quick", iters=60, rounds=3, sh_degree=3, sh_degree_every=4, repair={"iters": 5}))
+    assert [repaired.at(i).sh_degree for i in (40, 60, 64)] == [0, 3, 3]  # the repair stage trains the full degree
+
+
+def test_shares_of_a_round_count_the_iterations_their_decimal_value_says():
+    """A share times a length is rounded up to whole iterations; the float product overshoots (0.55 * 100 is
+    55.00000000000001) and the plain `math.ceil` of it took one iteration too many: a (0.55, 1.0) window of a
+    100-iteration round started at 56, (0.28, 0.56) of 200 was (57, 113), and `camera.average_share` 0.07 of a
+    100-step window averaged 8 estimates."""
+    def window(iters, share):
+        return Schedule(load_preset("quick", iters=iters, rounds=1, pose_opt_start=0, pose_round_window=share)
+                        ).pose_window(0)
+
+    assert window(100, (0.55, 1.0)) == (55, 100)
+    assert window(200, (0.28, 0.56)) == (56, 112)
+    assert window(100, (0.25, 0.5)) == (25, 50) and window(10, (0.31, 0.34)) == (4, 4)  # shares still round up
+    schedule = Schedule(load_preset("quick", iters=100, rounds=1, pose_opt_start=0, pose_round_window=(0.0, 1.0),
+                                    camera={"average_share": 0.07}))
+    assert [i for i in range(100) if schedule.at(i).pose_average] == list(range(93, 100))
+
+
+def test_the_pose_lr_warms_up_from_pose_opt_start_where_it_falls_inside_a_window():
+    """The warm-up ramps the pose lr over the first `lr.pose_warmup` steps the poses take. With `pose_opt_start`
+    inside the repair stage (poses still at the coarse stage's end), the ramp was counted from the repair stage's
+    first iteration, so the first step the poses took was already at the full lr (6/4 of the ramp, clamped to 1).
+    Inside a coarse round's window the ramp starts at `pose_opt_start` too (the window itself starts there)."""
+    config = load_preset("quick", iters=80, rounds=2, pose_opt_start=20, lr={"pose_warmup": 4})
+    schedule = Schedule(config)  # round 0's window (a quarter in: 10) starts at pose_opt_start
+    assert [i for i in range(40) if schedule.poses_move(i)][0] == 20
+    assert [schedule.at(20 + k).pose_lr / exponential_lr(config.lr.pose, config.lr.pose_final, k / 19)
+            for k in range(6)] == pytest.approx([0.25, 0.5, 0.75, 1.0, 1.0, 1.0])
+    # pose_opt_start in the repair stage (coarse stage 40, repair stage 40-59): the poses move from 45
+    config = load_preset("quick", iters=40, rounds=2, pose_opt_start=45, lr={"pose_warmup": 4}, repair={"iters": 20})
+    schedule = Schedule(config)
+    assert [i for i in range(60) if schedule.poses_move(i)] == list(range(45, 60))
+    assert [schedule.at(45 + k).pose_lr / config.lr.pose_final for k in range(6)] == pytest.approx(
+        [0.25, 0.5, 0.75, 1.0, 1.0, 1.0])
+
+
 def test_lbfgs_rounds_solve_the_poses_every_few_iterations_instead_of_adam_steps():
     schedule = Schedule(load_preset("quick", iters=40, rounds=2, camera={"lbfgs_from_round": 1, "lbfgs_every": 4}))
     steps = [schedule.at(i) for i in range(40)]
@@ -1240,6 +1388,32 @@ def test_a_checkpoint_write_cut_short_is_not_kept_in_place_of_a_checkpoint(tmp_p
         folder.save_checkpoint({**dict.fromkeys(CHECKPOINT_KEYS), "iteration": iteration, "repair": None})
     assert sorted(path.name for path in folder.checkpoints.iterdir()) == [
         f"checkpoint_{iteration:06d}.pt" for iteration in range(2, CHECKPOINTS_KEPT + 2)]
+
+
+def test_checkpoints_past_a_million_iterations_are_kept_and_resumed_by_iteration(tmp_path):
+    """Checkpoint names are zero-padded to six digits, so from iteration 1000000 on they no longer sort as text in
+    the order of their iterations: saving 999998-1000001 deleted checkpoint_1000000 (it sorted first) and named
+    checkpoint_999999 the latest, from which a resume would train 2 iterations again. A stray file named like a
+    checkpoint (checkpoint_notes.pt) is no checkpoint of an iteration and breaks nothing."""
+    from warpbags.run_folder import CHECKPOINT_KEYS, CHECKPOINTS_KEPT, RunFolder
+
+    folder = RunFolder(tmp_path)
+    saved = [folder.save_checkpoint({**dict.fromkeys(CHECKPOINT_KEYS), "iteration": iteration, "repair": None})
+             for iteration in (999998, 999999, 1000000, 1000001)]
+    assert [path.name for path in saved] == ["checkpoint_999998.pt", "checkpoint_999999.pt", "checkpoint_1000000.pt",
+                                             "checkpoint_1000001.pt"]
+    assert CHECKPOINTS_KEPT == 3
+    assert sorted(path.name for path in folder.checkpoints.iterdir()) == [
+        "checkpoint_1000000.pt", "checkpoint_1000001.pt", "checkpoint_999999.pt"]
+    assert folder.latest_checkpoint().name == "checkpoint_1000001.pt"
+    assert folder.load_checkpoint(folder.latest_checkpoint(), "cpu")["iteration"] == 1000001
+    (folder.checkpoints / "checkpoint_notes.pt").write_text("not a checkpoint")
+    assert folder.has_checkpoint() and folder.latest_checkpoint().name == "checkpoint_1000001.pt"
+    folder.save_checkpoint({**dict.fromkeys(CHECKPOINT_KEYS), "iteration": 1000002, "repair": None})
+    assert sorted(path.name for path in folder.checkpoints.glob("checkpoint_1*.pt")) == [
+        "checkpoint_1000000.pt", "checkpoint_1000001.pt", "checkpoint_1000002.pt"]
+    assert folder.latest_checkpoint().name == "checkpoint_1000002.pt"
+    assert (folder.checkpoints / "checkpoint_notes.pt").read_text() == "not a checkpoint"  # a user's file is kept
 
 
 def test_cutting_back_a_log_that_is_not_text_is_one_line(tmp_path):

@@ -345,8 +345,11 @@ class RunFolder:
         return found[-1] if found else None
 
     def _checkpoints(self) -> list[Path]:
-        """The checkpoints written in full, oldest first."""
-        return sorted(path for path in self.checkpoints.glob("checkpoint_*.pt") if not is_temporary(path))
+        """The checkpoints written in full, oldest first: by iteration, not by name (checkpoint_1000000 sorts before
+        checkpoint_999999 as text)."""
+        found = [path for path in self.checkpoints.glob("checkpoint_*.pt")
+                 if not is_temporary(path) and _iteration_of(path) is not None]  # not another file named alike
+        return sorted(found, key=_iteration_of)
 
     def _cut_short_checkpoints(self) -> list[Path]:
         """The temporaries of checkpoint writes cut short by a kill (checkpoint_N.tmp.pt, `atomic_output`)."""
@@ -529,3 +532,9 @@ def load_run(path: str | Path) -> TrainingRun:
     intrinsics = arrays["intrinsics"]
     return TrainingRun(path, info, config, read_ply(path / "gaussians.ply"), **poses,
                        intrinsics=None if intrinsics is None else torch.from_numpy(intrinsics))
+
+
+def _iteration_of(checkpoint: Path) -> int | None:
+    """The iteration in a checkpoint's name (checkpoint_000500.pt), None for a name that holds none."""
+    digits = checkpoint.stem.removeprefix("checkpoint_")
+    return int(digits) if digits.isascii() and digits.isdigit() else None

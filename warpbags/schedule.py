@@ -156,7 +156,7 @@ class Schedule:
         length = max(self.round_end(round_start) - round_start, 1)
         windows = self.config.pose_round_windows or (self.config.pose_round_window,)
         window_start, window_end = windows[min(round_index, len(windows) - 1)]
-        return math.ceil(window_start * length), math.ceil(window_end * length)
+        return _share_of(window_start, length), _share_of(window_end, length)
 
     def poses_move(self, iteration: int) -> bool:
         """Poses are updated (by Adam steps or L-BFGS solves, `at`) from `pose_opt_start` on, inside each coarse
@@ -173,7 +173,7 @@ class Schedule:
         if share <= 0 or self.in_repair(iteration) or self.round_index(iteration) < self.rounds - 1:
             return False
         start, end = self.pose_window(iteration)
-        return self.poses_move(iteration) and iteration >= end - math.ceil(share * (end - start))
+        return self.poses_move(iteration) and iteration >= end - _share_of(share, end - start)
 
     def solves_poses(self, iteration: int) -> bool:
         """Poses move by L-BFGS solves instead of Adam steps in this iteration's round (`camera.lbfgs_from_round`;
@@ -190,9 +190,11 @@ class Schedule:
         gaussian_fraction = 1.0 if in_repair else round_iteration / max(this_round_length - 1, 1)
         pose_start, pose_end = self.pose_window(iteration)
         pose_fraction = 1.0 if in_repair else (iteration - pose_start) / max(pose_end - pose_start - 1, 1)
-        # a linear ramp over the first `lr.pose_warmup` steps of each window and of the repair stage: Adam's moments
-        # start at zero there (each round rebases the cameras; the last round's average resets them)
-        warmup_steps, window_start = config.lr.pose_warmup, config.iters if in_repair else pose_start
+        # a linear ramp over the first `lr.pose_warmup` steps of each window and of the repair stage, from where the
+        # poses first move in it (`pose_opt_start` may come later): Adam's moments start at zero there (each round
+        # rebases the cameras; the last round's average resets them)
+        warmup_steps = config.lr.pose_warmup
+        window_start = max(config.iters if in_repair else pose_start, config.pose_opt_start)
         warmup = 1.0 if warmup_steps <= 0 else min(1.0, max(iteration - window_start + 1, 1) / warmup_steps)
         # the repair stage's real-view loss is the coarse stage's as it ended (for the fixed-pose baseline too, so
         # the two stay comparable): the silhouette terms, which hold the poses that keep moving, stay where they were
@@ -215,3 +217,9 @@ class Schedule:
             pose_average=self.averages_poses(iteration),
             densify=iteration != self.round_end(iteration) - 1,
         )
+
+
+def _share_of(share: float, length: int) -> int:
+    """The iterations that `share` of `length` spans, rounded up: 0.55 of 100 is 55 (its float product,
+    55.00000000000001, would round up to 56)."""
+    return math.ceil(round(share * length, 9))

@@ -99,9 +99,13 @@ class Trainer:
         self.pose_alignment = alignment_for(self.viewmats_true.cpu(), config.pose_alignment)
         if self.pose_alignment != config.pose_alignment:
             self.log(f"the logged pose error uses pairwise alignment ({procrustes_unfit(self.viewmats_true.cpu())})")
-        if config.pose_opt and config.pose_opt_start >= config.iters:  # e.g. the paper preset cut to a short run
-            self.log(f"pose optimization starts at iteration {config.pose_opt_start}, after the run's {config.iters}: "
-                     "the poses stay where the start procedures put them (--pose-opt-start to move them)")
+        if config.pose_opt and config.pose_opt_start >= config.total_iters:  # e.g. the paper preset cut short
+            self.log(f"pose optimization starts at iteration {config.pose_opt_start}, after the run's "
+                     f"{config.total_iters}: the poses stay where the start procedures put them (--pose-opt-start to "
+                     "move them)")
+        elif config.pose_opt and config.pose_opt_start >= config.iters:
+            self.log(f"pose optimization starts at iteration {config.pose_opt_start}, after the coarse stage's "
+                     f"{config.iters}: the poses move in the repair stage only (--pose-opt-start to move them earlier)")
         if (reached := self.schedule.final_sh_degree()) < config.sh_degree:
             self.log(f"sh_degree {config.sh_degree} is reached after {config.sh_degree * config.sh_degree_every} "
                      f"iterations of a round; the last round trains up to degree {reached}, so the model's higher "
@@ -312,7 +316,9 @@ class Trainer:
                 the one resumed with (config.json changed after the run started).
         """
         state = self.run_folder.load_checkpoint(path, self.device)
-        if differences := differing_fields(state["config"], self.config.to_dict(), RESUMABLE_CHANGES):
+        # read as config.json was (`TrainConfig.from_dict` mends values saved before a check refused them)
+        saved = TrainConfig.from_dict(state["config"]).to_dict()
+        if differences := differing_fields(saved, self.config.to_dict(), RESUMABLE_CHANGES):
             field, saved, given = differences[0]
             raise WarpbagsError(f"{path} was saved with {field} = {saved!r}, the config resumed with (config.json) "
                                 f"says {given!r}: the run's config.json was changed after it started; restore it")
