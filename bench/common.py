@@ -23,7 +23,7 @@ from warpbags.configs.train import DEFAULT_PRESET, MAX_HULL_RESOLUTION, load_pre
 from warpbags.data import ORBIT_RADIUS, SyntheticOptions, ensure_synthetic_scene, load_scene, open_scene  # noqa: E402
 from warpbags.data.noise import monocular_like_depths  # noqa: E402
 from warpbags.errors import WarpbagsError  # noqa: E402
-from warpbags.files import atomic_output, finite_json  # noqa: E402
+from warpbags.files import atomic_output, finite_json, writable_file  # noqa: E402
 from warpbags.trainer import Trainer, training_scene  # noqa: E402
 
 SMALL_SCENES = {
@@ -103,6 +103,29 @@ def resolution_check(resolution: int) -> tuple[bool, str]:
     maximum the first pass's (1.5 x resolution)^3 voxels take gigabytes."""
     return (2 <= resolution <= MAX_HULL_RESOLUTION,
             f"--resolution must be in [2, {MAX_HULL_RESOLUTION}] (voxels per axis), got {resolution}")
+
+
+def check_json(path: Path | None) -> None:
+    """Check a `--json` file writable before any work: the scripts write it after their first row, which may come
+    after hours of training, and a folder at that path (or a file where its folder should be) would fail only then.
+
+    Raises:
+        WarpbagsError: `path` cannot be written (`warpbags.files.writable_file`).
+    """
+    if path is not None:
+        writable_file(path, "for --json")
+
+
+def check_view_counts(scenes: dict, view_counts: Iterable[int]) -> None:
+    """Check that every loaded scene has each view count's training views, before the first run: a count a scene
+    lacks fails otherwise when its run starts, after the runs of the counts before it.
+
+    Raises:
+        WarpbagsError: a scene with too few images for a count (`Scene.train_views`, which names both).
+    """
+    for scene in scenes.values():
+        for count in view_counts:
+            scene.train_views(count)
 
 
 def add_training_options(parser: argparse.ArgumentParser, set_help: str, json_help: str | None = None) -> None:

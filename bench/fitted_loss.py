@@ -32,8 +32,8 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from common import (add_training_options, check_options, merge_settings, open_bench_scene, pose_noise_checks,
-                    training_overrides, with_depth, write_json)
+from common import (add_training_options, check_json, check_options, check_view_counts, merge_settings,
+                    open_bench_scene, pose_noise_checks, training_overrides, with_depth, write_json)
 from warpbags.alignment import pose_errors
 from warpbags.cameras import pixel_directions, project_points
 from warpbags.cli.common import clean_errors, parse_numbers
@@ -116,10 +116,22 @@ def cross_view_consistency(images: torch.Tensor, masks: torch.Tensor, depths: to
     return pairs
 
 
+def fit_settings(fit_seed: int) -> dict:
+    """This script's settings of a fit at a pose set (on top of `--set` and the view count): the poses frozen,
+    trained with `fit_seed`, no repair stage."""
+    return dict(pose_opt=False, seed=fit_seed, repair={"iters": 0})
+
+
+def recovery_settings(rot: float, trans: float, seed: int) -> dict:
+    """This script's settings of a pose recovery run (on top of `--set` and the view count): the noise of `rot` /
+    `trans` drawn with `seed`, trained with `seed`, no repair stage, as bench/pose_recovery.py's `bags` variant."""
+    return dict(rot_noise_deg=rot, trans_noise=trans, noise_seed=seed, seed=seed, repair={"iters": 0})
+
+
 def fitted_at(scene, poses: torch.Tensor, settings: dict, preset: str, fit_seed: int) -> dict:
     """Fit the preset's Gaussians with the training cameras frozen at [C,4,4] `poses`; the training loss over all
     views at the end, its terms, and the images' consistency across views through the fitted depth."""
-    config = load_preset(preset, **merge_settings(settings, dict(pose_opt=False, seed=fit_seed, repair={"iters": 0})))
+    config = load_preset(preset, **merge_settings(settings, fit_settings(fit_seed)))
     with tempfile.TemporaryDirectory() as out:
         trainer = Trainer(training_scene(scene, config), config, out, viewmats_init=poses, log=lambda message: None)
         trainer.train()
@@ -152,7 +164,8 @@ def main() -> None:
     parser.add_argument("--seeds", default="0,1,2", help="noise seeds of the pose recovery runs, comma-separated")
     parser.add_argument("--rot", type=float, default=15.0, help="rotation noise std, degrees")
     parser.add_argument("--trans", type=float, default=0.3, help="camera-centre noise std per axis (orbit radius 4)")
-    parser.add_argument("--views", type=int, default=4)
+    parser.add_argument("--views", type=int, default=4, help="training views, 3 or more (the rotation errors are "
+                                                                 "after Procrustes alignment of the camera centres)")
     parser.add_argument("--depth", choices=("true", "monocular", "none"), default="true",
                         help="the scene's depth maps, degraded as a monocular network's, or none")
     parser.add_argument("--fit-seeds", default="0,1", help="training seeds of the frozen fits, averaged")
@@ -162,18 +175,27 @@ def main() -> None:
     torch.set_num_threads(1)
     seeds, fit_seeds = parse_numbers(args.seeds, "--seeds", int), parse_numbers(args.fit_seeds, "--fit-seeds", int)
     check_options(pose_noise_checks(args.rot, args.trans))
-    # a bad preset or setting fails before the first line of the table
+    # the pose sets' rotation errors are after Procrustes alignment of the camera centres, which fails on fewer than 3
+    check_options([(args.views >= 3, f"--views {args.views}: sim(3) Procrustes alignment needs 3 cameras or more")])
+    check_json(args.json)
+    # a bad preset or setting, in every run and fit, fails before the first line of the table
     overrides = training_overrides(args, fixed={"views": "from --views", "rot_noise_deg": "from --rot",
                                                 "trans_noise": "from --trans", "noise_seed": "from --seeds",
                                                 "seed": "from --seeds and --fit-seeds",
                                                 "pose_opt": "on to recover the poses, off for the fits",
                                                 "repair.iters": "0: no repair stage"},
-                                   runs=[dict(views=args.views)])
+                                   runs=[dict(views=args.views),
+                                         *(dict(views=args.views, **recovery_settings(args.rot, args.trans, seed))
+                                           for seed in seeds),
+                                         *(dict(views=args.views, **fit_settings(seed)) for seed in fit_seeds)])
     scenes = {name: with_depth(open_bench_scene(name), args.depth) for name in args.scenes}
+    check_view_counts(scenes, [args.views])
     for name, scene in scenes.items():
         if scene.masks is None:
             raise WarpbagsError(f"scene {name} has no masks: the comparison across views counts pixels on the object")
-    results: dict = {"preset": args.preset, "overrides": overrides, "depth": args.depth, "rows": []}
+    results: dict = {"preset": args.preset, "overrides": overrides, "depth": args.depth, "views": args.views,
+                     "rot_noise": args.rot, "trans_noise": args.trans, "seeds": seeds, "fit_seeds": fit_seeds,
+                     "rows": []}
     header = (f"{'scene':<24} {'poses':<14} {'rot (deg)':>9} {'loss':>9} {'vs ref':>7} {'px/pair':>7} {'L1':>7} "
               f"{'NCC':>6} {'min':>5}")
     print(f"preset {args.preset}, overrides {overrides}, {args.views} views, noise {args.rot:g} deg / {args.trans:g}, "
@@ -185,8 +207,7 @@ def main() -> None:
             truth = training_scene(scene, load_preset(args.preset, **base)).viewmats
             pose_sets = [("reference", None, truth)]
             for seed in seeds:
-                settings = merge_settings(base, dict(rot_noise_deg=args.rot, trans_noise=args.trans, noise_seed=seed,
-                                                     seed=seed, repair={"iters": 0}))
+                settings = merge_settings(base, recovery_settings(args.rot, args.trans, seed))
                 start, end = recovered_poses(scene, settings, args.preset, Path(root) / f"{name}-{seed}")
                 pose_sets += [(f"seed {seed} start", seed, start), (f"seed {seed} end", seed, end)]
             reference_loss = None

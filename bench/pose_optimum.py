@@ -34,8 +34,8 @@ import time
 import numpy as np
 import torch
 
-from common import (add_training_options, check_options, merge_settings, open_bench_scene, training_overrides,
-                    write_json)
+from common import (add_training_options, check_json, check_options, merge_settings, open_bench_scene,
+                    training_overrides, write_json)
 from warpbags.alignment import centre_floor_errors, pose_errors
 from warpbags.configs.train import load_preset
 from warpbags.data import ORBIT_RADIUS
@@ -159,6 +159,7 @@ def main() -> None:
     torch.set_num_threads(1)
     check_options([(0 < args.pose_lr < math.inf,  # a NaN fails both comparisons
                     f"--pose-lr must be a positive number, got {args.pose_lr:g}")])
+    check_json(args.json)
     fit_iters, start_noises = parse_numbers(args.fit_iters, "--fit-iters", int), parse_start_noise(args.start_noise)
     overrides = training_overrides(args, fixed=FIXED)
     if args.max_image_size is not None:

@@ -45,14 +45,18 @@ from __future__ import annotations
 import argparse
 import tempfile
 from pathlib import Path
+from typing import Iterable
 
 import numpy as np
 import torch
 
-from common import (add_training_options, check_options, merge_settings, open_bench_scene, pose_noise_checks,
-                    quiet_trainer, timed_training, training_overrides, with_depth, write_json)
+from common import (add_training_options, check_json, check_options, check_view_counts, merge_settings,
+                    open_bench_scene, pose_noise_checks, quiet_trainer, timed_training, training_overrides, with_depth,
+                    write_json)
 from warpbags.alignment import pose_errors
+from warpbags.configs.train import load_preset
 from warpbags.data import ORBIT_RADIUS
+from warpbags.errors import WarpbagsError
 from warpbags.evaluation import evaluate_run
 from warpbags.cli.common import clean_errors, parse_numbers
 
@@ -79,6 +83,34 @@ VARIANTS = {
 }
 ABLATIONS = ["no-centroid-start", "no-coherence", "no-silhouette", "no-precondition", "camera-param", "poses-whole-round",
              "poses-first-half", "no-hypotheses", "no-average"]
+
+
+def run_settings(overrides: dict, variant: str, views: int, rot: float, trans: float, seed: int) -> dict:
+    """The settings of one run of `variant`: the noise of `rot` / `trans` drawn with `seed`, trained with `seed`, no
+    repair stage, the variant's own settings on top."""
+    settings = merge_settings(overrides, dict(views=views, rot_noise_deg=rot, trans_noise=trans, noise_seed=seed,
+                                              seed=seed, repair={"iters": 0}))
+    return merge_settings(settings, VARIANTS[variant])
+
+
+def true_pose_settings(overrides: dict, views: int, seed: int) -> dict:
+    """The settings of the true-pose model: the scene's poses, frozen, trained with `seed`, no repair stage."""
+    return merge_settings(overrides, dict(views=views, seed=seed, pose_opt=False, repair={"iters": 0}))
+
+
+def check_runs(preset: str, runs: Iterable[tuple[str, dict]]) -> None:
+    """Load the preset with the settings of every run, each labelled by what chose them, before any run: settings
+    that clash (frozen-orbit's orbit with `--set camera.parameterization=camera`) fail otherwise when that run
+    starts, after the runs before it, and TrainConfig's message names `warpbags train`'s options, not the variant.
+
+    Raises:
+        WarpbagsError: the first run whose settings TrainConfig refuses, its label first.
+    """
+    for label, settings in runs:
+        try:
+            load_preset(preset, **settings)
+        except WarpbagsError as error:
+            raise WarpbagsError(f"{label}: {error}") from None
 
 
 def run_once(scene, settings: dict, preset: str, root: Path, train: bool = True) -> dict:
@@ -150,7 +182,8 @@ def main() -> None:
     parser.add_argument("scenes", nargs="+")
     parser.add_argument("--rot", default="15", help="rotation noise stds, degrees, comma-separated")
     parser.add_argument("--trans", type=float, default=0.3, help="camera-centre noise std per axis (orbit radius 4)")
-    parser.add_argument("--views", default="4", help="training view counts, comma-separated")
+    parser.add_argument("--views", default="4", help="training view counts, comma-separated, each 3 or more (the "
+                                                      "errors are after Procrustes alignment of the camera centres)")
     parser.add_argument("--seeds", default="0,1,2", help="noise seeds, comma-separated")
     parser.add_argument("--variants", default="bags", help=f"comma-separated, of {', '.join(VARIANTS)}")
     parser.add_argument("--ablations", action="store_true", help="add " + ", ".join(ABLATIONS))
@@ -166,6 +199,10 @@ def main() -> None:
     torch.set_num_threads(1)
     rots, view_counts = parse_numbers(args.rot, "--rot"), parse_numbers(args.views, "--views", int)
     check_options(check for rot in rots for check in pose_noise_checks(rot, args.trans))
+    # every row's errors are after Procrustes alignment of the camera centres, which fails on fewer than 3
+    check_options([(min(view_counts) >= 3, f"--views {args.views!r}: sim(3) Procrustes alignment needs 3 cameras "
+                                           f"or more, got {min(view_counts)}")])
+    check_json(args.json)
     seeds = parse_numbers(args.seeds, "--seeds", int)
     variants = args.variants.split(",") + (ABLATIONS if args.ablations else [])
     unknown = [name for name in variants if name not in VARIANTS]
@@ -179,9 +216,18 @@ def main() -> None:
                                                 "camera.fix_first_camera": "every camera perturbed",
                                                 "pose_opt": "from --variants"},
                                    runs=[dict(views=views) for views in view_counts])
+    given = f"--preset {args.preset}" + (f" and --set {overrides}" if overrides else "")
+    check_runs(args.preset, [(f"--variants {variant}: its settings {VARIANTS[variant]} with {given}",
+                              run_settings(overrides, variant, views, rot, args.trans, seed))
+                             for variant in variants for views in view_counts for rot in rots for seed in seeds])
+    if not (args.no_true_pose or args.start_only):
+        check_runs(args.preset, [(f"the true-pose model (poses frozen; --no-true-pose skips it) with {given}",
+                                  true_pose_settings(overrides, views, seed))
+                                 for views in view_counts for seed in seeds])
     scenes = {name: with_depth(open_bench_scene(name), args.depth) for name in args.scenes}
+    check_view_counts(scenes, view_counts)
     results: dict = {"preset": args.preset, "overrides": overrides, "trans_noise": args.trans, "depth": args.depth,
-                     "rows": []}
+                     "seeds": seeds, "rows": []}
     per_seed_width = max(len("per seed"), 6 * len(seeds) - 1)
     if args.start_only:
         header = (f"{'scene':<20} {'views':>5} {'noise':>9} {'variant':<18} {'injected':>8} {'rot init':>8} {'rot start':>9} "
@@ -200,9 +246,7 @@ def main() -> None:
                 true_pose = {}
                 if not (args.no_true_pose or args.start_only):
                     for seed in seeds:
-                        settings = merge_settings(overrides, dict(views=views, seed=seed, pose_opt=False,
-                                                                  repair={"iters": 0}))
-                        true_pose[seed] = run_once(scene, settings, args.preset,
+                        true_pose[seed] = run_once(scene, true_pose_settings(overrides, views, seed), args.preset,
                                                    Path(root) / f"{scene_name}-{views}-true-{seed}")
                 true_psnr = float(np.mean([r["psnr"] for r in true_pose.values()])) if true_pose else float("nan")
                 for rot in rots:
@@ -211,12 +255,10 @@ def main() -> None:
                             continue  # a variant with its own noise (truth-start) runs once, not once per --rot
                         runs = []
                         for seed in seeds:
-                            settings = merge_settings(overrides, dict(views=views, rot_noise_deg=rot,
-                                                                      trans_noise=args.trans, noise_seed=seed,
-                                                                      seed=seed, repair={"iters": 0}))
-                            settings = merge_settings(settings, VARIANTS[variant])
+                            settings = run_settings(overrides, variant, views, rot, args.trans, seed)
                             folder = Path(root) / f"{scene_name}-{views}-{rot}-{variant}-{seed}"
-                            runs.append(run_once(scene, settings, args.preset, folder, train=not args.start_only))
+                            runs.append({"seed": seed, **run_once(scene, settings, args.preset, folder,
+                                                                  train=not args.start_only)})
                         row = summarize(runs)
                         # the noise the runs had: a variant may set its own (truth-start: none)
                         noise = dict(rot_noise=settings["rot_noise_deg"], trans_noise=settings["trans_noise"])

@@ -35,6 +35,7 @@ sys.path.insert(0, str(ROOT / "tests"))
 
 from conftest import look_at  # noqa: E402
 from reference import composite_reference, pixel_centers, project_reference  # noqa: E402
+from visits import visits_per_pixel  # noqa: E402
 
 from warpbags.devices import init_warp_quietly  # noqa: E402
 
@@ -111,7 +112,7 @@ def time_warpbags(scene: dict, repeats: int, tile_size: int | None,
                     times[block][2].append(t2 - t0)
     finally:
         DEFAULT_PIXEL_BLOCK["cpu"] = default
-    visits = meta["bins"].isect_ids.numel() * meta["tile_size"] ** 2 / (out.shape[0] * out.shape[1] * out.shape[2])
+    visits = visits_per_pixel(meta["bins"], scene["width"], scene["height"])
     return {block: (1e3 * statistics.median(f), 1e3 * statistics.median(b), 1e3 * statistics.median(fb), visits)
             for block, (f, b, fb) in times.items()}
 

@@ -33,7 +33,7 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from common import open_bench_scene, write_json  # noqa: E402
+from common import check_json, open_bench_scene, write_json  # noqa: E402
 from warpbags.alignment import pose_errors  # noqa: E402
 from warpbags.cli.common import clean_errors  # noqa: E402
 from warpbags.data import ORBIT_RADIUS  # noqa: E402
@@ -106,6 +106,7 @@ def main() -> None:
     parser.add_argument("--json", type=Path, help="also write the rows here")
     args = parser.parse_args()
     torch.set_num_threads(1)
+    check_json(args.json)
     scenes = {name: open_bench_scene(name) for name in args.scenes}  # a bad name fails before the first line
     rows = []
     for name, scene in scenes.items():

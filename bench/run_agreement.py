@@ -9,9 +9,10 @@ Procrustes alignment, so that the README can say what a disagreement tells a use
 
 Columns (degrees unless named): error: the runs' mean rotation error (per run: each run's, in training-seed
 order); disagree: the mean over pairs of runs and cameras of the angle between two runs' orientations of a camera;
-error/disagree: their ratio; cam r: the correlation over cameras (and noise seeds) of a camera's mean error with its
-mean disagreement; min: minutes of training a run. SCENE: a preset (maryrose, moldgoldcape, ethiopianhead, ...), a
-scene folder or one of bench/common.py's small synthetic scenes (synthetic-tele-small, ...).
+error/disagree: their ratio; min: minutes of training a run. After each view count's rows, a line gives the
+correlation over cameras (and noise seeds) of a camera's mean error with its mean disagreement (in the JSON:
+"correlations"). SCENE: a preset (maryrose, moldgoldcape, ethiopianhead, ...), a scene folder or one of
+bench/common.py's small synthetic scenes (synthetic-tele-small, ...).
 """
 
 from __future__ import annotations
@@ -22,13 +23,21 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from common import (add_training_options, check_options, merge_settings, open_bench_scene, pose_noise_checks,
-                    quiet_trainer, timed_training, training_overrides, with_depth, write_json)
+from common import (add_training_options, check_json, check_options, check_view_counts, merge_settings,
+                    open_bench_scene, pose_noise_checks, quiet_trainer, timed_training, training_overrides, with_depth,
+                    write_json)
 
 from warpbags.agreement import pose_agreement
 from warpbags.cli.common import clean_errors, parse_numbers
 from warpbags.errors import WarpbagsError
 from warpbags.run_folder import load_run
+
+
+def run_settings(views: int, rot: float, trans: float, noise_seed: int, seed: int) -> dict:
+    """This script's settings of one run (on top of `--set`): the noise of `rot` / `trans` drawn with `noise_seed`,
+    trained with `seed`, no repair stage."""
+    return dict(views=views, rot_noise_deg=rot, trans_noise=trans, noise_seed=noise_seed, seed=seed,
+                repair={"iters": 0})
 
 
 def main() -> None:
@@ -56,13 +65,18 @@ def main() -> None:
     check_options(pose_noise_checks(args.rot, args.trans))
     if args.rot <= 0 and args.trans <= 0:
         raise WarpbagsError("--rot 0 and --trans 0: without noise the scene's poses are no truth to measure errors by")
+    check_json(args.json)
     overrides = training_overrides(args, fixed={"views": "from --views", "rot_noise_deg": "from --rot",
                                                 "trans_noise": "from --trans", "noise_seed": "from --noise-seeds",
                                                 "seed": "from --train-seeds", "repair.iters": "0: no repair stage"},
-                                   runs=[dict(views=views) for views in view_counts])
+                                   runs=[run_settings(views, args.rot, args.trans, noise_seed, seed)
+                                         for views in view_counts for noise_seed in noise_seeds
+                                         for seed in train_seeds])
     scenes = {name: with_depth(open_bench_scene(name), args.depth) for name in args.scenes}
+    check_view_counts(scenes, view_counts)
     results: dict = {"preset": args.preset, "overrides": overrides, "rot_noise": args.rot, "trans_noise": args.trans,
-                     "depth": args.depth, "train_seeds": train_seeds, "rows": []}
+                     "depth": args.depth, "train_seeds": train_seeds, "noise_seeds": noise_seeds, "rows": [],
+                     "correlations": []}
     header = (f"{'scene':<22} {'views':>5} {'noise seed':>10} {'error':>6} {'per run':<{6 * len(train_seeds)}} "
               f"{'disagree':>8} {'error/disagree':>14} {'min':>5}")
     print(f"preset {args.preset}, overrides {overrides}, noise {args.rot:g} deg / {args.trans:g}, depth maps: "
@@ -76,9 +90,8 @@ def main() -> None:
                     folders, minutes = [], []
                     for seed in train_seeds:
                         folder = Path(root) / f"{scene_name}-{views}-{noise_seed}-{seed}"
-                        settings = merge_settings(overrides, dict(views=views, rot_noise_deg=args.rot,
-                                                                  trans_noise=args.trans, noise_seed=noise_seed,
-                                                                  seed=seed, repair={"iters": 0}))
+                        settings = merge_settings(overrides, run_settings(views, args.rot, args.trans, noise_seed,
+                                                                          seed))
                         minutes.append(timed_training(quiet_trainer(scene, settings, args.preset, folder)))
                         folders.append(folder)
                     agreement = pose_agreement([load_run(folder) for folder in folders])
@@ -102,6 +115,10 @@ def main() -> None:
                 correlation = np.corrcoef(camera_errors, camera_disagreements)[0, 1]
                 print(f"{'':<22} {views:>5} {'all':>10} cameras' error against their disagreement: correlation "
                       f"{correlation:.2f} over {len(camera_errors)} cameras", flush=True)
+                results["correlations"].append({"scene": scene_name, "views": views, "correlation": float(correlation),
+                                                "cameras": len(camera_errors)})
+                if args.json:
+                    write_json(args.json, results)
     print("error: rotation error against the scene's poses (deg, mean over cameras); disagree: angle between two "
           "runs' orientations of a camera (deg, mean over pairs and cameras); both after sim(3) Procrustes (SPARF's "
           "pairwise alignment with 2 views)")

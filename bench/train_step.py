@@ -52,6 +52,8 @@ from pathlib import Path
 
 import torch
 
+from visits import visits_per_pixel
+
 PHASES = (
     "pose deltas", "projection", "SH", "binning + sort", "raster forward", "loss forward",
     "loss backward", "raster backward", "SH backward", "projection backward", "pose backward",
@@ -297,8 +299,7 @@ def run_configuration(init: str, views_per_step: int, points: int, steps: int, w
             per_phase[name].append(clock.ms[name])
             per_phase_cpu[name].append(clock.cpu_ms[name])
         launch_counts.append(launches[0])
-        bins = meta["bins"]
-        visits.append(bins.isect_ids.numel() * bins.tile_size**2 / (meta["n_cameras"] * meta["width"] * meta["height"]))
+        visits.append(visits_per_pixel(meta["bins"], meta["width"], meta["height"]))
     scene = problem["scene"]
     return {
         "init": init, "views_per_step": views_per_step, "gaussians": len(problem["params"]["means"]),
@@ -468,7 +469,7 @@ def main() -> None:
         print(json.dumps(run_configuration(args.one[0], int(args.one[1]), args.points, args.steps, args.warmup,
                                            block, args.sh_degree, args.device)))
         return
-    from common import write_json  # noqa: PLC0415 - not in the children: their peak RSS is measured
+    from common import check_json, write_json  # noqa: PLC0415 - not in the children: their peak RSS is measured
     from warpbags.cli.common import parse_numbers  # noqa: PLC0415
     from warpbags.configs.train import load_preset  # noqa: PLC0415
     from warpbags.devices import torch_device  # noqa: PLC0415
@@ -515,6 +516,7 @@ def main() -> None:
     if args.steps < 1 or args.warmup < 0 or args.points < 1:
         raise WarpbagsError(f"--steps and --points must be >= 1 and --warmup >= 0, got {args.steps}, {args.points} "
                             f"and {args.warmup}")
+    check_json(args.json)  # written after every configuration has run
     rows = []
     for init in inits:
         for views in views_per_step:

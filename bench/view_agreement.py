@@ -28,8 +28,8 @@ import time
 import numpy as np
 import torch
 
-from common import (add_training_options, check_options, open_bench_scene, training_overrides, with_depth,
-                    write_json)
+from common import (add_training_options, check_json, check_options, open_bench_scene, training_overrides,
+                    with_depth, write_json)
 from warpbags.alignment import pose_errors
 from warpbags.configs.train import load_preset
 from warpbags.data import ORBIT_RADIUS
@@ -87,6 +87,7 @@ def main() -> None:
     sizes = parse_numbers(args.sizes, "--sizes", int)
     # without a registration step every view stays at its reference: a row of zeros
     check_options([(args.refine_iters >= 1, f"--refine-iters must be >= 1, got {args.refine_iters}")])
+    check_json(args.json)
     # a bad preset or setting fails before the first line of the table
     overrides = training_overrides(args, fixed={"views": "from --views", "max_image_size": "from --sizes",
                                                 "iters": "from --fit-iters", "rounds": "1", "pose_opt": "off"},

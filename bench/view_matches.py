@@ -29,7 +29,7 @@ from pathlib import Path
 
 import torch
 
-from common import check_options, open_bench_scene, write_json
+from common import check_json, check_options, check_view_counts, open_bench_scene, write_json
 from warpbags.cli.common import clean_errors, parse_numbers
 from warpbags.correspondences import (RANSAC_PX, RATIO, SIFT_FEATURES, fundamental_matrices, match_pair,
                                       sampson_distances, sift_detector, view_features)
@@ -99,10 +99,9 @@ def main() -> None:
                    (args.ransac_px > 0, f"--ransac-px must be positive, got {args.ransac_px}"),
                    (args.min_inliers >= 8, f"--min-inliers must be at least 8, got {args.min_inliers}"),
                    (min(views) >= 2, f"--views {args.views}: at least 2 views make a pair")])
+    check_json(args.json)
     scenes = {name: open_bench_scene(name) for name in args.scenes}
-    for scene in scenes.values():  # too few views fails before the first line of the table
-        for count in views:
-            scene.train_views(count)
+    check_view_counts(scenes, views)
     header = (f"{'scene':<24} {'views':>5} {'px':>5} {'pairs':>5} {'with true':>9} {'kept':>5} {'right':>5} "
               f"{'true share of kept inliers':>26}")
     print(f"SIFT {args.features} features inside the masks, ratio {args.ratio}; true within {args.true_px} px of the "

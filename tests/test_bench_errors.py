@@ -74,6 +74,15 @@ def test_an_unknown_scene_is_one_error_line(script, tmp_path):
     ("run_agreement.py", ["--trans", "5"], "--trans must be in [0, 4] (a std in scene units"),
     ("fitted_loss.py", ["--rot", "181"], "--rot must be in [0, 180]"),
     ("fitted_loss.py", ["--trans", "-1"], "--trans must be in [0, 4]"),
+    # the errors are after Procrustes alignment of 3 camera centres or more (was: a traceback once a run had run)
+    ("pose_recovery.py", ["--views", "4,2"],
+     "--views '4,2': sim(3) Procrustes alignment needs 3 cameras or more, got 2"),
+    ("fitted_loss.py", ["--views", "2"], "--views 2: sim(3) Procrustes alignment needs 3 cameras or more"),
+    # a variant whose settings clash with --set, named (was: after the runs before it, naming `warpbags train`'s
+    # --camera-param)
+    ("pose_recovery.py", ["--variants", "bags,frozen-orbit", "--set", "camera.parameterization=camera"],
+     "--variants frozen-orbit: its settings {'camera': {'orbit_from_round': 99}} with --preset quick and --set "
+     "{'camera': {'parameterization': 'camera'}}: camera.orbit_from_round needs the object parameterization"),
     ("repair.py", ["--rot", "-1"], "--rot must be in [0, 180]"),
     # no repair iterations: four models trained, then no repair stage to measure
     ("repair.py", ["--repair-iters", "0"], "--repair-iters must be >= 1 (this benchmark measures the repair stage)"),
@@ -117,6 +126,50 @@ def test_bad_input_is_one_error_line_before_any_work(script, arguments, message,
     errors = [line for line in output.err.splitlines() if line.startswith("error:")]
     assert len(errors) == 1 and message in errors[0] and "Traceback" not in output.err, output.err
     assert output.out == ""
+
+
+@pytest.mark.parametrize("script", ["pose_recovery.py", "fitted_loss.py", "run_agreement.py", "pose_optimum.py",
+                                    "view_agreement.py", "view_matches.py", "reference_poses.py", "train_step.py"])
+def test_a_json_path_that_cannot_be_written_fails_before_any_work(script, tmp_path, monkeypatch, capsys):
+    """A folder where --json should go: one line before the scene is loaded (its name here is unknown too), not an
+    OSError at the first write, after the first row's runs (train_step.py: after every configuration)."""
+    (tmp_path / "rows.json").mkdir()
+    arguments = QUICK_TRAIN_STEP if script == "train_step.py" else ["nosuchscene"]
+    code, output = _run_in_process(script, [*arguments, "--json", "rows.json"], tmp_path, monkeypatch, capsys)
+    assert code == 2 and "Traceback" not in output.err and output.out == "", output.err
+    assert output.err == "error: rows.json is a folder, not a file for --json\n"
+
+
+@pytest.fixture(scope="module")
+def scene_cache(tmp_path_factory):
+    """A cache folder holding synthetic-small, generated once for the tests that load it."""
+    folder = tmp_path_factory.mktemp("cache")
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setenv("WARPBAGS_CACHE", str(folder))
+        patch.syspath_prepend(str(BENCH))
+        from common import open_bench_scene  # noqa: PLC0415 - bench/ is on the path for this fixture only
+
+        open_bench_scene("synthetic-small")
+    return folder
+
+
+@pytest.mark.parametrize("script, arguments, message", [
+    # a view count the scene lacks: before the first run (was: when its run started, after those of 4 views)
+    ("pose_recovery.py", ["--views", "4,17", "--seeds", "0", "--start-only"],
+     "scene synthetic-small has 16 images, fewer than --views 17"),
+    ("run_agreement.py", ["--views", "4,17", "--train-seeds", "0,1", "--set", "iters=6"],
+     "scene synthetic-small has 16 images, fewer than --views 17"),
+    ("fitted_loss.py", ["--views", "17", "--seeds", "0", "--fit-seeds", "0", "--set", "iters=6"],
+     "scene synthetic-small has 16 images, fewer than --views 17"),
+    # a folder as --json (was: an error after the first row)
+    ("pose_recovery.py", ["--seeds", "0", "--start-only", "--json", "."], ". is a folder, not a file for --json"),
+])
+def test_bad_input_on_a_scene_that_loads_fails_before_the_first_row(script, arguments, message, scene_cache,
+                                                                     tmp_path, monkeypatch, capsys):
+    monkeypatch.setenv("WARPBAGS_CACHE", str(scene_cache))
+    code, output = _run_in_process(script, ["synthetic-small", *arguments], tmp_path, monkeypatch, capsys)
+    assert code == 2 and "Traceback" not in output.err and output.out == "", (output.out, output.err)
+    assert output.err == f"error: {message}\n"
 
 
 def test_repair_refuses_a_keep_folder_that_holds_an_earlier_run(tmp_path, monkeypatch, capsys):
