@@ -34,8 +34,8 @@ import time
 import numpy as np
 import torch
 
-from common import (add_training_options, check_json, check_options, merge_settings, open_bench_scene,
-                    training_overrides, write_json)
+from common import (add_training_options, check_json, check_options, check_view_counts, merge_settings,
+                    open_bench_scene, training_overrides, write_json)
 from warpbags.alignment import centre_floor_errors, pose_errors
 from warpbags.configs.train import load_preset
 from warpbags.data import ORBIT_RADIUS
@@ -158,7 +158,8 @@ def main() -> None:
     args = parser.parse_args()
     torch.set_num_threads(1)
     check_options([(0 < args.pose_lr < math.inf,  # a NaN fails both comparisons
-                    f"--pose-lr must be a positive number, got {args.pose_lr:g}")])
+                    f"--pose-lr must be a positive number, got {args.pose_lr:g}"),
+                   (args.views >= 3, f"--views {args.views}: sim(3) Procrustes alignment needs 3 cameras or more")])
     check_json(args.json)
     fit_iters, start_noises = parse_numbers(args.fit_iters, "--fit-iters", int), parse_start_noise(args.start_noise)
     overrides = training_overrides(args, fixed=FIXED)
@@ -166,6 +167,7 @@ def main() -> None:
         overrides["max_image_size"] = args.max_image_size
     load_preset(args.preset, **run_settings(args.views, fit_iters, overrides))  # a bad setting fails before the header
     scenes = {name: open_bench_scene(name) for name in args.scenes}  # a bad name fails before the table's header
+    check_view_counts(scenes, [args.views])
     print(f"{'scene':<22} {'views':>5} {'px':>5} {'fit its':>8} {'start noise':>11} {'rot start':>9} {'rot mean':>10}"
           f" {'rot max':>8} {'centre floor':>12} {'centres % orbit':>14} {'min':>8}")
     rows = []

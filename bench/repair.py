@@ -66,11 +66,15 @@ class IdentityRepairer:
         pass
 
 
+# What a control changes from the run whose coarse checkpoint it continues (the real views alone).
+CONTROL_CHANGES = frozenset({"pseudo_ratio_start", "pseudo_ratio_end"})
+
+
 def _continue(scene, config, checkpoint: Path, out: Path, repairer=None) -> tuple[Path, float]:
     """Train a copy of the checkpointed coarse model through `config`'s repair iterations; (run folder, seconds)."""
     trainer = Trainer(training_scene(scene, config), config, out, log=lambda message: None)
     trainer.write_run_files()
-    trainer.load_checkpoint(checkpoint)
+    trainer.load_checkpoint(checkpoint, changed_on_purpose=CONTROL_CHANGES)
     if repairer is not None:
         trainer.start_repair_stage(repairer)
     started = time.perf_counter()

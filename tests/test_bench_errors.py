@@ -93,6 +93,7 @@ def test_an_unknown_scene_is_one_error_line(script, tmp_path):
     ("hull_depths.py", ["out", "--resolution", "0"], "--resolution must be in [2, 256] (voxels per axis), got 0"),
     ("run_steps.py", ["--iteration", "-5"], "--iteration must be >= 0, got -5"),
     ("pose_optimum.py", ["--pose-lr", "nan"], "--pose-lr must be a positive number, got nan"),
+    ("pose_optimum.py", ["--views", "2"], "--views 2: sim(3) Procrustes alignment needs 3 cameras or more"),
     ("view_agreement.py", ["--refine-iters", "-1"], "--refine-iters must be >= 1, got -1"),
     ("rasterize.py", ["--tile-size", "0", *QUICK_RASTERIZE], "--tile-size must be >= 1 (pixels), got 0"),
     # a pixel block the rasterizer would shrink (each side to a power of two dividing the tile): the columns would
@@ -160,6 +161,8 @@ def scene_cache(tmp_path_factory):
     ("run_agreement.py", ["--views", "4,17", "--train-seeds", "0,1", "--set", "iters=6"],
      "scene synthetic-small has 16 images, fewer than --views 17"),
     ("fitted_loss.py", ["--views", "17", "--seeds", "0", "--fit-seeds", "0", "--set", "iters=6"],
+     "scene synthetic-small has 16 images, fewer than --views 17"),
+    ("pose_optimum.py", ["--views", "17", "--fit-iters", "2", "--pose-iters", "1"],
      "scene synthetic-small has 16 images, fewer than --views 17"),
     # a folder as --json (was: an error after the first row)
     ("pose_recovery.py", ["--seeds", "0", "--start-only", "--json", "."], ". is a folder, not a file for --json"),

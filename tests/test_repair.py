@@ -419,3 +419,6 @@ def test_the_pseudo_view_ratio_ramps_linearly_then_stops():
 
     config = RepairConfig(iters=10, pseudo_until=0.5, pseudo_ratio_start=1.0, pseudo_ratio_end=0.5)
     assert [pseudo_ratio(config, i) for i in range(10)] == pytest.approx([1.0, 0.875, 0.75, 0.625, 0.5, 0, 0, 0, 0, 0])
+    # 0.55 of 100 iterations is 55 (its float product, 55.00000000000001, rounded up to 56)
+    config = RepairConfig(iters=100, pseudo_until=0.55, pseudo_ratio_start=1.0, pseudo_ratio_end=0.5)
+    assert pseudo_ratio(config, 54) == pytest.approx(0.5) and pseudo_ratio(config, 55) == 0

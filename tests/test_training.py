@@ -742,6 +742,11 @@ def test_a_run_saved_with_a_value_its_config_now_mends_resumes_where_it_would_ha
         torch.testing.assert_close(resumed["params"][name], value, rtol=0, atol=0)
     for name, value in uninterrupted["cameras"]["module"].items():
         torch.testing.assert_close(resumed["cameras"]["module"][name], value, rtol=0, atol=0)
+    # a checkpoint whose config cannot be read is named (the error said "unknown training option(s)" alone)
+    resumed["config"]["old_field"] = 1
+    torch.save(resumed, checkpoints / "checkpoint_000004.pt")
+    with pytest.raises(WarpbagsError, match=re.escape(f"{checkpoints / 'checkpoint_000004.pt'}: its config: unknown")):
+        trainer.load_checkpoint(checkpoints / "checkpoint_000004.pt")
 
 
 def test_a_full_disk_while_training_is_one_line_naming_the_checkpoint_kept(scene_dir, tmp_path, monkeypatch):

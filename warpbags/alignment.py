@@ -307,16 +307,18 @@ def reprojection_errors(viewmats_est: torch.Tensor, viewmats_ref: torch.Tensor, 
 
     Degrees alone do not say it: a camera 0.5 deg off about its own centre moves a telephoto image by pixels, but 0.5
     deg along the orbit about the object it looks at moves it by the object's parallax only. The RMS is over the
-    points in front of the reference camera; it is infinite for an estimated camera with any of them at or behind
-    it (a camera turned away from the object: its image of them is unbounded, not 0), and NaN for a reference camera
-    that sees none. Intrinsics [C, 3, 3] set the pixels' size.
+    points in front of both cameras; it is infinite where a point lies in front of one camera and at or behind the
+    other (a camera turned away from the object: its image of them is unbounded, not 0), whichever of the two is
+    the estimate (`warpbags agree` compares runs in either order), and NaN where neither sees any point.
+    Intrinsics [C, 3, 3] set the pixels' size.
     """
     with torch.no_grad():
         Ks = Ks.to(points)
         pixels_est, depth_est = project_points(align_viewmats(viewmats_est, sim3).to(points), Ks, points)
         pixels_ref, depth_ref = project_points(viewmats_ref.to(points), Ks, points)
-        seen = depth_ref > MIN_DEPTH  # project_points' pixels are valid in front of the camera
+        in_front_est, in_front_ref = depth_est > MIN_DEPTH, depth_ref > MIN_DEPTH  # where the pixels are valid
+        seen = in_front_est & in_front_ref
         squared = torch.where(seen, ((pixels_est - pixels_ref) ** 2).sum(-1), 0.0)
-        rms = (squared.sum(-1) / seen.sum(-1)).sqrt()  # NaN where the reference sees no point
-        lost = (seen & (depth_est <= MIN_DEPTH)).any(-1)
+        rms = (squared.sum(-1) / seen.sum(-1)).sqrt()  # NaN where no point is in front of both
+        lost = (in_front_est != in_front_ref).any(-1)
         return torch.where(lost, torch.inf, rms)

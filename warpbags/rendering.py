@@ -66,8 +66,9 @@ def rasterization(
         render_mode: "RGB", "D" (alpha-weighted depth), "ED" (expected depth, D / alpha), "RGB+D" or "RGB+ED".
         tile_size: tile edge in pixels; default 16 on CUDA, 4 on CPU.
         eps2d: low-pass added to the 2D covariance (pixels^2, >= 0), as 3DGS.
-        cpu_threads: host threads (>= 1) for CPU tensors, in every stage, forward and backward (default: every
-            usable core, or the limit of `threads.limited_host_threads` around the caller).
+        cpu_threads: host threads for CPU tensors, in every stage, forward and backward (None or 0, as the
+            training config's `render_threads` 0: every usable core, or the limit of `threads.limited_host_threads`
+            around the caller).
 
     Returns:
         render_colors: [C, H, W, D] with D = 3 (RGB), 1 (D, ED) or 4 (RGB+D, RGB+ED).
@@ -125,8 +126,8 @@ def _checked_scalars(width, height, sh_degree, near_plane, far_plane, eps2d, cpu
     height = _integer_argument("height", height, 0)
     if sh_degree is not None:
         sh_degree = _integer_argument("sh_degree", sh_degree, 0, 3)
-    if cpu_threads is not None:
-        cpu_threads = _integer_argument("cpu_threads", cpu_threads, 1)
+    if cpu_threads is not None:  # 0 is the default, as in the stages' own wrappers
+        cpu_threads = _integer_argument("cpu_threads", cpu_threads, 0) or None
     if not 0 < near_plane < far_plane:  # also refuses NaN
         raise ValueError(f"the planes must satisfy 0 < near_plane < far_plane, got near_plane={near_plane!r}, "
                          f"far_plane={far_plane!r}")

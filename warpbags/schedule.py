@@ -156,7 +156,7 @@ class Schedule:
         length = max(self.round_end(round_start) - round_start, 1)
         windows = self.config.pose_round_windows or (self.config.pose_round_window,)
         window_start, window_end = windows[min(round_index, len(windows) - 1)]
-        return _share_of(window_start, length), _share_of(window_end, length)
+        return share_of(window_start, length), share_of(window_end, length)
 
     def poses_move(self, iteration: int) -> bool:
         """Poses are updated (by Adam steps or L-BFGS solves, `at`) from `pose_opt_start` on, inside each coarse
@@ -173,7 +173,7 @@ class Schedule:
         if share <= 0 or self.in_repair(iteration) or self.round_index(iteration) < self.rounds - 1:
             return False
         start, end = self.pose_window(iteration)
-        return self.poses_move(iteration) and iteration >= end - _share_of(share, end - start)
+        return self.poses_move(iteration) and iteration >= end - share_of(share, end - start)
 
     def solves_poses(self, iteration: int) -> bool:
         """Poses move by L-BFGS solves instead of Adam steps in this iteration's round (`camera.lbfgs_from_round`;
@@ -219,7 +219,7 @@ class Schedule:
         )
 
 
-def _share_of(share: float, length: int) -> int:
+def share_of(share: float, length: int) -> int:
     """The iterations that `share` of `length` spans, rounded up: 0.55 of 100 is 55 (its float product,
     55.00000000000001, would round up to 56)."""
     return math.ceil(round(share * length, 9))

@@ -308,17 +308,24 @@ class Trainer:
             "repair": None if self.repair_stage is None else self.repair_stage.state_dict(),
         })
 
-    def load_checkpoint(self, path: Path) -> None:
+    def load_checkpoint(self, path: Path, changed_on_purpose: frozenset[str] = frozenset()) -> None:
         """Restore everything a checkpoint holds (into the existing camera optimizer).
 
+        Args:
+            changed_on_purpose: config fields (names as `differing_fields` takes them) that this trainer may set
+                differently from the checkpoint's run: a benchmark's control continuing it with other settings.
+
         Raises:
-            WarpbagsError: the checkpoint is unreadable or from an older warpbags, or its run's config differs from
-                the one resumed with (config.json changed after the run started).
+            WarpbagsError: the checkpoint is unreadable or from an older warpbags, its config cannot be read, or its
+                run's config differs from the one resumed with (config.json changed after the run started).
         """
         state = self.run_folder.load_checkpoint(path, self.device)
         # read as config.json was (`TrainConfig.from_dict` mends values saved before a check refused them)
-        saved = TrainConfig.from_dict(state["config"]).to_dict()
-        if differences := differing_fields(saved, self.config.to_dict(), RESUMABLE_CHANGES):
+        try:
+            saved = TrainConfig.from_dict(state["config"]).to_dict()
+        except WarpbagsError as error:
+            raise WarpbagsError(f"{path}: its config: {error}") from None
+        if differences := differing_fields(saved, self.config.to_dict(), RESUMABLE_CHANGES | changed_on_purpose):
             field, saved, given = differences[0]
             raise WarpbagsError(f"{path} was saved with {field} = {saved!r}, the config resumed with (config.json) "
                                 f"says {given!r}: the run's config.json was changed after it started; restore it")

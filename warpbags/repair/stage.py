@@ -20,7 +20,6 @@ Files (under the run folder's repair/):
 from __future__ import annotations
 
 import inspect
-import math
 import pickle
 from pathlib import Path
 from typing import Callable
@@ -37,6 +36,7 @@ from warpbags.model import GaussianModel
 from warpbags.repair.network import Repairer, make_repairer
 from warpbags.repair.pairs import LEAVE_ONE_OUT, NOISE, RepairPairs, build_pairs
 from warpbags.report import write_image_grid
+from warpbags.schedule import share_of
 
 SAMPLE_ROWS = 4  # pictures per kind in a sample sheet
 
@@ -55,7 +55,7 @@ def distance_weights(pseudo_viewmats: torch.Tensor, train_viewmats: torch.Tensor
 def pseudo_ratio(config: RepairConfig, repair_iteration: int) -> float:
     """r in loss = (1 - r) real + r pseudo at a repair iteration (0-based): linear from `pseudo_ratio_start` to
     `pseudo_ratio_end` over the first `pseudo_until` of the repair iterations, 0 after."""
-    until = math.ceil(config.pseudo_until * config.iters)
+    until = share_of(config.pseudo_until, config.iters)
     if repair_iteration >= until:
         return 0.0
     fraction = repair_iteration / max(until - 1, 1)
