@@ -8,6 +8,7 @@ from typing import Optional
 import typer
 
 from warpbags.cli.common import clean_errors, stdout
+from warpbags.errors import sigterm_stops
 from warpbags.run_folder import latest_run
 from warpbags.export import export_run, render_turntable
 
@@ -40,7 +41,8 @@ def render(
                                help="Also write RUN_DIR/turntable.mp4 (--no-video removes an earlier one)."),
 ) -> None:
     """Render a turntable of novel views around the object (PNG frames, and an MP4 through OpenCV)."""
-    folder = render_turntable(run_dir or latest_run(), frames=frames, video=video)
+    with sigterm_stops():  # `kill` stops it as Ctrl-C does: the partial frames and video removed
+        folder = render_turntable(run_dir or latest_run(), frames=frames, video=video)
     stdout.print(f"wrote {frames} frames to {folder}" + (f" and {folder.parent / 'turntable.mp4'}" if video else ""))
 
 

@@ -211,12 +211,14 @@ def test_agree_prints_and_writes_each_cameras_disagreement(two_runs, tmp_path):
     (["A"], "agreement needs at least two runs of one capture, got 1"),
     (["A", "B", "A"], "is given twice: compare different runs of one capture"),
     (["A", "NOT_A_RUN"], "is not a training run (no config.json)"),
+    (["A", "MISSING"], "nothere: no such run folder"),
     (["A", "B", "--json", "FOLDER"], "is a folder: name the file to write"),
     (["A", "B", "--json", "INSIDE_A_FILE"], "is a file, not a folder to write --json into"),
 ])
 def test_agree_bad_input_is_one_line(two_runs, tmp_path, arguments, message):
     (tmp_path / "a-file").write_text("")
     names = {"A": str(two_runs[0]), "B": str(two_runs[1]), "NOT_A_RUN": str(tmp_path), "FOLDER": str(tmp_path),
+             "MISSING": str(tmp_path / "nothere"),
              "INSIDE_A_FILE": str(tmp_path / "a-file" / "agreement.json")}
     result = runner.invoke(app, ["agree", *(names.get(argument, argument) for argument in arguments)])
     lines = [line for line in result.output.splitlines() if line.strip()]

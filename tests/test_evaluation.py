@@ -505,6 +505,29 @@ def test_a_turntable_render_stopped_partway_leaves_the_earlier_one_and_frames_ar
         assert result.exit_code == 2 and len(lines) == 1 and "--frames must be in [1, 3600]" in lines[0], result.output
 
 
+def test_a_turntable_render_stopped_by_sigterm_leaves_the_earlier_one(finished_run, tmp_path):
+    """`kill` (SIGTERM) ended `warpbags render` at once, silently, leaving turntable.tmp.mp4 and the staged frames;
+    it stops as Ctrl-C does: one line, exit 143, the earlier turntable kept."""
+    import signal
+    import subprocess
+    import time
+
+    run = _copy_of(finished_run, tmp_path / "run")
+    assert runner.invoke(app, ["render", str(run), "--frames", "3"]).exit_code == 0
+    before = {path.name: path.read_bytes() for path in (run / "turntable").iterdir()}
+    video = (run / "turntable.mp4").read_bytes()
+    process = subprocess.Popen([sys.executable, "-m", "warpbags.cli.main", "render", str(run), "--frames", "3600"],
+                               stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
+    deadline = time.monotonic() + 120
+    while not list(run.glob("turntable/.partial/frame_*.png")) and time.monotonic() < deadline:
+        time.sleep(0.05)
+    process.send_signal(signal.SIGTERM)
+    output = process.communicate(timeout=120)[0].decode()
+    assert process.returncode == 143 and "stopped by SIGTERM" in output, output
+    assert {path.name: path.read_bytes() for path in (run / "turntable").iterdir()} == before
+    assert (run / "turntable.mp4").read_bytes() == video and not list(run.glob("*.tmp*"))
+
+
 def test_a_turntable_of_an_odd_size_keeps_every_pixel_in_its_video(finished_run, tmp_path):
     """mp4v holds even sizes only: OpenCV wrote a 63 x 47 run's video at 62 x 46, its last column and row gone. The
     video is padded to 64 x 48 instead, the frames stay 63 x 47."""

@@ -513,6 +513,8 @@ def load_run(path: str | Path) -> TrainingRun:
     path = Path(path)
     if path.is_file():
         raise WarpbagsError(f"{path} is a file: name the run's folder")
+    if not path.exists():
+        raise WarpbagsError(f"{path}: no such run folder")
     if not (path / "config.json").is_file():
         raise WarpbagsError(f"{path} is not a training run (no config.json)")
     folder = RunFolder(path)
