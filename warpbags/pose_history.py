@@ -53,8 +53,10 @@ def read_pose_history(run_dir: str | Path) -> PoseHistory | None:
     except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile, AttributeError, TypeError,
             NotImplementedError) as error:
         # empty, not a zip archive, not an .npz of arrays (an .npy under its name), scalars, a damaged compression
-        # method (zipfile: "That compression method is not supported")
-        raise WarpbagsError(f"{path}: unreadable pose history ({one_line(error)})") from None
+        # method (zipfile: "That compression method is not supported"). numpy takes a file that is no archive for
+        # pickled data and advises `allow_pickle=True`, which would run what the file holds: not repeated here.
+        reason = "not an .npz archive" if "allow_pickle" in str(error) else one_line(error)
+        raise WarpbagsError(f"{path}: unreadable pose history ({reason})") from None
     shape = history.viewmats.shape
     if history.iterations.ndim != 1 or len(shape) != 4 or shape != (len(history.iterations), shape[1], 4, 4):
         raise WarpbagsError(f"{path}: iterations of shape {list(history.iterations.shape)} and viewmats of shape "
