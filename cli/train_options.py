@@ -304,8 +304,8 @@ def train_config(preset: str, given: dict[str, Any], settings: list[str]) -> Tra
     overrides = config_overrides(given, settings)
     config = load_preset(preset, **overrides)
     if _has(overrides, "repair.repairer") and config.repair.iters == 0:  # else it would be silently unused
-        raise WarpbagsError(f"--repairer {config.repair.repairer} would be unused: the repair stage is off (repair.iters "
-                            "is 0); add --repair-iters N")
+        raise WarpbagsError(f"--repairer {config.repair.repairer} would be unused: the repair stage is off "
+                            "(repair.iters is 0); add --repair-iters N")
     following = [option for option in TRAIN_OPTIONS if option.follows and not _has(overrides, option.path)]
     for option in following:
         _put(overrides, option.path, field_value(config, option.follows))

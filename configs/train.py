@@ -57,7 +57,8 @@ class LearningRates:
             rotation and a sideways translation shift the image almost alike; a slower translation makes the
             optimizer explain shifts by rotation first (GaussianObject's COLMAP-free mode uses 1/3).
         pose_warmup: the pose lr ramps up linearly over the first this many steps of each round's pose window
-            (from `pose_opt_start` where that falls later; 0 = none); the ramp multiplies the window's decay, so with it the lr peaks a little below `pose`.
+            (from `pose_opt_start` where that falls later; 0 = none); the ramp multiplies the window's decay, so
+            with it the lr peaks a little below `pose`.
             Adam's moments restart with every round, and its first steps move every latent by about the lr whatever
             the gradient: through the preconditioner that turns maryrose's cameras 4-8 deg about
             the object in one step (docs/pose-recovery.md).

@@ -118,7 +118,8 @@ def test_runs_that_perturbed_the_truth_report_their_errors_and_whether_they_star
     alike = pose_agreement([fake_run("a", ended, start=start, truth=truth), fake_run("b", truth, start=start, truth=truth)])
     np.testing.assert_allclose(alike.error_deg, [[1.5, 0, 0, 0], [0, 0, 0, 0]], atol=1e-6)
     assert alike.same_start and alike.to_json()["error_deg"][0][0] == pytest.approx(1.5)
-    regauged = pose_agreement([fake_run("a", align_viewmats(ended, random_sim3(generator(9))), start=start, truth=truth),
+    moved = align_viewmats(ended, random_sim3(generator(9)))
+    regauged = pose_agreement([fake_run("a", moved, start=start, truth=truth),
                                fake_run("b", truth, start=start, truth=truth)])
     np.testing.assert_allclose(regauged.error_deg, alike.error_deg, atol=1e-6)  # errors after alignment, in any gauge
     apart = pose_agreement([fake_run("a", ended, start=start), fake_run("b", truth, start=other_start)])

@@ -289,7 +289,8 @@ def test_resumed_repair_stage_names_an_unreadable_saved_file(tmp_path):
     pairs.save(folder / "pairs.pt")
     torch.save(state, folder / "repairer.pt")
     stage = resume()
-    assert messages[:2] == [f"repair: loaded 2 pairs from {folder}", f"repair: loaded the fitted repairer from {folder}"]
+    assert messages[:2] == [f"repair: loaded 2 pairs from {folder}",
+                            f"repair: loaded the fitted repairer from {folder}"]
     assert stage.repair == config.repair and not hasattr(stage, "config")
 
     saved = (folder / "repairer.pt").read_bytes()
@@ -342,7 +343,8 @@ def test_the_fitted_repairer_is_saved_last_so_a_resume_finishes_what_a_failed_fi
     folder.mkdir()
     g = torch.Generator().manual_seed(0)
     RepairPairs(torch.rand(4, 16, 16, 3, generator=g), torch.rand(4, 16, 16, 3, generator=g),
-                [LEAVE_ONE_OUT, NOISE, LEAVE_ONE_OUT, NOISE], [0, 0, 1, 1], NoiseStatistics({}, {})).save(folder / "pairs.pt")
+                [LEAVE_ONE_OUT, NOISE, LEAVE_ONE_OUT, NOISE], [0, 0, 1, 1],
+                NoiseStatistics({}, {})).save(folder / "pairs.pt")
     (folder / "fit.json").mkdir()  # fit.json cannot be written (as on a full disk)
     coarse = SimpleNamespace(training_views=torch.zeros(0))
 

@@ -193,7 +193,8 @@ def _pairwise_sim3(viewmats_est: torch.Tensor, viewmats_ref: torch.Tensor) -> Si
 # off a line, poses otherwise exact, read 75 deg off), while the cameras' orientations still fix it (pairwise).
 # Above it the turn is fitted, but only as well as the estimate's centre errors against that spread allow: five
 # cameras over 4 units and 0.05 off their line, with exact orientations and centres 0.02 off per axis (0.5% of the
-# orbit radius), read 8 deg (median over noise draws). For such rigs (a slider with a little sag) ask for pairwise (`warpbags eval --pairwise`).
+# orbit radius), read 8 deg (median over noise draws). For such rigs (a slider with a little sag) ask for pairwise
+# (`warpbags eval --pairwise`).
 COLLINEAR_SPREAD = 1e-3
 
 

@@ -483,7 +483,8 @@ def _row(run_dir: Path, run: SweepRun, refine_iters: int) -> dict:
     iters = _lookup(report, path, refined, "iters") if refined in report else 0
     if iters != refine_iters:
         raise WarpbagsError(f"{path}: evaluated with {iters!r} test pose refinement iterations, not the sweep's "
-                            f"{refine_iters} (an earlier sweep with another --refine-iters, or `warpbags eval`); {_EVALUATE_AGAIN}")
+                            f"{refine_iters} (an earlier sweep with another --refine-iters, or `warpbags eval`); "
+                            f"{_EVALUATE_AGAIN}")
     images = _lookup(report, path, "images", "mean")
 
     def number(*keys: str) -> float | None:
