@@ -3,6 +3,11 @@
 from __future__ import annotations
 
 import math
+import signal
+import subprocess
+import sys
+import time
+from typing import Callable
 
 import pytest
 import torch
@@ -93,3 +98,16 @@ def textured_sphere_pair(size: int = 160) -> tuple[torch.Tensor, torch.Tensor, t
         images.append(torch.from_numpy(np.repeat(grey[..., None], 3, -1)))
         masks.append(hit.float())
     return torch.stack(images), torch.stack(masks), viewmats, K.expand(2, 3, 3).contiguous()
+
+
+def stopped_by_sigterm(arguments: list[str], ready: Callable[[], bool], timeout: float = 120) -> tuple[int, str]:
+    """Run `warpbags ARGUMENTS` in a process, send it SIGTERM (as `kill` does) once `ready()` holds (it is written
+    into its output folder), and return its (exit code, output)."""
+    process = subprocess.Popen([sys.executable, "-m", "warpbags.cli.main", *arguments], stdout=subprocess.PIPE,
+                               stderr=subprocess.STDOUT)
+    deadline = time.monotonic() + timeout
+    while not ready() and time.monotonic() < deadline:
+        time.sleep(0.05)
+    process.send_signal(signal.SIGTERM)
+    output = process.communicate(timeout=timeout)[0].decode()
+    return process.returncode, output

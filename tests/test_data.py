@@ -10,10 +10,8 @@ import math
 import os
 import re
 import shutil
-import signal
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import cv2
@@ -22,7 +20,7 @@ import pycolmap
 import pytest
 import torch
 from PIL import Image
-from conftest import look_at
+from conftest import look_at, stopped_by_sigterm
 from typer.testing import CliRunner
 from warpbags.cli.main import app
 
@@ -1438,14 +1436,9 @@ def test_synth_into_the_current_folder_and_a_write_that_fails_are_one_line(tmp_p
 
 def test_synth_stopped_by_sigterm_leaves_no_partial_scene(tmp_path):
     """The staging folder was removed on Ctrl-C only: SIGTERM's default ended the process with it half-written."""
-    process = subprocess.Popen([sys.executable, "-m", "warpbags.cli.main", "synth", str(tmp_path / "scene"),
-                                "--views", "400", "--size", "96"], stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
-    deadline = time.monotonic() + 120
-    while not list(tmp_path.glob(".scene.partial-*/images/*.png")) and time.monotonic() < deadline:
-        time.sleep(0.05)
-    process.send_signal(signal.SIGTERM)
-    output = process.communicate(timeout=120)[0].decode()
-    assert process.returncode == 143 and "stopped by SIGTERM" in output, output
+    code, output = stopped_by_sigterm(["synth", str(tmp_path / "scene"), "--views", "400", "--size", "96"],
+                                      lambda: any(tmp_path.glob(".scene.partial-*/images/*.png")))
+    assert code == 143 and "stopped by SIGTERM" in output, output
     assert list(tmp_path.iterdir()) == []
 
 

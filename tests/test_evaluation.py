@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from conftest import stopped_by_sigterm
 from typer.testing import CliRunner
 
 from warpbags.alignment import centre_floor_errors
@@ -508,22 +509,13 @@ def test_a_turntable_render_stopped_partway_leaves_the_earlier_one_and_frames_ar
 def test_a_turntable_render_stopped_by_sigterm_leaves_the_earlier_one(finished_run, tmp_path):
     """`kill` (SIGTERM) ended `warpbags render` at once, silently, leaving turntable.tmp.mp4 and the staged frames;
     it stops as Ctrl-C does: one line, exit 143, the earlier turntable kept."""
-    import signal
-    import subprocess
-    import time
-
     run = _copy_of(finished_run, tmp_path / "run")
     assert runner.invoke(app, ["render", str(run), "--frames", "3"]).exit_code == 0
     before = {path.name: path.read_bytes() for path in (run / "turntable").iterdir()}
     video = (run / "turntable.mp4").read_bytes()
-    process = subprocess.Popen([sys.executable, "-m", "warpbags.cli.main", "render", str(run), "--frames", "3600"],
-                               stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
-    deadline = time.monotonic() + 120
-    while not list(run.glob("turntable/.partial/frame_*.png")) and time.monotonic() < deadline:
-        time.sleep(0.05)
-    process.send_signal(signal.SIGTERM)
-    output = process.communicate(timeout=120)[0].decode()
-    assert process.returncode == 143 and "stopped by SIGTERM" in output, output
+    code, output = stopped_by_sigterm(["render", str(run), "--frames", "3600"],
+                                      lambda: any(run.glob("turntable/.partial/frame_*.png")))
+    assert code == 143 and "stopped by SIGTERM" in output, output
     assert {path.name: path.read_bytes() for path in (run / "turntable").iterdir()} == before
     assert (run / "turntable.mp4").read_bytes() == video and not list(run.glob("*.tmp*"))
 
