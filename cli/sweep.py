@@ -12,7 +12,7 @@ from rich.table import Table
 from warpbags.cli.common import clean_errors, parse_numbers, stdout
 from warpbags.cli.train_options import config_overrides
 from warpbags.configs.train import DEFAULT_PRESET
-from warpbags.errors import WarpbagsError
+from warpbags.errors import WarpbagsError, sigterm_stops
 from warpbags.sweep import RAY_INSTALL, SweepSpec, make_executor, run_sweep
 
 
@@ -59,7 +59,10 @@ def sweep(
                      views=tuple(parse_numbers(views, "--views", int, minimum=2)),  # a visual hull needs two
                      seeds=tuple(parse_numbers(seeds, "--seeds", int)),
                      trans_noise=trans_noise, preset=preset, overrides=overrides, device=device)
-    rows = run_sweep(spec, data_root=data_root, log=stdout.print, executor=sweep_executor)
+    # SIGTERM (kill, a job scheduler) stops the sweep as Ctrl-C does, between runs too: its lock and a run's
+    # unfinished start are removed; each run's training takes it itself (a checkpoint saved)
+    with sigterm_stops():
+        rows = run_sweep(spec, data_root=data_root, log=stdout.print, executor=sweep_executor)
     table = Table(title=f"sweep {scene}", title_justify="left")
     for column in ("method", "views", "noise", "seed", "rot init", "rot final", "PSNR", "PSNR refined"):
         table.add_column(column)

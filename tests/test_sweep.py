@@ -11,6 +11,7 @@ import shutil
 
 import pytest
 import torch
+from conftest import stopped_by_sigterm
 from typer.testing import CliRunner
 
 from warpbags.cli.main import app
@@ -424,3 +425,21 @@ def test_set_reaches_every_run_and_fields_the_sweep_sets_are_refused(tmp_path, m
         lines = [line for line in result.output.splitlines() if line.strip()]
         assert result.exit_code == 2 and len(lines) == 1 and message in lines[0], (items, result.output)
     assert len(specs) == 1 and not out.exists()
+
+
+def test_a_local_sweep_stopped_by_sigterm_leaves_its_runs_resumable_and_no_lock(scene, tmp_path):
+    """`kill` ended a local sweep at once, leaving `.sweep.lock` and, outside a run's training, a run folder holding
+    only its start's claim. It now stops as on Ctrl-C: exit 143, the lock gone, and the training run takes the signal
+    itself (the handler the sweep set is no one else's): it finishes its iteration and saves a checkpoint."""
+    out = tmp_path / "sweep"
+    first_run = out / "baseline-4v-rot5-seed0"
+
+    def checkpoints() -> list[int]:
+        return sorted(int(path.stem.removeprefix("checkpoint_")) for path in first_run.glob("**/checkpoint_*.pt"))
+
+    code, output = stopped_by_sigterm(["sweep", str(scene), "--rot-noises", "5", "--views", "4", "--iters", "400",
+                                       "--out", str(out)], ready=lambda: bool(checkpoints()))
+    assert code == 143 and "stopped by SIGTERM" in output, output
+    assert not (out / ".sweep.lock").exists()
+    assert checkpoints()[-1] % 100 != 0, checkpoints()  # the quick preset checkpoints every 100: one of the stop's
+    assert not (first_run / ".starting").exists()

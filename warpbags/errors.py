@@ -38,14 +38,21 @@ def raise_stopped(signum: int, frame) -> None:
     raise Stopped(signum)
 
 
+def sigterm_unclaimed() -> bool:
+    """Whether SIGTERM is still ours to take: its default (which ends the process at once) or `raise_stopped` (set by
+    an enclosing `sigterm_stops`, which a block inside may replace with a handler that stops more gently, as the
+    trainer's finishes its iteration and saves a checkpoint); never a handler of the caller's or of another library's
+    (a Ray worker's exits so that Ray retries its task)."""
+    handler = signal.getsignal(signal.SIGTERM)
+    return handler == signal.SIG_DFL or handler is raise_stopped
+
+
 @contextmanager
 def sigterm_stops() -> Iterator[None]:
     """In the block, SIGTERM (`kill`, a job scheduler) raises Stopped as Ctrl-C raises KeyboardInterrupt, so that
     the block's cleanup runs (its default ends the process at once); only where no other handler takes it, and on
     the main thread, the one Python delivers signals to."""
-    takes_it = (threading.current_thread() is threading.main_thread()
-                and signal.getsignal(signal.SIGTERM) == signal.SIG_DFL)
-    if not takes_it:
+    if threading.current_thread() is not threading.main_thread() or not sigterm_unclaimed():
         yield
         return
 

@@ -32,7 +32,7 @@ from warpbags.configs.train import (DEFAULT_PRESET, MAX_RENDER_THREADS, TrainCon
 from warpbags.data import Scene, open_scene
 from warpbags.data.splits import evaluation_views
 from warpbags.devices import checked_device_name, torch_device
-from warpbags.errors import WarpbagsError, raise_stopped
+from warpbags.errors import WarpbagsError, raise_stopped, sigterm_unclaimed
 from warpbags.evaluation import evaluate_run
 from warpbags.files import atomic_output, finite_json, missing_folders, writable_file, writable_folder
 from warpbags.report import SWEEP_FIGURES, plot_sweep
@@ -302,12 +302,12 @@ class RayExecutor:
         ray = _import_ray()
         started_here = not ray.is_initialized()
         previous = signal.getsignal(signal.SIGTERM)
+        unclaimed = sigterm_unclaimed()  # a handler of the caller's stays the caller's
         if started_here:
             self._connect(ray)
         # Ray's core worker installs a native handler that prints a stack dump and exits 1 on SIGTERM: the sweep
         # stops as a local one does instead (its runs resume; Ray is shut down; exit 143)
-        takes_sigterm = (started_here and threading.current_thread() is threading.main_thread()
-                         and previous == signal.SIG_DFL)  # a handler of the caller's stays the caller's
+        takes_sigterm = started_here and threading.current_thread() is threading.main_thread() and unclaimed
         if takes_sigterm:
             signal.signal(signal.SIGTERM, raise_stopped)
         try:

@@ -39,7 +39,7 @@ from warpbags.correspondences import find_view_matches
 from warpbags.data import open_scene, resolve_scene
 from warpbags.data.scene import Scene
 from warpbags.devices import torch_device
-from warpbags.errors import Stopped, WarpbagsError
+from warpbags.errors import Stopped, WarpbagsError, sigterm_unclaimed
 from warpbags.files import missing_folders, writable_folder
 from warpbags.model import Diverged, GaussianModel, TrainingViews, scene_extent
 from warpbags.repair import RepairStage, Repairer, repairer_factory
@@ -475,14 +475,14 @@ class Trainer:
         """Train until `stop_at` (default: all coarse and repair iterations) are done; returns the last record.
 
         Logs every iteration and records the poses every `warpbags.pose_history.RECORD_EVERY` iterations.
-        Checkpoints every `checkpoint_every` iterations, at the end of the coarse stage and at the end. With a
-        repair stage, the coarse result is also written to coarse/ as a run folder of its own. Ctrl-C (SIGINT), or
-        SIGTERM where no other handler takes it (`STOP_SIGNALS`), finishes the current iteration, saves a checkpoint
-        and raises KeyboardInterrupt. Divergence raises WarpbagsError. `callback(record)` is called after each
-        iteration. The round searched for view hypotheses (`camera.hypotheses_round`) trains as a whole: a `stop_at`
-        inside it stops at its start, Ctrl-C goes back to its start, only its end is checkpointed, and its iterations
-        are logged (and passed to `callback`) after the search, the trainer then at the round's end. A new run of
-        `start_or_resume` that fails (any exception, KeyboardInterrupt included) before its first checkpoint is
+        Checkpoints every `checkpoint_every` iterations, at the end of the coarse stage and at the end. With a repair
+        stage, the coarse result is also written to coarse/ as a run folder of its own. Ctrl-C (SIGINT), or SIGTERM
+        where no one else's handler takes it (`STOP_SIGNALS`, `sigterm_unclaimed`), finishes the current iteration,
+        saves a checkpoint and raises KeyboardInterrupt. Divergence raises WarpbagsError. `callback(record)` is called
+        after each iteration. The round searched for view hypotheses (`camera.hypotheses_round`) trains as a whole: a
+        `stop_at` inside it stops at its start, Ctrl-C goes back to its start, only its end is checkpointed, and its
+        iterations are logged (and passed to `callback`) after the search, the trainer then at the round's end. A new
+        run of `start_or_resume` that fails (any exception, KeyboardInterrupt included) before its first checkpoint is
         written removes the files it wrote, and the folders made for it: nothing half-written stays.
         """
         total = self.config.total_iters
@@ -491,9 +491,9 @@ class Trainer:
         previous_handlers = {}
         try:
             for stop_signal in STOP_SIGNALS:
-                # SIGTERM only where nothing else handles it: a Ray worker's handler exits so that Ray retries the
+                # SIGTERM only where no one else's handler takes it: a Ray worker's exits so that Ray retries the
                 # task, which then resumes from the last checkpoint
-                if stop_signal == signal.SIGINT or signal.getsignal(stop_signal) == signal.SIG_DFL:
+                if stop_signal == signal.SIGINT or sigterm_unclaimed():
                     previous_handlers[stop_signal] = signal.signal(stop_signal, self._request_stop)
         except ValueError:  # not the main thread: Ctrl-C is handled by the caller
             pass
