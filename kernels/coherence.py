@@ -19,11 +19,12 @@ from typing import Any
 
 import warp as wp
 
-# A point at or behind this depth in a view lies outside its silhouette cone, which opens in front of the camera:
-# it is charged BEHIND_CAMERA_DISTANCE (image sizes) for that view, as a pixel that far off the image would be (within
-# 0.2 deg of 90 deg off the axis at fields of view above 16 deg, 0.7 deg at 5 deg). Projected with a stand-in depth,
-# as `warpbags.cameras.project_points` does, it could land inside the mask and be charged nothing (an L-BFGS trial
-# step of the coherence solve, or a camera turned away from the object).
+# A point at or behind this depth has no image in a camera: `warpbags.cameras.project_points` gives it finite,
+# meaningless pixels (the host's projection and alignment read this threshold too). In a view, it lies outside the
+# silhouette cone, which opens in front of the camera: it is charged BEHIND_CAMERA_DISTANCE (image sizes) for that
+# view, as a pixel that far off the image would be (within 0.2 deg of 90 deg off the axis at fields of view above
+# 16 deg, 0.7 deg at 5 deg). Projected with a stand-in depth, it could land inside the mask and be charged nothing
+# (an L-BFGS trial step of the coherence solve, or a camera turned away from the object).
 MIN_DEPTH = 1.0e-6
 BEHIND_CAMERA_DISTANCE = 1.0e3
 

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import torch
 
+from warpbags.kernels.coherence import MIN_DEPTH  # points at or behind it have no image: one threshold, host and kernel
 from warpbags.lie import rotation_between
 
 __all__ = ["camera_centers", "improper_viewmats", "mean_viewmats", "moved_keeping_target", "pixel_directions",
@@ -51,8 +52,6 @@ def camera_centers(viewmats: torch.Tensor) -> torch.Tensor:
     return -(rotations.transpose(-1, -2) @ translations[..., None])[..., 0]
 
 
-# Points at or behind this depth have no image in a camera: `project_points` gives them finite, meaningless pixels.
-MIN_DEPTH = 1.0e-6
 
 
 def project_points(viewmats: torch.Tensor, Ks: torch.Tensor, points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
