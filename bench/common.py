@@ -137,18 +137,22 @@ def add_training_options(parser: argparse.ArgumentParser, set_help: str, json_he
 
 
 def training_overrides(args: argparse.Namespace, fixed: dict[str, str] | None = None,
-                       runs: Iterable[dict] = ({},)) -> dict[str, Any]:
-    """The `--set` settings of `args` as `load_preset` overrides, checked before any work.
+                       runs: Iterable[tuple[str, dict]] = ()) -> dict[str, Any]:
+    """The `--set` settings of `args` as `load_preset` overrides, checked before any work, and with them the settings
+    of every run the script will train: settings that clash (a variant's orbit with `--set
+    camera.parameterization=camera`) fail otherwise when that run starts, after the runs before it, and TrainConfig's
+    message names `warpbags train`'s options, not what the script chose.
 
     Args:
         args: parsed options with `preset` and `settings` (`add_training_options`).
         fixed: the fields the script sets itself ("name" or "group.name"), each with where its value comes from
             ("from --views"); a `--set` of one of them is an error instead of being ignored or clashing.
-        runs: the script's own settings of each kind of run, each validated merged over the overrides
-            (`merge_settings(overrides, run)`); the default validates the overrides alone.
+        runs: the script's own settings of each run, merged over the overrides (`merge_settings`), each labelled by
+            what chose them ("--variants frozen-orbit: its settings ...").
 
     Raises:
-        WarpbagsError: a malformed `--set`, one of `fixed`, an unknown preset or field, or a bad value.
+        WarpbagsError: a malformed `--set`, one of `fixed`, an unknown preset or field, or a bad value; for a run,
+            its label first, then the preset and overrides it was merged with.
     """
     overrides = parse_settings(args.settings)
     for name, source in (fixed or {}).items():
@@ -156,8 +160,13 @@ def training_overrides(args: argparse.Namespace, fixed: dict[str, str] | None = 
         settings = overrides.get(group, {}) if group else overrides
         if isinstance(settings, dict) and field in settings:
             raise WarpbagsError(f"--set {name}: this benchmark sets {name} itself ({source})")
-    for run in runs:
-        load_preset(args.preset, **merge_settings(overrides, run))
+    load_preset(args.preset, **overrides)
+    given = f"--preset {args.preset}" + (f" and --set {overrides}" if overrides else "")
+    for label, run in runs:
+        try:
+            load_preset(args.preset, **merge_settings(overrides, run))
+        except WarpbagsError as error:
+            raise WarpbagsError(f"{label} with {given}: {error}") from None
     return overrides
 
 

@@ -184,10 +184,12 @@ def main() -> None:
                                                 "seed": "from --seeds and --fit-seeds",
                                                 "pose_opt": "on to recover the poses, off for the fits",
                                                 "repair.iters": "0: no repair stage"},
-                                   runs=[dict(views=args.views),
-                                         *(dict(views=args.views, **recovery_settings(args.rot, args.trans, seed))
+                                   runs=[(f"--views {args.views}", dict(views=args.views)),
+                                         *((f"the pose recovery of --seeds {seed}",
+                                            dict(views=args.views, **recovery_settings(args.rot, args.trans, seed)))
                                            for seed in seeds),
-                                         *(dict(views=args.views, **fit_settings(seed)) for seed in fit_seeds)])
+                                         *((f"the fit of --fit-seeds {seed}",
+                                            dict(views=args.views, **fit_settings(seed))) for seed in fit_seeds)])
     scenes = {name: with_depth(open_bench_scene(name), args.depth) for name in args.scenes}
     check_view_counts(scenes, [args.views])
     for name, scene in scenes.items():

@@ -69,7 +69,8 @@ def main() -> None:
     overrides = training_overrides(args, fixed={"views": "from --views", "rot_noise_deg": "from --rot",
                                                 "trans_noise": "from --trans", "noise_seed": "from --noise-seeds",
                                                 "seed": "from --train-seeds", "repair.iters": "0: no repair stage"},
-                                   runs=[run_settings(views, args.rot, args.trans, noise_seed, seed)
+                                   runs=[(f"the run of --views {views}, noise seed {noise_seed}, training seed {seed}",
+                                          run_settings(views, args.rot, args.trans, noise_seed, seed))
                                          for views in view_counts for noise_seed in noise_seeds
                                          for seed in train_seeds])
     scenes = {name: with_depth(open_bench_scene(name), args.depth) for name in args.scenes}

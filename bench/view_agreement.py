@@ -91,8 +91,9 @@ def main() -> None:
     # a bad preset or setting fails before the first line of the table
     overrides = training_overrides(args, fixed={"views": "from --views", "max_image_size": "from --sizes",
                                                 "iters": "from --fit-iters", "rounds": "1", "pose_opt": "off"},
-                                   runs=[dict(views=args.views, max_image_size=size, iters=args.fit_iters, rounds=1,
-                                              pose_opt=False) for size in sizes])
+                                   runs=[(f"the fit at --sizes {size} and --fit-iters {args.fit_iters}",
+                                          dict(views=args.views, max_image_size=size, iters=args.fit_iters, rounds=1,
+                                               pose_opt=False)) for size in sizes])
     scenes = {name: with_depth(open_bench_scene(name), args.depth) for name in args.scenes}
     rows = []
     header = f"{'scene':<20} {'views':>5} {'px':>5} {'rot mean':>8} {'median':>7} {'max':>7} {'centre %':>8}  per view (deg)"

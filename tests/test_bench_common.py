@@ -40,8 +40,11 @@ def test_training_overrides_parses_and_validates_the_settings():
         training_overrides(_args("nosuchfield=1"))
     with pytest.raises(WarpbagsError, match="--preset"):
         training_overrides(_args(preset="nosuchpreset"))
-    with pytest.raises(WarpbagsError, match="views must be >= 2"):  # the script's own settings of a run, checked too
-        training_overrides(_args(), runs=[{"views": 1}])
+    with pytest.raises(WarpbagsError) as error:  # the script's own settings of a run, checked too, and named
+        training_overrides(_args("lambda_chamfer=3"), runs=[("fine", {"views": 4}),
+                                                            ("the run of --views 1", {"views": 1})])
+    assert str(error.value) == ("the run of --views 1 with --preset quick and --set {'lambda_chamfer': 3}: --views "
+                                "must be >= 2, got 1")
 
 
 def test_training_overrides_refuses_a_field_the_script_sets_itself():
