@@ -115,6 +115,32 @@ def test_colmap_model_round_trip(tmp_path, binary):
         np.testing.assert_array_equal(by_position[tuple(np.round(point, 9))], color)
 
 
+@pytest.mark.parametrize("stem", ["cameras", "images", "points3D", "rigs", "frames"])
+def test_a_binary_colmap_file_cut_short_or_run_on_is_named_before_pycolmap_reads_it(tmp_path, stem):
+    """pycolmap read on past the end of a file cut short (a count from beyond it: minutes, then MemoryError; or the
+    missing bytes as garbage); each file's entries are walked first, so the file and the byte are named at once."""
+    rng = np.random.default_rng(0)
+    write_model(tmp_path, ["a.png", "b c.png"], np.eye(4)[None].repeat(2, 0), np.eye(3)[None].repeat(2, 0), 8, 8,
+                rng.normal(size=(3, 3)), binary=True, distortions=np.array([[0.1, 0.0, 0.0, 0.0], [0.0] * 4]))
+    path = tmp_path / f"{stem}.bin"
+    data = path.read_bytes()
+    for cut in range(1, len(data) + 1):
+        path.write_bytes(data[:-cut])
+        with pytest.raises(WarpbagsError, match=f"^COLMAP model file {re.escape(str(path))} is cut short: it ends "
+                                                f"at byte {len(data) - cut}, within an entry"):
+            read_model(tmp_path)
+    path.write_bytes(data + b"\0")
+    with pytest.raises(WarpbagsError, match=f"^COLMAP model file {re.escape(str(path))} goes on after its last entry "
+                                            f"\\(byte {len(data)} of {len(data) + 1}\\)"):
+        read_model(tmp_path)
+    if stem == "cameras":  # a model id no camera model has: the size of its parameters is unknown
+        path.write_bytes(data[:12] + (99).to_bytes(4, "little") + data[16:])
+        with pytest.raises(WarpbagsError, match="camera 1 has unknown camera model id 99$"):
+            read_model(tmp_path)
+    path.write_bytes(data)
+    assert read_model(tmp_path).image_names == ["a.png", "b c.png"]
+
+
 # ---------------------------------------------------------------------------------------------------------------
 # maryrose (the shipped real capture, LLFF layout)
 

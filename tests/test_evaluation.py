@@ -412,10 +412,16 @@ def test_a_colmap_model_cut_short_is_one_line_and_leaves_the_earlier_export(fini
     assert result.exit_code == 2 and not (tmp_path / "fresh").exists()  # a new folder: nothing of it is left
 
 
-def test_a_binary_colmap_model_cut_short_is_named(tmp_path, monkeypatch):
-    _write_cut_short(monkeypatch, "points3D.bin", lambda data: len(data) - 3)
-    with pytest.raises(WarpbagsError, match=f"^the COLMAP model written to {re.escape(str(tmp_path))} is damaged"):
+@pytest.mark.parametrize("file_name, cut", [("points3D.bin", 3), ("points3D.bin", 20), ("images.bin", 30),
+                                             ("frames.bin", 1)])
+def test_a_binary_colmap_model_cut_short_is_named(tmp_path, monkeypatch, file_name, cut):
+    """pycolmap reads past a binary file's end: points3D.bin 3 bytes short took it 85 s to fail, 20 bytes short it
+    read back as complete (the missing bytes as garbage)."""
+    _write_cut_short(monkeypatch, file_name, lambda data: len(data) - cut)
+    with pytest.raises(WarpbagsError) as error:
         write_model(tmp_path, ["a.png"], np.eye(4)[None], np.eye(3)[None], 8, 8, np.zeros((2, 3)), binary=True)
+    assert str(error.value).startswith(f"the COLMAP model written to {tmp_path} is damaged (a full disk or a file-size "
+                                       f"limit?): COLMAP model file {tmp_path / file_name} is cut short"), error.value
 
 
 def test_exported_image_names_are_relative_to_one_image_folder_for_a_transforms_json_scene(finished_run, tmp_path):

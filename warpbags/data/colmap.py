@@ -9,6 +9,7 @@ never need it.
 from __future__ import annotations
 
 import signal
+import struct
 import threading
 from dataclasses import dataclass
 from pathlib import Path
@@ -117,19 +118,115 @@ def _read_reconstruction(model_dir: Path, extension: str) -> pycolmap.Reconstruc
     """The pycolmap reconstruction of `model_dir/*.{extension}` ("bin" or "txt").
 
     Raises:
-        WarpbagsError: pycolmap cannot read it, with the last line of its reason.
+        WarpbagsError: pycolmap cannot read it, with the last line of its reason; a binary file whose entries do
+            not end where it ends (`check_binary_layout`), named.
     """
     reconstruction = _pycolmap().Reconstruction()
     try:
         if extension == "bin":
+            for stem in BINARY_LAYOUTS:
+                if (model_dir / f"{stem}.bin").is_file():
+                    check_binary_layout(model_dir / f"{stem}.bin")
             reconstruction.read_binary(str(model_dir))
         else:
             reconstruction.read_text(str(model_dir))
-    except Exception as error:  # ValueError/RuntimeError with a multi-line C++ message; a .bin file cut short
-        # raises MemoryError (a count read from where the file ends) or IndexError
+    except WarpbagsError:
+        raise
+    except Exception as error:  # ValueError/RuntimeError with a multi-line C++ message
         reason = str(error).strip().splitlines()[-1] if str(error).strip() else type(error).__name__
         raise WarpbagsError(f"cannot read COLMAP model {model_dir}/*.{extension}: {reason}") from None
     return reconstruction
+
+
+class _Entries:
+    """A reader of a binary file's fields that says where the file ends too soon."""
+
+    def __init__(self, path: Path):
+        self.path, self.data, self.offset = path, path.read_bytes(), 0
+
+    def read(self, layout: struct.Struct) -> tuple:
+        return layout.unpack_from(self.data, self._advance(layout.size))
+
+    def skip(self, count: int, size: int) -> None:
+        self._advance(count * size)
+
+    def name(self) -> None:
+        """A NUL-terminated name."""
+        end = self.data.find(b"\0", self.offset)
+        self._advance(len(self.data) + 1 - self.offset if end < 0 else end + 1 - self.offset)
+
+    def _advance(self, size: int) -> int:
+        """Move past the next `size` bytes; returns where they start."""
+        start = self.offset
+        if start + size > len(self.data):
+            raise WarpbagsError(f"COLMAP model file {self.path} is cut short: it ends at byte {len(self.data)}, "
+                                f"within an entry that starts at byte {start} (a full disk or an interrupted copy?)")
+        self.offset += size
+        return start
+
+
+_COUNT, _CAMERA, _IMAGE = struct.Struct("<Q"), struct.Struct("<IiQQ"), struct.Struct("<I7dI")
+_POINT, _RIG, _SENSOR = struct.Struct("<Q3d3BdQ"), struct.Struct("<II"), struct.Struct("<iI")
+_RIG_SENSOR, _FRAME = struct.Struct("<iIB"), struct.Struct("<II7dI")
+
+
+def _walk_cameras(entries: _Entries) -> None:
+    for _ in range(entries.read(_COUNT)[0]):
+        camera_id, model_id = entries.read(_CAMERA)[:2]
+        try:
+            params = len(_pycolmap().Camera.create_from_model_id(camera_id, model_id, 1.0, 1, 1).params)
+        except (TypeError, ValueError):
+            raise WarpbagsError(f"COLMAP model file {entries.path}: camera {camera_id} has unknown camera model id "
+                                f"{model_id}") from None
+        entries.skip(params, 8)
+
+
+def _walk_images(entries: _Entries) -> None:
+    for _ in range(entries.read(_COUNT)[0]):
+        entries.read(_IMAGE)
+        entries.name()
+        entries.skip(entries.read(_COUNT)[0], 24)  # x, y, point3D_id
+
+
+def _walk_points3d(entries: _Entries) -> None:
+    for _ in range(entries.read(_COUNT)[0]):
+        entries.skip(entries.read(_POINT)[-1], 8)  # the track: image_id, point2D_idx
+
+
+def _walk_rigs(entries: _Entries) -> None:
+    for _ in range(entries.read(_COUNT)[0]):
+        sensors = entries.read(_RIG)[1]
+        if sensors > 0:
+            entries.read(_SENSOR)  # the reference sensor
+        for _ in range(sensors - 1):
+            if entries.read(_RIG_SENSOR)[2]:
+                entries.skip(7, 8)  # its pose in the rig
+
+
+def _walk_frames(entries: _Entries) -> None:
+    for _ in range(entries.read(_COUNT)[0]):
+        entries.skip(entries.read(_FRAME)[-1], 16)  # data ids: sensor type, sensor id, data id
+
+
+BINARY_LAYOUTS = {"rigs": _walk_rigs, "cameras": _walk_cameras, "frames": _walk_frames, "images": _walk_images,
+                  "points3D": _walk_points3d}
+"""The binary model files, each with a walk over its entries in COLMAP's layout (colmap/scene/
+reconstruction_io_binary.cc)."""
+
+
+def check_binary_layout(path: Path) -> None:
+    """Walk the entries of the COLMAP binary file `path` (a stem of `BINARY_LAYOUTS`): each must end within the
+    file, and the last where it ends. pycolmap reads on past a file's end without noticing: a file cut short took
+    it 85 s to fail (a count read from beyond the end) or read back as complete, the missing bytes as garbage.
+
+    Raises:
+        WarpbagsError: the file ends within an entry, or goes on after its last; the file and the byte named.
+    """
+    entries = _Entries(path)
+    BINARY_LAYOUTS[path.stem](entries)
+    if entries.offset != len(entries.data):
+        raise WarpbagsError(f"COLMAP model file {path} goes on after its last entry (byte {entries.offset} of "
+                            f"{len(entries.data)}): not a COLMAP binary model file, or a damaged one")
 
 
 def read_model(model_dir: Path) -> ColmapModel:
