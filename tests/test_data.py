@@ -503,6 +503,7 @@ def test_blender_test_views_are_never_chosen_for_training(synthetic_dir, tmp_pat
     # a fisheye or equirectangular camera was taken for a distorted pinhole (its images undistorted as one)
     ({"camera_model": "OPENCV_FISHEYE", "k1": 0.1}, "camera_model 'OPENCV_FISHEYE' is not one warpbags reads"),
     ({"camera_model": "EQUIRECTANGULAR"}, "camera_model 'EQUIRECTANGULAR' is not one warpbags reads"),
+    ({"is_fisheye": True, "k1": 0.1}, "a fisheye camera (is_fisheye true) is not one warpbags reads"),  # instant-ngp
 ])
 def test_transforms_json_intrinsics_that_are_no_numbers_are_one_line(synthetic_dir, tmp_path, fields, named):
     """A focal length, image size, principal point or distortion coefficient of a transforms.json frame that is no
@@ -532,6 +533,20 @@ def test_transforms_json_frames_that_name_no_image_or_one_twice_are_one_line(syn
     (folder / "transforms.json").write_text(json.dumps({"camera_angle_x": math.radians(SYNTHETIC.fov_deg),
                                                         "frames": frames}))
     _expect_error(folder, re.escape(f"{folder / 'transforms.json'}: {named}"))
+
+
+def test_an_instant_ngp_fisheye_is_refused_as_a_fisheye_camera_model_is(synthetic_dir, tmp_path):
+    """instant-ngp's colmap2nerf.py writes COLMAP's SIMPLE_RADIAL_FISHEYE and RADIAL_FISHEYE cameras as
+    "is_fisheye": true with k1 and k2, and no camera_model: they were read as distorted pinholes, their images
+    undistorted as such, silently. is_fisheye false is a pinhole's."""
+    folder = _strip_to_images(synthetic_dir, tmp_path / "instant-ngp")
+    fisheye = {"camera_angle_x": math.radians(SYNTHETIC.fov_deg), "is_fisheye": True, "k1": 0.05, "k2": 0.01}
+    _write_transforms(folder, SYNTHETIC, fisheye)
+    _expect_error(folder, re.escape(f"{folder / 'transforms.json'}: frame images/view_011.png: a fisheye camera "
+                                    "(is_fisheye true) is not one warpbags reads (OPENCV, PINHOLE, SIMPLE_PINHOLE, "
+                                    "SIMPLE_RADIAL, RADIAL; undistort the images first)"))
+    _write_transforms(folder, SYNTHETIC, {**fisheye, "is_fisheye": False, "k1": 0.0, "k2": 0.0})
+    assert load_scene(folder, normalize=False).num_views == 12
 
 
 def test_transforms_json_null_intrinsics_are_absent_ones(synthetic_dir, tmp_path):
@@ -790,8 +805,14 @@ def _palette_png(indices: np.ndarray, colours: list[tuple[int, int, int]], path:
         np.full((63, 64), 255, np.uint8), ((0, 1), (0, 0)), constant_values=254)])),
     lambda mask, image, path: cv2.imwrite(str(path), np.dstack([np.dstack([mask * 255] * 3),
                                                                  np.pad(np.full((60, 60), 255, np.uint8), 2)])),
+    # the colour of transparent pixels is not drawn: a black object on a canvas transparent white was its canvas,
+    # and a transparent white border around a black and white mask was object
+    lambda mask, image, path: cv2.imwrite(str(path), np.dstack([np.dstack([(1 - mask) * 255] * 3), mask * 255])),
+    lambda mask, image, path: cv2.imwrite(str(path), np.dstack([np.dstack([np.pad(mask[2:-2, 2:-2] * 255, 2,
+                                                                                  constant_values=255)] * 3),
+                                                                 np.pad(np.full((60, 60), 255, np.uint8), 2)])),
 ], ids=["cutout", "white-on-transparent", "grey-and-alpha", "16-bit-cutout", "opaque-alpha", "nearly-opaque-alpha",
-        "transparent-border"])
+        "transparent-border", "black-on-transparent-white", "transparent-white-border"])
 def test_a_mask_file_with_an_alpha_channel_is_read_by_its_alpha_where_that_marks_the_background(scene_copy, save):
     """A mask with an alpha channel was read by its colour: a white silhouette on transparency was the whole image,
     a cutout the object's bright pixels, silently. An alpha that marks no background, or the alpha of a mask drawn in
@@ -833,7 +854,11 @@ def test_palette_and_16_bit_0_255_masks_are_read_as_their_object(scene_copy, sav
      r"index 0 everywhere; in a palette PNG an index above 0 marks it"),
     (lambda mask, path: cv2.imwrite(str(path), np.dstack([np.full_like(mask, 255)] * 3 + [mask * 100])),
      r"its alpha channel, the mask in a file with one, is at most 100 of 255; more than half opaque"),
-], ids=["zeros", "8-bit-0-100", "16-bit-0-1000", "palette-index-0", "faint-alpha"])
+    # VOC's colour label (128, 0, 0) saved as RGB is grey 38, and which colour labels the object is not guessed
+    (lambda mask, path: cv2.imwrite(str(path), np.dstack([mask * 0, mask * 0, mask * 128])),
+     r"it is in colour \(its channels differ\) and read as grey its values are at most 38, under half of 255; a mask "
+     r"is grey: 0 around the object, 255 or 1 on it"),
+], ids=["zeros", "8-bit-0-100", "16-bit-0-1000", "palette-index-0", "faint-alpha", "colour-label"])
 def test_a_mask_without_object_is_named_by_the_values_it_holds(scene_copy, save, holds):
     """A mask without object was said to be "0 everywhere" whatever it held (a 16-bit mask of 0 / 1000, a palette
     PNG, an alpha channel): the error says what the file holds, and what marks the object in it."""
@@ -867,11 +892,12 @@ def test_images_and_calibration_of_another_shape_are_named(scene_copy):
 
 def test_an_alpha_channel_in_some_images_only_is_named_where_alphas_are_the_masks(scene_copy):
     path = scene_copy / "images" / "view_004.png"
-    image = cv2.imread(str(path))
-    cv2.imwrite(str(path), np.concatenate([image, np.full_like(image[..., :1], 255)], axis=2))
+    mask = cv2.imread(str(scene_copy / "masks" / "view_004.png"), cv2.IMREAD_GRAYSCALE)
+    cv2.imwrite(str(path), np.dstack([cv2.imread(str(path)), mask]))
     assert load_scene(scene_copy).masks is not None  # masks/ holds the masks: the alpha channels are not read
     shutil.rmtree(scene_copy / "masks")
-    _expect_error(scene_copy, r"image .*view_004.png has alpha channel, .*view_000.png has none")
+    _expect_error(scene_copy, r"image .*view_000.png has no alpha channel, .*view_004.png's cuts its object out: "
+                  r"give every image one or none")
 
 
 def _alphas_as_masks(scene: Path) -> np.ndarray:
@@ -903,6 +929,27 @@ def test_an_image_whose_alpha_channel_holds_no_object_is_named(scene_copy):
     image[..., 3] = 0
     cv2.imwrite(str(path), image)
     _expect_error(scene_copy, r"image .*view_003.png holds no object pixel at 64x64 \(.* is transparent everywhere")
+
+
+def test_image_alphas_opaque_everywhere_are_no_masks(scene_copy):
+    """RGBA exports, alpha 255 everywhere, without masks/: their alphas were masks of the whole frame, silently,
+    where a mask file's alpha opaque everywhere is no mask. They are none; beside alphas that cut the object out,
+    the first opaque one is named (its mask would be the whole frame)."""
+    _alphas_as_masks(scene_copy)
+    paths = sorted((scene_copy / "images").glob("*.png"))
+    for path in (paths[5], paths[3]):
+        image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+        image[..., 3] = 255
+        cv2.imwrite(str(path), image)
+    _expect_error(scene_copy, r"image .*view_003.png's alpha channel is opaque everywhere at 64x64 \(more than "
+                  r"half\), which says nothing of its object, where .*view_000.png's cuts its object out")
+    for path in paths:
+        image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+        image[..., 3] = 255
+        cv2.imwrite(str(path), image)
+    assert load_scene(scene_copy).masks is None
+    cv2.imwrite(str(paths[0]), cv2.imread(str(paths[0])))  # without an alpha channel, as opaque
+    assert load_scene(scene_copy).masks is None
 
 
 def test_a_mask_in_the_images_subfolder_wins_over_one_of_the_same_stem_at_the_top(scene_copy):
@@ -1048,6 +1095,15 @@ def test_zoe_depth_png_millimetres(scene_copy):
     assert scene.depths[3, 10, 10].item() == pytest.approx(1.503)
 
 
+def test_an_8_bit_zoe_depth_png_is_refused(scene_copy):
+    """An 8-bit PNG (a picture of the depths, as depth estimators also save) was read as depths of at most 255 mm."""
+    shutil.rmtree(scene_copy / "depths")
+    (scene_copy / "zoe_depth").mkdir()
+    for index in range(12):
+        cv2.imwrite(str(scene_copy / "zoe_depth" / f"view_{index:03d}.png"), np.full((64, 64), 150, np.uint8))
+    _expect_error(scene_copy, r"depth map .*view_000.png is not a single-channel 16-bit PNG")
+
+
 def test_missing_split_files_use_preset_then_farthest_point(scene_copy, caplog):
     for path in scene_copy.glob("sparse_*.txt"):
         path.unlink()
@@ -1181,6 +1237,27 @@ def test_mask_wrong_size(scene_copy):
     _expect_error(scene_copy, r"mask .*view_002.png is 70x50, its image is 64x64")
 
 
+@pytest.mark.parametrize("width, height", [(100, 80), (130, 130)])
+def test_a_jpeg_mask_of_a_wrong_size_is_named_by_its_own_size_as_a_png_is(scene_copy, width, height):
+    """A JPEG mask was checked after libjpeg decoded it at 1/2: 100 x 80 was named "50x40", and 130 x 130, for
+    images of 64 px, passed as 65 px (where the same PNG is refused)."""
+    path = scene_copy / "masks" / "view_002.png"
+    mask = cv2.resize(cv2.imread(str(path), cv2.IMREAD_GRAYSCALE), (width, height), interpolation=cv2.INTER_NEAREST)
+    cv2.imwrite(str(path.with_suffix(".jpg")), mask)
+    path.unlink()
+    _expect_error(scene_copy, rf"mask .*view_002.jpg is {width}x{height}, its image is 64x64")
+
+
+def test_masks_of_one_resolution_only_are_named_at_the_others(scene_copy):
+    """images/ and masks_2/ alone: the masks were read at resolution 2 and the scene had none at 1 or 4, silently."""
+    (scene_copy / "masks").rename(scene_copy / "masks_2")
+    assert load_scene(scene_copy, resolution=2).masks.shape == (12, 32, 32)
+    for resolution in (1, 4):
+        _expect_error(scene_copy, rf"no masks/ or masks_{resolution}/ folder in .*scene for resolution {resolution}, "
+                      r"only masks_2/ \(for --resolution 2\): read the scene at a resolution that has masks, or add "
+                      r"masks/", resolution=resolution)
+
+
 @pytest.mark.parametrize("lines", ["0\n3\n7\n", "0\n3\n3\n7\n", ""])
 def test_split_of_the_wrong_size_or_with_repeats(scene_copy, lines):
     (scene_copy / "sparse_4.txt").write_text(lines)
@@ -1190,6 +1267,15 @@ def test_split_of_the_wrong_size_or_with_repeats(scene_copy, lines):
 def test_split_index_out_of_range(scene_copy):
     (scene_copy / "sparse_4.txt").write_text("0\n3\n12\n7\n")
     _expect_error(scene_copy, r"sparse_4.txt:3: view index 12 out of range for 12 images")
+
+
+def test_split_files_with_a_byte_order_mark_are_read_and_other_encodings_named(scene_copy):
+    """Notepad's UTF-8 byte-order mark was "'\ufeff0' is not a view index", PowerShell's UTF-16 (its `>`) a
+    UnicodeDecodeError traceback."""
+    (scene_copy / "sparse_4.txt").write_text("0\n3\n5\n7\n", encoding="utf-8-sig")
+    assert load_scene(scene_copy).splits["4"] == [0, 3, 5, 7]
+    (scene_copy / "sparse_4.txt").write_text("0\n3\n5\n7\n", encoding="utf-16")
+    _expect_error(scene_copy, r"sparse_4.txt is not UTF-8 text \(PowerShell's > writes UTF-16\): save it as UTF-8")
 
 
 def test_unreadable_image(scene_copy):

@@ -178,15 +178,16 @@ def read_images(
 ) -> tuple[np.ndarray, np.ndarray | None, int, int]:
     """Read all images; resize those read at full size to 1/resolution. Returns images, alphas, width, height.
 
-    With `alpha_masks` (a scene without a mask folder) the images' alpha channels are their masks, so every image
-    must have one or none; without it the alphas are not kept (None).
+    With `alpha_masks` (a scene without a mask folder) the images' alpha channels are their masks where they mark
+    a background (`_masking_alphas`); without it, or where none does, the alphas are not kept (None).
 
     Raises:
         WarpbagsError: a missing or unreadable image, one of another size, or (with `alpha_masks`) an alpha
-            channel in some images only.
+            channel that marks a background in some images only.
     """
     images = alphas = None
     width = height = 0
+    has_alpha = []
     for index, (path, full_path) in enumerate(zip(files, full_paths)):
         reduction = resolution if path == full_path else 1  # a full-size file read for a downsampled folder
         image = read_image(path, reduction)
@@ -199,20 +200,43 @@ def read_images(
         if images is None:
             height, width = image.shape[:2]
             images = np.empty((len(files), height, width, 3), dtype=np.float32)
-            if alpha_masks and image.shape[2] == 4:
-                alphas = np.empty((len(files), height, width), dtype=np.float32)
         if image.shape[:2] != (height, width):
             raise WarpbagsError(
                 f"image {path} is {image.shape[1]}x{image.shape[0]}, the others are {width}x{height}"
             )
-        if alpha_masks and (image.shape[2] == 4) != (alphas is not None):  # a mask each, or none
-            raise WarpbagsError(f"image {path} {'has' if image.shape[2] == 4 else 'has no'} alpha channel, "
-                                f"{files[0]} {'has none' if alphas is None else 'has one'}: give every image one or "
-                                "none (masks/ holds masks otherwise)")
         images[index] = image[:, :, :3]
-        if alphas is not None:
+        has_alpha.append(image.shape[2] == 4)
+        if alpha_masks and has_alpha[-1]:
+            if alphas is None:  # an image without an alpha channel is opaque everywhere
+                alphas = np.ones((len(files), height, width), dtype=np.float32)
             alphas[index] = image[:, :, 3]
+    if alphas is not None:
+        alphas = _masking_alphas(alphas, files, has_alpha)
     return images, alphas, width, height
+
+
+def _masking_alphas(alphas: np.ndarray, files: list[Path], has_alpha: list[bool]) -> np.ndarray | None:
+    """The images' alpha channels `alphas` (1 for the images `files` where `has_alpha` is false), where they are the
+    scene's masks: None where none marks a background (an alpha more than half opaque everywhere, as an RGBA export
+    holds, says nothing of the object, as in a mask file), else `alphas`.
+
+    Raises:
+        WarpbagsError: some mark a background and an image has no alpha channel or one that marks none, named: its
+            mask would be the whole frame.
+    """
+    marks_background = [not np.all(alpha > 0.5) for alpha in alphas]  # `masks_from_alphas`' object is > 0.5
+    if not any(marks_background):
+        return None
+    if all(marks_background):
+        return alphas
+    silent, marking = marks_background.index(False), marks_background.index(True)
+    height, width = alphas.shape[1:]
+    if not has_alpha[silent]:
+        raise WarpbagsError(f"image {files[silent]} has no alpha channel, {files[marking]}'s cuts its object out: "
+                            "give every image one or none (masks/ holds masks otherwise)")
+    raise WarpbagsError(f"image {files[silent]}'s alpha channel is opaque everywhere at {width}x{height} (more than "
+                        f"half), which says nothing of its object, where {files[marking]}'s cuts its object out: cut "
+                        "out every image's object, or none (masks/ holds masks otherwise)")
 
 
 def _shared_stems(names: list[str]) -> set[str]:
@@ -266,36 +290,52 @@ def _missing(what: str, folder: Path, name: str, extensions: str, stem_shared: b
                          f"{relative.stem} is taken for none of them)")
 
 
-def _resize_to(array: np.ndarray, width: int, height: int, path: Path, what: str, nearest: bool) -> np.ndarray:
-    """Accept `array` at (width, height), at an integer multiple of it (another resolution) or at a full size that
-    a downsampled read rounds to it (`read_images`: 33 px read at 1/2 is 16 px); else raise."""
-    found_height, found_width = array.shape[:2]
+def _require_size(found_width: int, found_height: int, width: int, height: int, path: Path, what: str) -> None:
+    """Accept a `what` (a mask, a depth map) of found_width x found_height for an image of width x height: the same
+    size, an integer multiple of it (another resolution) or a full size that a downsampled read rounds to it
+    (`read_images`: 33 px read at 1/2 is 16 px).
+
+    Raises:
+        WarpbagsError: any other size, named with the file's.
+    """
     if (found_width, found_height) == (width, height):
-        return array
+        return
     factor_x, factor_y = found_width / width, found_height / height
     same_aspect = abs(factor_x - factor_y) <= 0.02 * factor_x and factor_x >= 1.0
     rounded = any((round(found_width / factor), round(found_height / factor)) == (width, height)
                   for factor in FACTORS[1:])
     if not rounded and (not same_aspect or abs(factor_x - round(factor_x)) > 0.02):
         raise WarpbagsError(f"{what} {path} is {found_width}x{found_height}, its image is {width}x{height}")
+
+
+def _resize_to(array: np.ndarray, width: int, height: int, path: Path, what: str, nearest: bool) -> np.ndarray:
+    """`array` at (width, height), resized from a size `_require_size` accepts (else it raises)."""
+    found_height, found_width = array.shape[:2]
+    _require_size(found_width, found_height, width, height, path, what)
+    if (found_width, found_height) == (width, height):
+        return array
     interpolation = cv2.INTER_NEAREST if nearest else cv2.INTER_AREA
     return cv2.resize(array, (width, height), interpolation=interpolation)
 
 
-def _read_mask(path: Path, width: int) -> tuple[np.ndarray, str]:
-    """The mask file at `path` as float32 levels in [0, 1], half and above the object, and what it holds where it
-    holds no object (for the error). The levels are, in turn: its alpha channel where that marks a background (some
-    pixel under half opaque) and its colour is not a black-and-white mask itself (`_two_level`): an RGBA cutout of
-    the photograph, a silhouette on transparency (an alpha opaque everywhere, as editors save one, or a black and
-    white mask on a transparent canvas is read by its colour); the indices of a palette PNG whose index 0 is black
-    and whose colours are not all greys (DAVIS and VOC style: index 1, coloured (128, 0, 0), is the object); else
-    its grey levels (`_grey_levels`). A JPEG at 2, 4 or 8 times `width` is decoded at that reduction.
+def _read_mask(path: Path, width: int, height: int) -> tuple[np.ndarray, str]:
+    """The mask file at `path`, for an image of `width` x `height`, as float32 levels in [0, 1], half and above the
+    object, and what it holds where it holds no object (for the error). The levels are, in turn: its alpha channel
+    where that marks a background (some pixel under half opaque) and its colour where opaque is not a
+    black-and-white mask itself (`_two_level`): an RGBA cutout of the photograph, a silhouette on transparency (an
+    alpha opaque everywhere, as editors save one, or a black and white mask on a transparent canvas is read by its
+    colour, the transparent pixels background whatever their colour); the indices of a palette PNG whose index 0 is
+    black and whose colours are not all greys (DAVIS and VOC style: index 1, coloured (128, 0, 0), is the object);
+    else its grey levels (`_grey_levels`). A JPEG at 2, 4 or 8 times `width` is decoded at that reduction.
 
     Raises:
-        WarpbagsError: the file cannot be read or decoded.
+        WarpbagsError: the file cannot be read or decoded, or is a JPEG of a size `_require_size` refuses.
     """
     if path.suffix.lower() in JPEG_EXTENSIONS:  # no alpha channel nor palette
         full_width, full_height = image_size(path)
+        # held to the rules of any mask's size before a reduced decode, which would pass 130 px at 1/2 as 65 px for
+        # a 64 px image (where a 130 px PNG is refused) and name its reduced size for one of a wrong size
+        _require_size(full_width, full_height, width, height, path, "mask")
         reduction = round(full_width / width)
         # libjpeg's reduced decode is ceil(size / reduction), the images round(size / reduction): a mask whose sides
         # do not divide is decoded whole and resized as they are (`_resize_to`)
@@ -313,14 +353,19 @@ def _read_mask(path: Path, width: int) -> tuple[np.ndarray, str]:
     grey = cv2.cvtColor(mask[..., :3], cv2.COLOR_BGR2GRAY) if mask.ndim == 3 else mask
     if mask.ndim == 3 and mask.shape[2] == 4:
         alpha, scale = mask[..., 3], np.iinfo(mask.dtype).max
-        if alpha.min() < scale / 2 and not _two_level(grey):
-            return alpha.astype(np.float32) / scale, (f"its alpha channel, the mask in a file with one, is at most "
-                                                      f"{alpha.max()} of {scale}; more than half opaque marks the "
-                                                      "object")
+        if alpha.min() < scale / 2:
+            # the colour of a transparent pixel is not drawn (editors keep any there, white as often as black): a
+            # black object on a transparent white canvas read by its colour was its background
+            opaque = alpha >= scale / 2
+            if not _two_level(grey[opaque]):
+                return alpha.astype(np.float32) / scale, (f"its alpha channel, the mask in a file with one, is at "
+                                                          f"most {alpha.max()} of {scale}; more than half opaque "
+                                                          "marks the object")
+            grey = np.where(opaque, grey, 0).astype(grey.dtype)
     indices = _palette_indices(data, path)
     if indices is not None:
         return (indices > 0).astype(np.float32), "index 0 everywhere; in a palette PNG an index above 0 marks it"
-    return _grey_levels(grey)
+    return _grey_levels(grey, in_colour=mask.ndim == 3 and bool(np.any(mask[..., :3] != mask[..., :1])))
 
 
 def _palette_indices(data: bytes, path: Path) -> np.ndarray | None:
@@ -358,22 +403,38 @@ def _two_level(grey: np.ndarray) -> bool:
     return bool(dark.any() and bright.any() and grey.size - np.count_nonzero(dark | bright) <= 0.02 * grey.size)
 
 
-def _grey_levels(mask: np.ndarray) -> tuple[np.ndarray, str]:
+def _grey_levels(mask: np.ndarray, in_colour: bool = False) -> tuple[np.ndarray, str]:
     """A grey mask's levels in [0, 1], and what it holds where it holds no object (`_read_mask`). The full scale is
     the least of 1, 255 and 65535 that its values reach up to: a 0 / 1 mask (as some segmentation tools save them),
-    0 / 255 also in a 16-bit file, 0 / 65535."""
+    0 / 255 also in a 16-bit file, 0 / 65535. `in_colour`: `mask` is the grey of a file in colour, said in the
+    error, as a label image saved in colour (VOC's object (128, 0, 0) is grey 38) holds no object by its grey, and
+    which colour labels the object is not guessed."""
     top = int(mask.max())
     scale = next(level for level in (1, 255, 65535) if top <= level)
     marks = "65535, 255 or 1" if mask.dtype == np.uint16 else "255 or 1"
     holds = "0 everywhere" if top == 0 else f"its values are at most {top}, under half of {scale}"
+    if in_colour:
+        return mask.astype(np.float32) / scale, (f"it is in colour (its channels differ) and read as grey {holds}; a "
+                                                 f"mask is grey: 0 around the object, {marks} on it")
     return mask.astype(np.float32) / scale, f"{holds}; {marks} marks the object"
 
 
 def mask_folder(root: Path, resolution: int) -> Path | None:
-    """The scene's mask folder: `masks_{resolution}/`, else `masks/`; None without either."""
+    """The scene's mask folder: `masks_{resolution}/`, else `masks/`; None without either.
+
+    Raises:
+        WarpbagsError: neither, but a `masks_{factor}/` of another resolution, whose masks are of that resolution
+            alone: read at this one, the scene had no masks, silently.
+    """
     for folder in (root / f"masks_{resolution}", root / "masks"):
         if folder.is_dir():
             return folder
+    others = [factor for factor in FACTORS if factor != resolution and (root / f"masks_{factor}").is_dir()]
+    if others:
+        found = ", ".join(f"masks_{factor}/ (for --resolution {factor})" for factor in others)
+        raise WarpbagsError(f"no masks/ or masks_{resolution}/ folder in {root} for resolution {resolution}, only "
+                            f"{found}: read the scene at a resolution that has masks, or add masks/ (full-size "
+                            "masks serve every resolution)")
     return None
 
 
@@ -383,7 +444,8 @@ def read_masks(root: Path, names: list[str], width: int, height: int, resolution
     them, 0 / 1; or the object as its alpha channel, or as the indices above 0 of a palette PNG (`_read_mask`).
 
     Raises:
-        WarpbagsError: a mask missing, unreadable, of another size than its image, or without any object pixel.
+        WarpbagsError: a mask missing, unreadable, of another size than its image, or without any object pixel; or
+            a mask folder of another resolution only (`mask_folder`).
     """
     folder = mask_folder(root, resolution)
     if folder is None:
@@ -395,7 +457,7 @@ def read_masks(root: Path, names: list[str], width: int, height: int, resolution
         path = _find_by_stem(folder, name, IMAGE_EXTENSIONS, stem_shared)
         if path is None:
             raise _missing("mask", folder, name, ".png or .jpg", stem_shared)
-        levels, holds = _read_mask(path, width)
+        levels, holds = _read_mask(path, width, height)
         masks[index] = _resize_to(levels, width, height, path, "mask", nearest=False) >= 0.5
         if not masks[index].any() and np.any(levels >= 0.5):
             raise WarpbagsError(f"mask {path} holds no object pixel at {width}x{height} (its object is smaller than "
@@ -424,7 +486,12 @@ def masks_from_alphas(alphas: np.ndarray, files: list[Path]) -> np.ndarray:
 
 
 def read_depths(root: Path, names: list[str], width: int, height: int) -> tuple[np.ndarray | None, str | None]:
-    """`depths/*.npy` (scene units) or `zoe_depth/*.png` (16-bit millimetres, monocular: relative)."""
+    """`depths/*.npy` (scene units) or `zoe_depth/*.png` (16-bit millimetres, monocular: relative).
+
+    Raises:
+        WarpbagsError: a depth map missing, of another shape or size than its image, or a `zoe_depth` PNG that is
+            not single-channel 16-bit.
+    """
     shared_stems = _shared_stems(names)
     for folder, extension, units in ((root / "depths", ".npy", "scene"), (root / "zoe_depth", ".png", "relative")):
         if not folder.is_dir():
@@ -439,7 +506,9 @@ def read_depths(root: Path, names: list[str], width: int, height: int) -> tuple[
                 depth = read_array(path, "depth map").astype(np.float32)
             else:
                 raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-                if raw is None or raw.ndim != 2:
+                # an 8-bit PNG is a picture of the depths (estimators save one beside the map): its levels are no
+                # millimetres
+                if raw is None or raw.ndim != 2 or raw.dtype != np.uint16:
                     raise WarpbagsError(f"depth map {path} is not a single-channel 16-bit PNG")
                 depth = raw.astype(np.float32) / 1000.0
             depth = np.squeeze(depth)

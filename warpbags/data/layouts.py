@@ -183,8 +183,12 @@ def transforms_cameras(root: Path) -> LayoutCameras:
         camera_to_world = np.vstack([camera_to_world[:3], [0, 0, 0, 1]]) @ OPENGL_TO_OPENCV
         number = functools.partial(_frame_number, path, name, merged)
         model = merged.get("camera_model") or "OPENCV"  # nerfstudio's default; null as absent, as for every field
-        if model not in TRANSFORMS_CAMERA_MODELS:
-            raise WarpbagsError(f"{path}: frame {name}: camera_model {model!r} is not one warpbags reads "
+        # instant-ngp marks a fisheye by is_fisheye alone (colmap2nerf.py writes it, with k1 and k2, for COLMAP's
+        # SIMPLE_RADIAL_FISHEYE and RADIAL_FISHEYE): read as a pinhole's k1 and k2, they undistort its images wrongly
+        if model not in TRANSFORMS_CAMERA_MODELS or merged.get("is_fisheye") is True:
+            camera = (f"camera_model {model!r}" if model not in TRANSFORMS_CAMERA_MODELS
+                      else "a fisheye camera (is_fisheye true)")
+            raise WarpbagsError(f"{path}: frame {name}: {camera} is not one warpbags reads "
                                 f"({', '.join(TRANSFORMS_CAMERA_MODELS)}; undistort the images first)")
         if merged.get("w") is None or merged.get("h") is None:
             width, height = image_size(image_path)

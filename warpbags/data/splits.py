@@ -16,9 +16,20 @@ TEST_EVERY = 8
 
 
 def read_split_file(path: Path, num_views: int) -> list[int]:
-    """0-based view indices, one per line (blank lines ignored)."""
+    """0-based view indices, one per line (blank lines ignored), in UTF-8 text with or without the byte-order mark
+    Notepad writes.
+
+    Raises:
+        WarpbagsError: text of another encoding (PowerShell's `>` writes UTF-16), a line that is no view index, or
+            an index out of range.
+    """
+    try:
+        text = path.read_text(encoding="utf-8-sig")
+    except UnicodeDecodeError:
+        raise WarpbagsError(f"{path} is not UTF-8 text (PowerShell's > writes UTF-16): save it as UTF-8, one view "
+                            "index a line") from None
     indices = []
-    for line_number, line in enumerate(path.read_text().splitlines(), start=1):
+    for line_number, line in enumerate(text.splitlines(), start=1):
         if not line.strip():
             continue
         try:
