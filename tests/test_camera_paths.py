@@ -82,3 +82,21 @@ def test_cameras_between_neighbours_on_a_ring_look_at_the_object():
         to_object = (between[:, :3, :3] @ -camera_centers(between)[..., None])[..., 0]
         off_axis = torch.rad2deg(torch.atan2(to_object[:, :2].norm(dim=-1), to_object[:, 2]))
         assert off_axis.max() < 1e-6, (count, off_axis)
+
+
+def test_a_turntable_turns_about_the_object_centre_it_is_given():
+    """Cameras around an object 0.9 units off the origin (a run trained from noisy poses puts its Gaussians off it):
+    the turntable turned about the origin, and the object swung across the frames. About the object's centre, every
+    frame sees it where camera 0 does, from camera 0's distance and height."""
+    from conftest import look_at
+
+    center = torch.tensor([0.5, -0.6, 0.4], dtype=F64)
+    eyes = [center + torch.tensor([4 * math.cos(a), 4 * math.sin(a), 1.5], dtype=F64) for a in (0.3, 1.9, 3.6, 5.0)]
+    viewmats = torch.stack([look_at(eye, center) for eye in eyes])
+    turntable = turntable_viewmats(viewmats, 8, center)
+    torch.testing.assert_close(turntable[0], viewmats[0], rtol=0, atol=1e-12)
+    seen = turntable[:, :3, :3] @ center + turntable[:, :3, 3]  # the centre in each frame's camera axes
+    torch.testing.assert_close(seen, seen[:1].expand(8, 3), rtol=0, atol=1e-12)
+    offsets = camera_centers(turntable) - center
+    torch.testing.assert_close(offsets[:, 2], torch.full((8,), 1.5, dtype=F64))  # world z up: at camera 0's height
+    torch.testing.assert_close(offsets[4, :2], -offsets[0, :2])  # half a turn later: the opposite side

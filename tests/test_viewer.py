@@ -32,7 +32,7 @@ from warpbags.viewer import Viewer, load_viewer_content
 from warpbags.viewer.content import THUMBNAIL_SIDE
 from warpbags.viewer.render import (MIN_SCALE, ClientRenderer, camera_to_world, next_scale, pinhole_intrinsics,
                                     world_to_camera)
-from warpbags.viewer.server import FRUSTUM_LABELS
+from warpbags.viewer.server import FRUSTUM_LABELS, page_url
 
 runner = CliRunner()
 ITERS, RECORD_EVERY = 8, 2
@@ -458,6 +458,34 @@ def test_view_takes_a_port_a_stopped_viewer_left_in_time_wait():
     client.close()
     listener.close()
     assert server.listen_port("127.0.0.1", port) == port
+
+
+def test_the_address_shown_for_an_ipv6_host_opens_the_page(run_dir):
+    """`--host ::1` printed http://::1:8391 and `--host ::` http://:::8391, neither an address a browser opens: an IPv6
+    address goes in brackets, and "::" (every interface) is shown as IPv6's loopback, as "0.0.0.0" is as localhost
+    (not as localhost too: a server on "::" listens on IPv6 alone, and localhost may be 127.0.0.1 alone)."""
+    import socket
+    import urllib.request
+
+    assert page_url("0.0.0.0", 8391) == "http://localhost:8391"
+    assert page_url("127.0.0.1", 8391) == "http://127.0.0.1:8391"
+    assert page_url("::1", 8391) == "http://[::1]:8391"
+    assert page_url("::", 8391) == "http://[::1]:8391"
+    assert page_url("fd00::5", 8391) == "http://[fd00::5]:8391"
+    try:
+        with socket.socket(socket.AF_INET6) as probe:
+            probe.bind(("::1", 0))
+    except OSError:
+        pytest.skip("no IPv6 loopback on this machine")
+    content = load_viewer_content(run_dir, log=lambda message: None)
+    for host in ("::1", "::"):
+        viewer = Viewer(content, host=host, port=0, device="cpu")
+        try:
+            assert viewer.url == f"http://[::1]:{viewer.server.get_port()}"
+            with urllib.request.urlopen(viewer.url, timeout=30) as page:
+                assert page.status == 200 and b"<html" in page.read().lower()
+        finally:
+            viewer.stop()
 
 
 @pytest.mark.parametrize("case", ["missing", "no_ply", "not_ply"])

@@ -1,7 +1,8 @@
 """Camera paths around an object: the cameras' mean up axis, turntables, azimuth order, in-between cameras.
 
 Used for rendered videos (turntable) and the repair stage's pseudo views (cameras between neighbouring training
-cameras). Every path turns about the world origin, the object centre of a normalized scene. Poses follow
+cameras). The turntable turns about a given object centre (`warpbags render`: the Gaussians'); the azimuth order and
+the in-between cameras about the world origin, the object centre of a normalized scene at its true poses. Poses follow
 `warpbags.cameras`' conventions.
 """
 
@@ -45,23 +46,29 @@ def mean_up_axis(viewmats: torch.Tensor) -> torch.Tensor:
     return up if (looking_down if looking_down.abs() > 1e-3 else above) >= 0 else -up
 
 
-def turntable_viewmats(viewmats: torch.Tensor, frames: int) -> torch.Tensor:
-    """A turntable of `frames` cameras: camera 0 of `viewmats` orbited about the cameras' mean up axis.
+def turntable_viewmats(viewmats: torch.Tensor, frames: int, center: torch.Tensor | None = None) -> torch.Tensor:
+    """A turntable of `frames` cameras: camera 0 of `viewmats` orbited about the cameras' mean up axis through
+    `center`.
 
-    The up axis is the cameras' common up (`mean_up_axis`); the rotation is about the line through the origin.
+    The up axis is the cameras' common up (`mean_up_axis`). Each camera keeps camera 0's view of `center`, so the
+    object stays where camera 0 sees it: the Gaussians of a run trained from noisy poses lie away from the origin (0.4
+    units on maryrose from 15 deg / 0.3), and an orbit about the origin swung them across the frame and out of it.
 
     Args:
         viewmats: [C, 4, 4] world-to-camera matrices (e.g. the training cameras).
         frames: number of views, evenly spaced over 360 degrees.
+        center: [3] the point the orbit turns about (e.g. `gaussians.opacity_weighted_center`); None: the origin.
 
     Returns:
         [frames, 4, 4] world-to-camera matrices; frame 0 is camera 0.
     """
     up = mean_up_axis(viewmats)
+    center = torch.zeros_like(up) if center is None else center.to(up)
     angles = torch.arange(frames, dtype=viewmats.dtype, device=viewmats.device) * (2 * math.pi / frames)
     world_turn = so3_exp(angles[:, None] * up)  # [F, 3, 3] turns the world; the camera orbits the other way
     turn = torch.eye(4, dtype=viewmats.dtype, device=viewmats.device).repeat(frames, 1, 1)
     turn[:, :3, :3] = world_turn
+    turn[:, :3, 3] = center - world_turn @ center  # x -> R (x - c) + c: the turn about the line through c
     return viewmats[0] @ turn
 
 

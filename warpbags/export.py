@@ -25,7 +25,7 @@ from warpbags.data.layouts import read_layout_cameras, scaled_intrinsics
 from warpbags.errors import WarpbagsError
 from warpbags.files import (atomic_output, missing_folders, temporary_name, writable_file, writable_folder,
                             write_image)
-from warpbags.gaussians import render_gaussians, sh_degree_of, to_source_frame, write_ply
+from warpbags.gaussians import opacity_weighted_center, render_gaussians, sh_degree_of, to_source_frame, write_ply
 from warpbags.kernels.sh import SH_C0
 from warpbags.run_folder import TrainingRun, load_run, require_info, run_normalization
 from warpbags.threads import torch_threads
@@ -259,7 +259,8 @@ def turntable_frame_name(index: int) -> str:
 def render_turntable(path: str | Path, frames: int = 36, video: bool = True) -> Path:
     """Novel views on a full orbit of the object: `<run>/turntable/frame_XXXX.png` and, with `video`,
     `<run>/turntable.mp4` (OpenCV, mp4v, 12 fps; without it, an earlier render's video is removed). The orbit
-    starts at training camera 0 and turns about the training cameras' common up axis through the object centre.
+    starts at training camera 0 and turns about the training cameras' common up axis through the Gaussians'
+    opacity-weighted centre, where `warpbags view` first looks (a model trained from noisy poses lies off the origin).
 
     The frames are rendered `TURNTABLE_BATCH` at a time into a staging folder and replace an earlier render's only
     when all are written (the video likewise, once it opens as a video of all frames): a render stopped or failed
@@ -281,7 +282,7 @@ def render_turntable(path: str | Path, frames: int = 36, video: bool = True) -> 
     video_path = run.path / "turntable.mp4"
     if video or video_path.exists():  # written, or removed as stale (an earlier render's shows other frames)
         writable_file(video_path, "to write the turntable video to")
-    viewmats = turntable_viewmats(run.poses_final, frames).float()
+    viewmats = turntable_viewmats(run.poses_final, frames, opacity_weighted_center(run.params)).float()
     Ks = run.intrinsics[0].float().expand(frames, 3, 3).contiguous()
     backgrounds = torch.tensor(run.config.background_rgb).expand(frames, 3).contiguous()  # as trained and viewed
     out.mkdir(exist_ok=True)

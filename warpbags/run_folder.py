@@ -167,21 +167,31 @@ class RunFolder:
         array = read_array(path, "camera file").astype(np.float64)
         return checked_cameras(path, array, intrinsics=name == "intrinsics")
 
-    def read_cameras(self) -> dict[str, np.ndarray | None]:
+    def read_cameras(self, info: dict | None = None) -> dict[str, np.ndarray | None]:
         """Every camera file of the run (`CAMERA_ARRAYS`: the poses and intrinsics.npy) by name, each checked
-        (`read_array`; None for a missing one) and all checked to hold the same cameras: what every reader of a run's
-        cameras (`load_run`, the viewer) reads them through.
+        (`read_array`; None for a missing one) and all checked to hold the same cameras as each other and as
+        config.json's (or `info`'s, config.json already read) image_names: what every reader of a run's cameras
+        (`load_run`, the viewer) reads them through.
 
         Raises:
-            WarpbagsError: one cannot be read, is malformed, or holds another number of cameras than poses_final.npy
-                (the first present one of `CAMERA_ARRAYS`), named.
+            WarpbagsError: config.json or a camera file cannot be read, a camera file is malformed, or one of them
+                or config.json's image_names holds another number of cameras than poses_final.npy (the first present
+                one of `CAMERA_ARRAYS`), named.
         """
+        info = self.read_info() if info is None else info
         arrays = {name: self.read_array(name) for name in CAMERA_ARRAYS}
         present = [name for name in CAMERA_ARRAYS if arrays[name] is not None]
         for name in present[1:]:
             if len(arrays[name]) != len(arrays[present[0]]):
                 raise WarpbagsError(f"{self.path / f'{name}.npy'} holds {len(arrays[name])} cameras, the run's poses "
                                     f"{len(arrays[present[0]])} ({present[0]}.npy)")
+        # the views' names go with the cameras by position (the viewer's pictures, export's COLMAP model, eval's
+        # held-out split): a list of another length crashed the viewer where its pictures ran out (an IndexError) and
+        # exported a model of as many cameras as it names
+        names = info.get("image_names")
+        if present and names is not None and len(names) != len(arrays[present[0]]):
+            raise WarpbagsError(f"{self.path / 'config.json'}: 'image_names' lists {len(names)} training views, the "
+                                f"run's poses {len(arrays[present[0]])} ({present[0]}.npy)")
         return arrays
 
     def write_results(self, params: dict[str, torch.Tensor], viewmats: torch.Tensor) -> None:
@@ -529,7 +539,7 @@ def load_run(path: str | Path) -> TrainingRun:
     for name in ("poses_true.npy", "poses_init.npy", "poses_final.npy"):  # written at the start and with the result
         if not (path / name).is_file():
             raise WarpbagsError(f"{path / name} is missing from the finished run")
-    arrays = folder.read_cameras()  # all of them checked, poses_start.npy too: [C,4,4] poses, [C,3,3] intrinsics
+    arrays = folder.read_cameras(info)  # all checked, poses_start.npy too: [C,4,4] poses, [C,3,3] intrinsics, C views
     poses = {name: torch.from_numpy(arrays[name]) for name in ("poses_true", "poses_init", "poses_final")}
     intrinsics = arrays["intrinsics"]
     return TrainingRun(path, info, config, read_ply(path / "gaussians.ply"), **poses,

@@ -65,6 +65,19 @@ def listen_port(host: str, port: int) -> int:
                         f"({last_error.strerror if last_error else 'none tried'})")
 
 
+# The hosts that mean every interface, and the name this machine reaches each at; "::" at IPv6's loopback, not at
+# localhost: viser's server listens there on IPv6 alone (asyncio sets IPV6_V6ONLY), and localhost may name
+# 127.0.0.1 alone (an /etc/hosts without a ::1 line), where the page does not open.
+LOOPBACK_OF_ANY_ADDRESS = {"0.0.0.0": "localhost", "::": "::1"}
+
+
+def page_url(host: str, port: int) -> str:
+    """The address of the page served at `host`:`port` as a browser takes it: an address of every interface as
+    this machine's loopback (`LOOPBACK_OF_ANY_ADDRESS`), an IPv6 address in brackets (http://[::1]:8080, RFC 3986)."""
+    host = LOOPBACK_OF_ANY_ADDRESS.get(host, host)
+    return f"http://{f'[{host}]' if ':' in host else host}:{port}"
+
+
 class Viewer:
     """Serves `content` at http://host:port until `stop()`.
 
@@ -94,9 +107,8 @@ class Viewer:
 
     @property
     def url(self) -> str:
-        """The page to open; "0.0.0.0" (every interface) is reached as localhost on this machine."""
-        host = self.server.get_host()
-        return f"http://{'localhost' if host == '0.0.0.0' else host}:{self.server.get_port()}"
+        """The page to open (`page_url`)."""
+        return page_url(self.server.get_host(), self.server.get_port())
 
     def stop(self) -> None:
         for renderer in self.renderers.values():
