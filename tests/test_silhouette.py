@@ -20,8 +20,8 @@ from warpbags.data.noise import perturb_viewmats
 from warpbags.kernels.coherence import BEHIND_CAMERA_DISTANCE
 from warpbags.lie import so3_exp
 from warpbags.losses import mask_loss
-from warpbags.silhouette import (COHERENCE_SAMPLES, SilhouetteTargets, centroid_start, nearest_distances,
-                                 rays_meeting_point)
+from warpbags.silhouette import (COHERENCE_SAMPLES, SilhouetteTargets, centroid_start, mask_centroids,
+                                 nearest_distances, rays_meeting_point)
 from warpbags.wrapper import least_outside_samples, nearest_points
 
 
@@ -93,6 +93,28 @@ def test_a_forward_facing_rig_keeps_its_poses_and_takes_the_origin_as_object_cen
     start, center = starting_poses(viewmats, masks, Ks, load_preset("quick", pose_opt=pose_opt), messages.append)
     assert torch.equal(start, viewmats) and torch.equal(center, torch.zeros(3))
     assert any("nearly parallel" in message for message in messages), messages
+
+
+def test_mask_centroids_and_edge_pixels_lie_at_pixel_centres():
+    """Pixel (i, j) covers [j, j + 1) x [i, i + 1) in the pixel coordinates that `project_points` and the Ks use, so
+    its centre is (j + 0.5, i + 0.5); dropping the half pixel moved every centroid ray and chamfer edge by half a
+    pixel up and left, and no test saw it. A non-square image, so that x and y cannot be swapped unnoticed."""
+    masks = torch.zeros(2, 6, 9, dtype=torch.float64)
+    masks[0, 1, 7] = 1.0
+    masks[1, 4, 2] = 1.0
+    torch.testing.assert_close(mask_centroids(masks), torch.tensor([[7.5, 1.5], [2.5, 4.5]], dtype=torch.float64),
+                               rtol=0, atol=1e-12)
+    # a 3 x 4 block at rows 2-4, columns 3-6 of a 10 x 12 mask: its centroid is the block's centre, its edge pixels
+    # (the chamfer's) are the centres of the block's 10 border pixels, and its coherence rays go through the centres
+    # of its 12 pixels
+    block = torch.zeros(1, 10, 12)
+    block[0, 2:5, 3:7] = 1.0
+    torch.testing.assert_close(mask_centroids(block), torch.tensor([[5.0, 3.5]]), rtol=0, atol=1e-6)
+    targets = SilhouetteTargets(block)
+    border = {(x + 0.5, y + 0.5) for y in range(2, 5) for x in range(3, 7) if y in (2, 4) or x in (3, 6)}
+    assert len(border) == 10 and {tuple(edge) for edge in targets.edges[0].tolist()} == border
+    inside = {(x + 0.5, y + 0.5) for y in range(2, 5) for x in range(3, 7)}
+    assert {tuple(pixel) for pixel in targets.foreground[0].tolist()} == inside
 
 
 def _coherence_case(scene, count=4):

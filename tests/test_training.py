@@ -340,6 +340,39 @@ def test_the_epipolar_term_joins_the_loss_while_the_poses_move_and_the_solve_use
     assert all(record["epipolar"] > 0 for record in records[3:])
 
 
+def test_the_coherence_solve_adds_the_epipolar_residual_with_its_weight_to_its_loss(scene_dir, monkeypatch):
+    """`camera.coherence_epipolar` weighs the matches' epipolar residual in the loss the coherence solve minimizes;
+    the test above only sees `epipolar_loss` called, so the term subtracted or weighted 0 passed. The solve's loss,
+    at poses a few degrees off the truth (where the residual is large), is the coherence loss plus weight times the
+    residual: for weight 0 the coherence loss alone, for 1e-3 and 0.5 the weighted residual added."""
+    from warpbags.camera_optimizer import CameraOptimizer, CameraOptimizerSettings
+    from warpbags.correspondences import epipolar_loss
+    from warpbags.data.noise import perturb_viewmats
+    from warpbags.silhouette import SilhouetteTargets
+
+    scene = training_scene(load_scene(scene_dir, name="tiny"),
+                           tiny_config(views=6, lambda_epipolar=0.01, matches_min_inliers=8))
+    truth, Ks, center = scene.viewmats.double(), scene.Ks.double(), torch.zeros(3, dtype=torch.float64)
+    targets = SilhouetteTargets(scene.masks)
+    radius = targets.object_radius(truth, Ks, center)  # the solve's, from the poses it starts at
+    objectives, refine = [], CameraOptimizer.refine
+    monkeypatch.setattr(CameraOptimizer, "refine",
+                        lambda cameras, loss_of, iterations: objectives.append(loss_of) or refine(cameras, loss_of, 0))
+    weights = (0.0, 1e-3, 0.5)
+    for weight in weights:
+        cameras = CameraOptimizer(truth, CameraOptimizerSettings(precondition=False), center)
+        camera_setup.coherent_start(cameras, targets, Ks, center, 0, scene.matches, weight)
+    assert len(objectives) == len(weights)
+    off = perturb_viewmats(truth, 3.0, 0.0, seed=2)
+    coherence = targets.coherence_loss(off, Ks, center, radius)
+    residual = epipolar_loss(off, Ks, scene.matches)
+    # measured 3.85 and 1.25e-2: weighted by 1e-3 the residual is a third of the coherence loss, by 0.5 most of it
+    assert residual > 1.0 and coherence > 1e-3, (residual, coherence)
+    for weight, loss_of in zip(weights, objectives):
+        with torch.no_grad():
+            torch.testing.assert_close(loss_of(off), coherence + weight * residual, rtol=1e-9, atol=0)
+
+
 def test_a_resumed_run_does_not_solve_its_starting_poses_again(scene_dir, tmp_path):
     """The checkpoint holds the solved starting poses: resuming neither repeats the silhouette-coherence solve nor
     changes the poses it restores."""
