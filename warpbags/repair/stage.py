@@ -31,6 +31,7 @@ from warpbags.cameras import camera_centers
 from warpbags.configs.train import RepairConfig, TrainConfig
 from warpbags.errors import WarpbagsError, one_line
 from warpbags.files import atomic_output, finite_json
+from warpbags.gaussians import opacity_weighted_center
 from warpbags.losses import load_lpips, repair_loss
 from warpbags.model import GaussianModel
 from warpbags.repair.network import Repairer, make_repairer
@@ -166,7 +167,9 @@ class RepairStage:
         repair, generator = self.repair, self.generator
         gaps = torch.randint(len(viewmats), (repair.pseudo_views,), generator=generator)
         fractions = 0.3 + 0.4 * torch.rand(repair.pseudo_views, generator=generator)  # GaussianObject: 0.5 +- 0.2
-        self.viewmats = interpolated_viewmats(viewmats.double(), gaps, fractions.double()).float()
+        with torch.no_grad():  # about the object, which noisy poses leave away from the origin
+            center = opacity_weighted_center(model.params).double()
+        self.viewmats = interpolated_viewmats(viewmats.double(), gaps, fractions.double(), center).float()
         self.weights = distance_weights(self.viewmats, viewmats)
         with torch.no_grad():
             renders = model.render_views(self.viewmats).clamp(0, 1)
