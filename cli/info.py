@@ -10,8 +10,10 @@ from rich.text import Text
 from rich.table import Table
 
 from warpbags.cli.common import clean_errors, stdout
+from warpbags.cli.train_options import DATA_ROOT_HELP
 from warpbags.configs.scenes import SCENES
 from warpbags.data import ORBIT_RADIUS, SyntheticOptions, generate_synthetic_scene, open_scene
+from warpbags.data.catalog import check_data_root
 from warpbags.data.scene import Scene
 from warpbags.errors import WarpbagsError
 from warpbags.run_folder import RunFolder
@@ -48,14 +50,13 @@ def scene_summary(scene: Scene) -> Table:
 
 def info(
     scene: str = typer.Argument(..., help=f"Preset name ({', '.join(sorted(SCENES))}) or a scene folder."),
-    data_root: Optional[Path] = typer.Option(
-        None, "--data-root", help="Folder holding datasets (default $WARPBAGS_DATA or data/)."
-    ),
+    data_root: Optional[Path] = typer.Option(None, "--data-root", help=DATA_ROOT_HELP),
     resolution: Optional[int] = typer.Option(
         None, "--resolution", "-r", help="Image downsampling factor 1, 2, 4 or 8 (default: the scene's)."
     ),
 ) -> None:
     """Print a scene's summary: images, resolution, intrinsics, splits, masks, depth maps, orbit radius."""
+    check_data_root(scene, data_root)
     try:
         loaded = open_scene(scene, root=data_root, resolution=resolution)
     except WarpbagsError:

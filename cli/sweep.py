@@ -10,7 +10,7 @@ from rich.markup import escape
 from rich.table import Table
 
 from warpbags.cli.common import clean_errors, parse_numbers, stdout
-from warpbags.cli.train_options import config_overrides
+from warpbags.cli.train_options import DATA_ROOT_HELP, config_overrides
 from warpbags.configs.train import DEFAULT_PRESET
 from warpbags.errors import WarpbagsError, sigterm_stops
 from warpbags.sweep import RAY_INSTALL, SweepSpec, make_executor, run_sweep
@@ -20,7 +20,7 @@ def sweep(
     scene: str = typer.Argument(..., help="Preset name or scene folder."),
     rot_noises: str = typer.Option("0,5,10,15,20,30", "--rot-noises", help="Rotation noise levels (deg std)."),
     views: str = typer.Option("4,6,9", "--views", help="View counts."),
-    seeds: str = typer.Option("0", "--seeds", help="Seeds (noise and initialization)."),
+    seeds: str = typer.Option("0", "--seeds", help="Seeds (noise and initialization), each in [0, 2^32)."),
     trans_noise: float = typer.Option(0.0, "--trans-noise", help="Camera-centre noise std for every run."),
     preset: str = typer.Option(DEFAULT_PRESET, "--preset", help="Training preset for every run."),
     iters: Optional[int] = typer.Option(None, "--iters", help="Coarse iterations per run (default: the preset's)."),
@@ -32,7 +32,7 @@ def sweep(
         "(repeatable), e.g. --set lr.pose=0.005; not the fields the sweep sets per run (views, noise, seeds, "
         "pose_opt)."),
     out: Optional[Path] = typer.Option(None, "--out", help="Sweep folder (default runs/sweep-<scene>)."),
-    data_root: Optional[Path] = typer.Option(None, "--data-root", help="Folder holding datasets."),
+    data_root: Optional[Path] = typer.Option(None, "--data-root", help=DATA_ROOT_HELP),
     device: str = typer.Option("cpu", "--device", help="cpu or cuda, for every run."),
     executor: str = typer.Option(
         "local", "--executor",

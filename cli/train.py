@@ -10,9 +10,10 @@ import typer
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
 from warpbags.cli.common import clean_errors, stdout
-from warpbags.cli.train_options import resumed_config, train_config, with_train_options
+from warpbags.cli.train_options import DATA_ROOT_HELP, resumed_config, train_config, with_train_options
 from warpbags.configs.scenes import SCENES
 from warpbags.configs.train import DEFAULT_PRESET
+from warpbags.data.catalog import check_data_root
 from warpbags.errors import WarpbagsError, sigterm_stops
 from warpbags.files import writable_folder
 from warpbags.run_folder import RunFolder
@@ -31,7 +32,7 @@ def train(
         None, "--set", help="Any TrainConfig field: name=value or group.name=value, JSON values (repeatable), e.g. "
         "--set repair.fit_steps=800 --set lr.pose=0.005. A field is given once: by its option or by --set."),
     device: str = typer.Option("cpu", "--device", help="cpu or cuda."),
-    data_root: Optional[Path] = typer.Option(None, "--data-root", help="Folder holding datasets."),
+    data_root: Optional[Path] = typer.Option(None, "--data-root", help=DATA_ROOT_HELP),
     out: Optional[Path] = typer.Option(None, "--out", help="Run folder (default runs/<scene>-<views>v-<time>)."),
     resume: bool = typer.Option(False, "--resume", help="Continue the run in --out from its last checkpoint."),
     log_every: int = typer.Option(50, "--log-every", help="Without a terminal (CI, a log file): one line every N iterations."),
@@ -56,8 +57,9 @@ def train(
     # SIGTERM (kill, a job scheduler) stops the start as Ctrl-C does, so that a new run's claim on its folder is
     # removed; training takes both signals itself from its first iteration on
     with sigterm_stops():
-        scene_data = training_scene(scene if scene is not None else saved_run_scene(out, data_root), config,
-                                    data_root, log=stdout.print)
+        scene_name = scene if scene is not None else saved_run_scene(out, data_root)
+        check_data_root(scene_name, data_root)
+        scene_data = training_scene(scene_name, config, data_root, log=stdout.print)
         out = out or default_run_dir(scene_data.name, config.views)
         trainer = start_or_resume(scene_data, config, out, device=device, resume=resume, log=stdout.print)
     initial = trainer.pose_error(trainer.viewmats_init)

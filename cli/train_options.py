@@ -16,7 +16,8 @@ from typing import Any, Callable, Iterator, Literal, Optional, get_args, get_ori
 import typer
 from rich.markup import escape
 
-from warpbags.configs.train import PRESETS, TrainConfig, load_preset, parse_settings
+from warpbags.configs.train import PRESETS, TrainConfig, check_repairer_used, load_preset, parse_settings
+from warpbags.data.catalog import DATA_ROOT_SCENES
 from warpbags.errors import WarpbagsError
 
 
@@ -80,6 +81,10 @@ TRAIN_OPTIONS = (
     ConfigOption("--resolution", "resolution", short="-r"),
     ConfigOption("--max-image-size", "max_image_size"),
 )
+
+# The help of `--data-root`, which `warpbags train` and `warpbags sweep` hand to `check_data_root`.
+DATA_ROOT_HELP = (f"Folder holding the datasets of the presets {', '.join(DATA_ROOT_SCENES)} (default: $WARPBAGS_DATA, "
+                  "else data/); refused with any other scene.")
 
 # "name: text" or "name, other: text" at the start of a docstring entry (Google style); deeper lines continue it.
 _ENTRY = re.compile(r"^( +)([a-z_][a-z0-9_]*(?:, [a-z_][a-z0-9_]*)*): (.*)$")
@@ -303,9 +308,7 @@ def train_config(preset: str, given: dict[str, Any], settings: list[str]) -> Tra
     """
     overrides = config_overrides(given, settings)
     config = load_preset(preset, **overrides)
-    if _has(overrides, "repair.repairer") and config.repair.iters == 0:  # else it would be silently unused
-        raise WarpbagsError(f"--repairer {config.repair.repairer} would be unused: the repair stage is off "
-                            "(repair.iters is 0); add --repair-iters N")
+    check_repairer_used(overrides, config)
     following = [option for option in TRAIN_OPTIONS if option.follows and not _has(overrides, option.path)]
     for option in following:
         _put(overrides, option.path, field_value(config, option.follows))

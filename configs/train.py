@@ -18,6 +18,8 @@ import typing
 from dataclasses import dataclass, field
 from typing import Any, Literal
 
+import torch
+
 from warpbags.errors import WarpbagsError
 
 BACKGROUNDS = {"white": (1.0, 1.0, 1.0), "black": (0.0, 0.0, 0.0)}  # `TrainConfig.background`'s colours
@@ -31,6 +33,11 @@ MAX_HULL_DILATION_PX = 100  # dilating every mask by more makes the hull the who
 MAX_HULL_RESOLUTION = 256  # the carving's first pass holds (1.5 x this)^3 voxel centres: 57 million, ~3 GB, at 256
 # Host threads beyond a few per core only cost their start-up in every CPU render: 100000 took 17.5 s an iteration.
 MAX_RENDER_THREADS = 1024
+# torch's CPU generators keep a seed modulo 2^32 (a negative one too): 2^32 trains as seed 0, -1 as 2^32 - 1.
+SEEDS_END = 2**32
+# The Gaussians' Adam runs in float32, below whose smallest normal number an epsilon is subnormal (which fast kernels
+# flush to 0) or 0 itself: its first step then divides 0 by 0 wherever a gradient is 0 ("training diverged" at 1).
+MIN_ADAM_EPS = torch.finfo(torch.float32).tiny
 # The float fields that have a `warpbags train` option (cli/train_options.py's TRAIN_OPTIONS), by the name `--set`
 # gives them: `TrainConfig.validate` names the option where a value is not finite, the others as `--set` spells them.
 FLOAT_OPTIONS = {"rot_noise_deg": "--rot-noise-deg", "trans_noise": "--trans-noise", "blur_sigma_px": "--blur-px",
@@ -49,7 +56,8 @@ class LearningRates:
         opacities: logit opacities.
         scales: log scales.
         quats: quaternions.
-        adam_eps: Adam epsilon for the Gaussian groups.
+        adam_eps: Adam epsilon for the Gaussian groups, at least float32's smallest normal number (their Adam runs in
+            float32).
         pose: pose-delta rotation lr when pose optimization starts.
         pose_final: pose-delta rotation lr at the end of each round's pose window (exponential decay over the
             window, as BARF, restarted every round); the repair stage keeps it.
@@ -331,8 +339,8 @@ class TrainConfig:
             angle of that std: each camera starts that far off, none nearly right.
         trans_noise: injected camera-centre noise, std (N(0, sigma^2) per coordinate, in normalized scene units
             where the orbit radius is 4).
-        noise_seed: seeds the injected pose noise.
-        seed: seeds initialization and view sampling.
+        noise_seed: seeds the injected pose noise, in [0, 2^32) (torch's CPU generator keeps a seed modulo 2^32).
+        seed: seeds initialization and view sampling, in [0, 2^32).
         resolution: which image pyramid level to load (images_{resolution}); None = the scene preset's.
         max_image_size: images are further downscaled (area filter) so the longer side is at most this (0 = off).
         pyramid_levels: coarse-to-fine over rounds: with L levels the last round trains at the full (max_image_size)
@@ -505,9 +513,10 @@ class TrainConfig:
             (self.trans_noise <= ORBIT_RADIUS,
              f"--trans-noise must be <= {ORBIT_RADIUS:g} (a std in normalized scene units, where the cameras orbit at "
              f"radius {ORBIT_RADIUS:g}), got {self.trans_noise}"),
-            (-2**63 <= self.seed < 2**63, f"--seed must be in [-2^63, 2^63) (a torch generator seed), got {self.seed}"),
-            (-2**63 <= self.noise_seed < 2**63,
-             f"--noise-seed must be in [-2^63, 2^63) (a torch generator seed), got {self.noise_seed}"),
+            *((0 <= getattr(self, name) < SEEDS_END,
+               f"--{name.replace('_', '-')} must be in [0, 2^32), got {getattr(self, name)}: torch's CPU generator "
+               f"keeps a seed modulo 2^32, so it would act as seed {getattr(self, name) % SEEDS_END}")
+              for name in ("seed", "noise_seed")),
             (self.depth_until >= 0, f"depth_until must be >= 0, got {self.depth_until}"),
             (self.resolution in (None, 1, 2, 4, 8), f"--resolution must be 1, 2, 4 or 8, got {self.resolution}"),
             (self.max_image_size == 0 or self.max_image_size >= 16,
@@ -548,7 +557,10 @@ class TrainConfig:
             (self.lr.pose_warmup >= 0, f"lr.pose_warmup must be >= 0, got {self.lr.pose_warmup}"),
             # the exponential schedules interpolate in log space: their ends must be positive
             *((getattr(self.lr, name) > 0, f"lr.{name} must be > 0, got {getattr(self.lr, name)}")
-              for name in ("means_init", "means_final", "pose", "pose_final", "adam_eps")),
+              for name in ("means_init", "means_final", "pose", "pose_final")),
+            (self.lr.adam_eps >= MIN_ADAM_EPS, f"lr.adam_eps must be >= {MIN_ADAM_EPS}, the smallest normal "
+             f"float32 (the Gaussians' Adam divides by it in float32, where a smaller one may be 0), got "
+             f"{self.lr.adam_eps}"),
             *((getattr(self.lr, name) >= 0, f"lr.{name} must be >= 0, got {getattr(self.lr, name)}")
               for name in ("sh_dc", "sh_rest", "opacities", "scales", "quats", "pose_translation_scale")),
             (self.densify.every >= 1, f"densify.every must be >= 1, got {self.densify.every}"),
@@ -852,6 +864,22 @@ def parse_settings(settings: list[str]) -> dict[str, Any]:
         else:
             overrides[key] = value
     return overrides
+
+
+def check_repairer_used(overrides: dict[str, Any], config: TrainConfig, option: str = "--repairer") -> None:
+    """Raise when `overrides` (`load_preset`'s, which made `config`) name a repairer that `config` never builds: with
+    the repair stage off it would be silently unused.
+
+    Args:
+        option: how the command names the repairer in the message (`warpbags sweep` sets it only by --set).
+
+    Raises:
+        WarpbagsError: `repair.repairer` given and `repair.iters` 0.
+    """
+    repair = overrides.get("repair")
+    if isinstance(repair, dict) and "repairer" in repair and config.repair.iters == 0:
+        raise WarpbagsError(f"{option} {config.repair.repairer} would be unused: the repair stage is off "
+                            "(repair.iters is 0); add --repair-iters N")
 
 
 def load_preset(name: str, **overrides: Any) -> TrainConfig:

@@ -4,7 +4,9 @@ given once (its option or `--set`), and every command group registers through `w
 from __future__ import annotations
 
 import dataclasses
+import io
 import json
+import re
 import subprocess
 import sys
 import typing
@@ -18,6 +20,7 @@ from warpbags.cli.common import parse_numbers
 from warpbags.cli.main import COMMAND_GROUPS, app
 from warpbags.cli.train_options import TRAIN_OPTIONS, field_descriptions, field_type, field_value, resumed_config
 from warpbags.configs.train import PRESETS, TrainConfig, load_preset, quick
+from warpbags.data import SyntheticOptions, ensure_synthetic_scene
 from warpbags.errors import WarpbagsError
 
 runner = CliRunner()
@@ -156,6 +159,57 @@ def test_data_root_reaches_the_scene_loader(tmp_path, parsed):
     assert parsed.loads[-1] == ("kitchen", tmp_path)
     parsed(scene="kitchen")
     assert parsed.loads[-1] == ("kitchen", None)  # left out: the loader's own default ($WARPBAGS_DATA, data/)
+
+
+@pytest.mark.parametrize("scene, root, message", [
+    ("scene", "root", "--data-root is read only by the presets ethiopianhead, kitchen, moldgoldcape, not by scene "
+                      "'scene': leave it out"),
+    ("synthetic", "root", "--data-root is read only by the presets ethiopianhead, kitchen, moldgoldcape, not by scene "
+                          "'synthetic': leave it out"),
+    ("kitchen", "missing", "--data-root {root}: not a folder"),
+])
+def test_a_data_root_the_scene_does_not_read_is_one_line(tmp_path, parsed, scene, root, message):
+    """`--data-root` was ignored, silently, unless the scene was a data-root preset, even a folder that does not exist;
+    the help said only "Folder holding datasets." (`warpbags sweep` checks it through the same helper)."""
+    (tmp_path / "root").mkdir()
+    result = runner.invoke(app, ["train", scene, "--data-root", str(tmp_path / root)])
+    assert one_line(result) == f"error: {message.format(root=tmp_path / root)}"
+    assert not parsed.loads  # refused before the scene is read
+    result = runner.invoke(app, ["info", scene, "--data-root", str(tmp_path / root)])  # `info` takes it alike
+    assert one_line(result) == f"error: {message.format(root=tmp_path / root)}"
+    help_text = " ".join(runner.invoke(app, ["train", "--help"], env={"COLUMNS": "1000"}).output.split())
+    assert "datasets of the presets ethiopianhead, kitchen, moldgoldcape (default: $WARPBAGS_DATA, else data/); " \
+           "refused with any other scene" in help_text
+
+
+def test_warpbags_data_in_the_environment_is_no_error_for_a_scene_folder(tmp_path, parsed, monkeypatch):
+    """$WARPBAGS_DATA, which the benches read the data-root presets through, is a default that may stay set (even to a
+    folder that is gone) while a scene folder trains: only the --data-root option given is checked."""
+    monkeypatch.setenv("WARPBAGS_DATA", str(tmp_path / "gone"))
+    parsed(scene=str(tmp_path))
+    assert parsed.loads[-1] == (str(tmp_path), None)
+
+
+def test_train_on_a_terminal_shows_the_progress_bar_to_its_last_step(tmp_path, monkeypatch):
+    """A terminal gets a progress bar (`_train_with_progress_bar`), which no CliRunner or subprocess test ever drew:
+    neither is a terminal. With the command's console forced to one, a tiny run (with the turn search's trial rounds,
+    which the bar counts as steps) ends with the bar at its total, no log lines, and the run's files written."""
+    from rich.console import Console
+
+    scene = ensure_synthetic_scene(SyntheticOptions(views=8, width=48, height=48), cache_dir=tmp_path / "cache")
+    screen = io.StringIO()
+    console = Console(file=screen, force_terminal=True, width=200, highlight=False, markup=False)
+    monkeypatch.setattr(train_command, "stdout", console)
+    out = tmp_path / "run"
+    result = runner.invoke(app, ["train", str(scene), "--iters", "6", "--max-image-size", "32", "--set",
+                                 "init_points=300", "--set", "camera.coherence_iters=0", "--out", str(out)])
+    shown = re.sub(r"\x1b\[[0-9;?]*[A-Za-z]", "", screen.getvalue())
+    assert result.exit_code == 0, (result.output, shown)
+    assert "iter " not in result.output  # the log lines of a run without a terminal
+    counts = re.findall(r"train .*? (\d+)/(\d+) ", shown)  # each redraw of the bar, the last one last
+    assert counts and counts[-1][0] == counts[-1][1] and int(counts[-1][1]) > 6, shown  # 6 + the trial rounds
+    assert f"wrote {out}" in " ".join(shown.split())
+    assert (out / "gaussians.ply").is_file() and (out / "poses_final.npy").is_file()
 
 
 def test_the_short_resolution_option_sets_the_resolution(parsed):

@@ -972,7 +972,7 @@ def test_a_sweep_with_two_views_reports_their_pairwise_errors(finished_run, tmp_
 
     info = json.loads((finished_run / "config.json").read_text())
     spec = SweepSpec(scene=info["scene_root"], out=tmp_path / "sweep", rot_noises=(5,), views=(2,), seeds=(0,),
-                     refine_iters=0, overrides=(("iters", 3),))
+                     refine_iters=0, overrides=(("iters", 4),))
     rows = run_sweep(spec, log=lambda message: None)
     for row in rows:
         report = json.loads((spec.out / row["run"] / "eval.json").read_text())

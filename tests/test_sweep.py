@@ -17,7 +17,7 @@ from typer.testing import CliRunner
 from warpbags.cli.main import app
 from warpbags.data import SyntheticOptions, ensure_synthetic_scene
 from warpbags.errors import WarpbagsError
-from warpbags.files import finite_json
+from warpbags.files import finite_json, is_temporary
 from warpbags.sweep import LocalExecutor, SweepSpec, combination_config, make_executor, run_sweep, sweep_runs
 
 runner = CliRunner()
@@ -65,8 +65,9 @@ def test_iters_below_the_presets_rounds_names_iters_not_rounds(tmp_path, monkeyp
     monkeypatch.setattr("warpbags.sweep.open_scene", scene_read)
     with pytest.raises(WarpbagsError, match="^--iters must be >= 1: the paper preset trains in 1 round of"):
         run_sweep(SweepSpec(scene="maryrose", out=out, preset="paper", overrides=(("iters", 0),)))
-    # as many iterations as rounds pass this check (and go on to read the scene); so do the preset's own
-    for overrides in ((("iters", 3),), ()):
+    # as many iterations as rounds pass this check (and go on to read the scene; rounds of one iteration move poses
+    # only in a pose window of the whole round); so do the preset's own
+    for overrides in ((("iters", 3), ("pose_round_window", (0.0, 1.0))), ()):
         with pytest.raises(WarpbagsError, match="the scene was read"):
             run_sweep(SweepSpec(scene="maryrose", out=out, overrides=overrides))
     assert not out.exists()
@@ -434,8 +435,9 @@ def test_a_local_sweep_stopped_by_sigterm_leaves_its_runs_resumable_and_no_lock(
     out = tmp_path / "sweep"
     first_run = out / "baseline-4v-rot5-seed0"
 
-    def checkpoints() -> list[int]:
-        return sorted(int(path.stem.removeprefix("checkpoint_")) for path in first_run.glob("**/checkpoint_*.pt"))
+    def checkpoints() -> list[int]:  # not a checkpoint's `atomic_output` temporary (checkpoint_000100.tmp.pt)
+        return sorted(int(path.stem.removeprefix("checkpoint_")) for path in first_run.glob("**/checkpoint_*.pt")
+                      if not is_temporary(path))
 
     code, output = stopped_by_sigterm(["sweep", str(scene), "--rot-noises", "5", "--views", "4", "--iters", "400",
                                        "--out", str(out)], ready=lambda: bool(checkpoints()))
@@ -443,3 +445,73 @@ def test_a_local_sweep_stopped_by_sigterm_leaves_its_runs_resumable_and_no_lock(
     assert not (out / ".sweep.lock").exists()
     assert checkpoints()[-1] % 100 != 0, checkpoints()  # the quick preset checkpoints every 100: one of the stop's
     assert not (first_run / ".starting").exists()
+
+
+@pytest.fixture
+def sweep_line(tmp_path, monkeypatch):
+    """`sweep_line(*arguments)`: the one line of `warpbags sweep *arguments` into a new folder, which the sweep must
+    not have made; a sweep that passes its checks stops at reading its scene ("the scene was read"), trains nothing."""
+
+    def scene_read(*args, **kwargs):
+        raise WarpbagsError("the scene was read")
+
+    monkeypatch.setattr("warpbags.sweep.open_scene", scene_read)
+
+    def line(*arguments: str) -> str:
+        out = tmp_path / "s"
+        result = runner.invoke(app, ["sweep", *arguments, "--out", str(out)])
+        lines = [line for line in result.output.splitlines() if line.strip()]
+        assert result.exit_code == 2 and len(lines) == 1 and "Traceback" not in result.output, result.output
+        assert not out.exists()
+        return lines[0]
+
+    return line
+
+
+@pytest.mark.parametrize("arguments, message", [
+    (["--preset", "paper", "--iters", "20", "--repair-iters", "0"],
+     "pose optimization starts at iteration 1000 (pose_opt_start), after every iteration of their pose windows; "
+     "give more --iters, or a smaller --set pose_opt_start=N"),
+    (["--iters", "3"], "3 iterations in 3 round(s) leave no iteration in any round's pose window (0.25, 1.0) (shares "
+                       "of a round); give more --iters"),
+])
+def test_bags_runs_whose_schedule_never_moves_a_pose_are_refused(sweep_line, arguments, message):
+    """The trainer warns at its start that poses will not move (the paper preset's poses start at iteration 1000;
+    quick's rounds of one iteration hold no iteration of their pose window), but a sweep's runs log nothing: its
+    "bags" rows were trained with fixed poses. Such a sweep is refused in one line before anything is made, and the
+    same sweep with iterations enough for its poses to move goes on (to read its scene)."""
+    common = ["maryrose", "--rot-noises", "10", "--views", "4", "--refine-iters", "0"]
+    line = sweep_line(*common, *arguments)
+    assert line == f"error: sweep run bags-4v-rot10-seed0: the bags runs would never move a pose: {message}"
+    moving = ["--set", "pose_opt_start=19"] if "paper" in arguments else ["--set", "pose_round_window=[0, 1]"]
+    assert sweep_line(*common, *arguments, *moving) == "error: the scene was read"
+
+
+def test_a_repairer_with_the_repair_stage_off_is_refused_as_train_refuses_it(sweep_line):
+    """`warpbags train --repairer X` without repair iterations is refused; a sweep's `--set repair.repairer=X`
+    trained without its repairer, silently. It is one line, and with --repair-iters the sweep goes on."""
+    line = sweep_line("maryrose", "--set", "repair.repairer=foo")
+    assert line.endswith("--set repair.repairer foo would be unused: the repair stage is off (repair.iters is 0); add "
+                         "--repair-iters N"), line
+    assert sweep_line("maryrose", "--set", "repair.repairer=unet", "--repair-iters", "2") == "error: the scene was read"
+
+
+def test_seeds_that_torch_would_take_as_another_seed_are_refused(sweep_line):
+    """torch's CPU generator keeps a seed modulo 2^32: `--seeds 0,4294967296` trained and reported one run twice."""
+    assert sweep_line("maryrose", "--seeds", "0,4294967296").endswith(
+        "--seed must be in [0, 2^32), got 4294967296: torch's CPU generator keeps a seed modulo 2^32, so it would act "
+        "as seed 0")
+    assert sweep_line("maryrose", "--seeds", "0,4294967295") == "error: the scene was read"
+
+
+@pytest.mark.parametrize("scene, root, message", [
+    ("maryrose", "root", "--data-root is read only by the presets ethiopianhead, kitchen, moldgoldcape, not by scene "
+                         "'maryrose': leave it out"),
+    ("kitchen", "missing", "--data-root {root}: not a folder"),
+    ("kitchen", "root", "the scene was read"),
+])
+def test_a_data_root_the_scene_does_not_read_is_refused(sweep_line, tmp_path, scene, root, message):
+    """`--data-root` was ignored, silently, for every scene but the data-root presets, even a folder that does not
+    exist (`warpbags train` checks it through the same helper: tests/test_cli_options.py)."""
+    (tmp_path / "root").mkdir()
+    assert sweep_line(scene, "--data-root", str(tmp_path / root)) == f"error: {message.format(root=tmp_path / root)}"

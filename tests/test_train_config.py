@@ -177,9 +177,9 @@ def test_non_finite_values_are_named_by_their_train_option():
 
 def test_range_checks_that_training_needed():
     """Each value refused here crashed or silently misbehaved later: a segfault in the renderer (render_threads -1),
-    a ZeroDivisionError in carving (hull_resolution 0), a diverging run (max_image_size 1, --trans-noise 1e30), an
-    OverflowError in the torch generator (a seed past 64 bits), a TypeError (lr.pose null), a blur that is never
-    applied (--blur-px with --blur-until 0, the presets' default)."""
+    a ZeroDivisionError in carving (hull_resolution 0), a diverging run (max_image_size 1, --trans-noise 1e30), a
+    TypeError (lr.pose null), a blur that is never applied (--blur-px with --blur-until 0, the presets' default). The
+    seeds' and lr.adam_eps's ranges have tests of their own, below."""
     import pytest
     from warpbags.configs.train import load_preset
     from warpbags.errors import WarpbagsError
@@ -214,8 +214,6 @@ def test_range_checks_that_training_needed():
             ({"max_image_size": 1}, r"--max-image-size must be 0 \(off\) or >= 16"),
             ({"max_image_size": -1}, r"--max-image-size must be 0 \(off\) or >= 16"),
             ({"depth_until": -1}, "depth_until must be >= 0"),
-            ({"seed": 2**70}, r"--seed must be in \[-2\^63, 2\^63\)"),
-            ({"noise_seed": -2**64}, r"--noise-seed must be in \[-2\^63, 2\^63\)"),
             ({"densify": {"max_gaussians": -1}}, "densify.max_gaussians must be >= 0"),
             ({"densify": {"grad_threshold": 0}}, "densify.grad_threshold must be > 0"),
             ({"densify": {"percent_dense": -0.01}}, "densify.percent_dense must be >= 0"),
@@ -228,13 +226,52 @@ def test_range_checks_that_training_needed():
     # the limits themselves pass
     for overrides in [{"trans_noise": 4}, {"render_threads": 1024}, {"hull_resolution": 2}, {"hull_missed_views": 0},
                       {"sh_degree_every": 1}, {"views_per_step": 4}, {"lambda_dssim": 1}, {"lambda_mask": 0},
-                      {"max_image_size": 0}, {"max_image_size": 16}, {"seed": -1}, {"noise_seed": 2**63 - 1},
+                      {"max_image_size": 0}, {"max_image_size": 16},
                       {"densify": {"max_gaussians": 0, "prune_opacity": 0, "floater_std_ratio": 0}},
                       {"blur_sigma_px": 4.0, "blur_until": 1}, {"blur_sigma_px": 0.0, "blur_until": 0},
                       {"hull_dilation_px": 100}, {"init_points": 5_000_000}, {"repair": {"fit_batch": 256}},
                       {"densify": {"start": 5, "stop": 5}}, {"camera": {"hypothesis_angles": [180]}},
                       {"rot_noise_fixed": True, "rot_noise_deg": 10.0}]:
         load_preset("quick", **overrides)
+
+
+def test_seeds_are_refused_where_torch_would_take_them_as_another_seed():
+    """torch's CPU generator keeps a seed modulo 2^32 (a negative one too), so [-2^63, 2^63) passed seeds that
+    train as others: 2^32 as 0 (a sweep's `--seeds 0,4294967296` reported one run twice), -1 as 2^32 - 1. The
+    message says why and which seed it would have been; a seed past 64 bits (torch's OverflowError) is refused too."""
+    import pytest
+    from warpbags.configs.train import load_preset
+    from warpbags.errors import WarpbagsError
+
+    for field, option in (("seed", "--seed"), ("noise_seed", "--noise-seed")):
+        for seed, same in [(2**32, 0), (-1, 2**32 - 1), (2**32 + 5, 5), (2**70, 0)]:
+            with pytest.raises(WarpbagsError, match=rf"^{option} must be in \[0, 2\^32\), got {seed}: torch's CPU "
+                                                    rf"generator keeps a seed modulo 2\^32, so it would act as seed "
+                                                    rf"{same}$"):
+                load_preset("quick", **{field: seed})
+        for seed in (0, 2**32 - 1):  # the limits themselves pass
+            assert getattr(load_preset("quick", **{field: seed}), field) == seed
+
+
+def test_an_adam_eps_that_float32_cannot_hold_is_refused():
+    """lr.adam_eps 1e-50 passed (only > 0 was checked) and is 0 in the Gaussians' float32 Adam, whose first step
+    divided 0 by 0: "training diverged" at iteration 1. Below float32's smallest normal number it is refused, named;
+    that number itself passes and trains finite steps where a gradient is 0."""
+    import pytest
+    import torch
+    from warpbags.configs.train import load_preset
+    from warpbags.errors import WarpbagsError
+
+    tiny = torch.finfo(torch.float32).tiny
+    for eps in (1e-50, tiny / 2, 0.0):
+        with pytest.raises(WarpbagsError, match=rf"^lr.adam_eps must be >= {tiny}, the smallest normal float32 "):
+            load_preset("quick", lr={"adam_eps": eps})
+    assert load_preset("quick", lr={"adam_eps": tiny}).lr.adam_eps == tiny
+    parameter = torch.nn.Parameter(torch.ones(2))
+    optimizer = torch.optim.Adam([parameter], lr=0.1, eps=tiny, fused=True)  # as `gaussian_optimizer` builds it
+    parameter.grad = torch.tensor([0.0, 1.0])
+    optimizer.step()
+    assert parameter.detach().tolist() == pytest.approx([1.0, 0.9])
 
 
 def test_a_saved_config_from_before_a_bound_still_resumes():

@@ -14,7 +14,6 @@ It stays one module (about 550 lines) because the executors are the sweep's own 
 from __future__ import annotations
 
 import csv
-import dataclasses
 import fcntl
 import json
 import math
@@ -27,9 +26,10 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Callable, Iterator, Protocol
 
-from warpbags.configs.train import (DEFAULT_PRESET, MAX_RENDER_THREADS, TrainConfig, differing_fields, is_number,
-                                     load_preset)
+from warpbags.configs.train import (DEFAULT_PRESET, MAX_RENDER_THREADS, TrainConfig, check_repairer_used,
+                                     differing_fields, is_number, load_preset)
 from warpbags.data import Scene, open_scene
+from warpbags.data.catalog import check_data_root
 from warpbags.data.splits import evaluation_views
 from warpbags.devices import checked_device_name, torch_device
 from warpbags.errors import WarpbagsError, raise_stopped, sigterm_unclaimed
@@ -37,6 +37,7 @@ from warpbags.evaluation import evaluate_run
 from warpbags.files import atomic_output, finite_json, missing_folders, writable_file, writable_folder
 from warpbags.report import SWEEP_FIGURES, plot_sweep
 from warpbags.run_folder import RunFolder
+from warpbags.schedule import Schedule
 from warpbags.threads import limited_host_threads, usable_cores
 from warpbags.trainer import start_or_resume, training_scene
 
@@ -92,6 +93,7 @@ def run_sweep(spec: SweepSpec, data_root: Path | None = None, log: Log = print,
     """Train and evaluate every combination not done yet (with `executor`, default `LocalExecutor`); write the
     plots, then sweep.json and sweep.csv; returns one row per run. The sweep's folder is locked meanwhile."""
     checked_device_name(spec.device)  # whether CUDA is there is the executor's business: its runs' machines
+    check_data_root(spec.scene, data_root)
     _check_iters(spec)
     executor = executor or LocalExecutor()
     executor.check(spec)
@@ -103,6 +105,8 @@ def run_sweep(spec: SweepSpec, data_root: Path | None = None, log: Log = print,
     for run in sweep_runs(spec):  # every run's settings checked before the first one trains
         with _naming(run):
             configs[run] = combination_config(spec, run)
+            check_repairer_used(dict(spec.overrides), configs[run], option="--set repair.repairer")
+            _check_poses_move(configs[run])
     with _sweep_lock(spec.out):  # from before its folder is read to the last output: no other sweep changes it
         # at the resolution the overrides give (`--set resolution=R`; None: the preset's), as `training_scene` opens
         # it for `warpbags train`: each run's config.json records that resolution
@@ -190,6 +194,28 @@ def _check_iters(spec: SweepSpec) -> None:
     if iters < rounds:
         raise WarpbagsError(f"--iters must be >= {rounds}: the {spec.preset} preset trains in {rounds} "
                             f"round{'s' if rounds != 1 else ''} of at least one iteration each, got {iters}")
+
+
+def _check_poses_move(config: TrainConfig) -> None:
+    """Refuse a run that optimizes poses but whose schedule moves them at no iteration (`Schedule.poses_move`, what
+    training steps by): its row would be the baseline's under BAGS's name. `warpbags train` starts such a run with
+    a warning (`Trainer`), which the sweep's quiet runs do not show (`_quiet`).
+
+    Raises:
+        WarpbagsError: no iteration moves a pose, naming the option to change.
+    """
+    schedule = Schedule(config)
+    if not config.pose_opt or any(schedule.poses_move(iteration) for iteration in range(config.total_iters)):
+        return
+    # the trainer's two warnings: every round too short for its pose window, or pose_opt_start past them all
+    if len(schedule.rounds_without_pose_window()) == schedule.rounds:
+        window = config.pose_round_windows or config.pose_round_window
+        raise WarpbagsError(f"the bags runs would never move a pose: {config.iters} iterations in {schedule.rounds} "
+                            f"round(s) leave no iteration in any round's pose window {window} (shares of a round); "
+                            "give more --iters")
+    raise WarpbagsError(f"the bags runs would never move a pose: pose optimization starts at iteration "
+                        f"{config.pose_opt_start} (pose_opt_start), after every iteration of their pose windows; give "
+                        "more --iters, or a smaller --set pose_opt_start=N")
 
 
 def sweep_runs(spec: SweepSpec) -> list[SweepRun]:

@@ -22,6 +22,28 @@ def data_root(explicit: str | Path | None = None) -> Path:
     return Path(os.environ.get("WARPBAGS_DATA") or DEFAULT_DATA_ROOT)
 
 
+DATA_ROOT_SCENES = tuple(sorted(name for name, preset in SCENES.items() if preset.source == "data_root"))
+"""The presets read from a data root (--data-root, $WARPBAGS_DATA or data/); every other scene ignores one."""
+
+
+def check_data_root(scene: str | Path, explicit: str | Path | None) -> None:
+    """Raise when the --data-root option given (`explicit`; None: not given) would not be read: the scene is no preset
+    of `DATA_ROOT_SCENES`, or the folder does not exist. $WARPBAGS_DATA is a default for the data-root presets and is
+    not checked: it may stay set in the environment while other scenes are trained.
+
+    Raises:
+        WarpbagsError: either case, naming the option.
+    """
+    if explicit is None:
+        return
+    preset = SCENES.get(str(scene))
+    if preset is None or preset.source != "data_root":
+        raise WarpbagsError(f"--data-root is read only by the presets {', '.join(DATA_ROOT_SCENES)}, not by scene "
+                            f"{str(scene)!r}: leave it out")
+    if not Path(explicit).is_dir():
+        raise WarpbagsError(f"--data-root {explicit}: not a folder")
+
+
 def packaged_scene_dir(name: str) -> Path:
     """Folder of a scene shipped inside the package (`warpbags/assets/<name>`)."""
     return Path(str(resources.files("warpbags") / "assets" / name))
