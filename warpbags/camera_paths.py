@@ -1,8 +1,8 @@
 """Camera paths around an object: the cameras' mean up axis, turntables, azimuth order, in-between cameras.
 
 Used for rendered videos (turntable) and the repair stage's pseudo views (cameras between neighbouring training
-cameras). Both turn about a given object centre (the Gaussians'); the azimuth order about the world origin, the object
-centre of a normalized scene at its true poses. Poses follow `warpbags.cameras`' conventions.
+cameras). Both turn about a given object centre (the Gaussians'), by default the world origin, the object centre of a
+normalized scene at its true poses. Poses follow `warpbags.cameras`' conventions.
 """
 
 from __future__ import annotations
