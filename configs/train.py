@@ -33,6 +33,10 @@ MAX_HULL_DILATION_PX = 100  # dilating every mask by more makes the hull the who
 MAX_HULL_RESOLUTION = 256  # the carving's first pass holds (1.5 x this)^3 voxel centres: 57 million, ~3 GB, at 256
 # Host threads beyond a few per core only cost their start-up in every CPU render: 100000 took 17.5 s an iteration.
 MAX_RENDER_THREADS = 1024
+# Fields that the config.json of an earlier version's run holds and this version has not (experiments measured and
+# reverted, docs/pose-recovery.md): such a run is still read (eval, export, render, view), not resumed.
+RETIRED_FIELDS = ("camera.restarts", "camera.restart_margin", "camera.restart_turn_deg", "camera.coherence_max_miss",
+                  "depth_patch", "pose_round_share")
 # torch's CPU generators keep a seed modulo 2^32 (a negative one too): 2^32 trains as seed 0, -1 as 2^32 - 1.
 SEEDS_END = 2**32
 # The Gaussians' Adam runs in float32, below whose smallest normal number an epsilon is subnormal (which fast kernels
@@ -615,6 +619,12 @@ class TrainConfig:
             WarpbagsError: an unknown field or a value of the wrong type.
         """
         values = dict(values)
+        for name in retired_fields(values):  # `RETIRED_FIELDS`: read as this version has them, not at all
+            group, _, key = name.rpartition(".")
+            if group:
+                values[group] = {field: value for field, value in values[group].items() if field != key}
+            else:
+                del values[key]
         if "fix_first_camera" in values:  # before the camera group existed (runs of warpbags <= 2026-11)
             values["camera"] = {**values.get("camera", {}), "fix_first_camera": values.pop("fix_first_camera")}
         # Saved before `validate` refused them, so that such a run still resumes: a blur without blur_until was
@@ -864,6 +874,17 @@ def parse_settings(settings: list[str]) -> dict[str, Any]:
         else:
             overrides[key] = value
     return overrides
+
+
+def retired_fields(values: dict[str, Any]) -> list[str]:
+    """The `RETIRED_FIELDS` that a saved config's `values` (`TrainConfig.to_dict`'s of an earlier version) hold."""
+    found = []
+    for name in RETIRED_FIELDS:
+        group, _, key = name.rpartition(".")
+        settings = values.get(group) if group else values
+        if isinstance(settings, dict) and key in settings:
+            found.append(name)
+    return found
 
 
 def check_repairer_used(overrides: dict[str, Any], config: TrainConfig, option: str = "--repairer") -> None:

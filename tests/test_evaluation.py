@@ -1583,3 +1583,23 @@ def test_eval_scores_the_held_out_views_masked_onto_white_whatever_their_backgro
         picture = cv2.cvtColor(cv2.imread(str(on_green / "eval" / file_name)), cv2.COLOR_BGR2RGB)
         truth = torch.from_numpy(picture[:, :test.width]).float() / 255  # truth | render | error
         assert (truth - target).abs().max() <= 1 / 255 + 1e-6
+
+
+def test_a_run_whose_config_holds_settings_of_an_earlier_version_is_read_not_continued(finished_run, tmp_path):
+    """config.json keeps every field, and reverted experiments' fields (camera.restarts, depth_patch, ...) made every
+    command after training refuse such a run as holding "unknown training option(s)". It is read as this version has
+    those settings, not at all; only continuing it is refused, by name: it would train otherwise than it started."""
+    run = tmp_path / "old"
+    shutil.copytree(finished_run, run, ignore=shutil.ignore_patterns("turntable*", "eval*", "report.md"))
+    info = json.loads((run / "config.json").read_text())
+    info["config"]["camera"]["restarts"] = 3
+    info["config"]["depth_patch"] = 0.125
+    (run / "config.json").write_text(json.dumps(info))
+    result = runner.invoke(app, ["export", str(run), "--out", str(tmp_path / "export"), "--no-colmap"])
+    assert result.exit_code == 0, result.output
+    assert runner.invoke(app, ["eval", str(run), "--refine-iters", "0"]).exit_code == 0
+    assert load_run(run).config.to_dict() == load_run(finished_run).config.to_dict()
+    result = runner.invoke(app, ["train", "--resume", "--out", str(run)])
+    assert result.exit_code == 2 and _lines(result) == [
+        f"error: {run / 'config.json'} holds camera.restarts, depth_patch, settings of an earlier warpbags that this "
+        "one has no more: the run cannot be continued (eval, export, render and view still read it)"], result.output

@@ -41,7 +41,7 @@ import numpy as np
 import torch
 
 from warpbags.cameras import improper_viewmats
-from warpbags.configs.train import TrainConfig, is_number
+from warpbags.configs.train import TrainConfig, is_number, retired_fields
 from warpbags.data.scene import Scene, SceneNormalization
 from warpbags.errors import WarpbagsError, one_line
 from warpbags.files import atomic_output, is_temporary, read_array, temporary_name
@@ -124,6 +124,22 @@ class RunFolder:
             raise WarpbagsError(f"{self.path / 'config.json'}: unreadable ({error})") from None
         except WarpbagsError as error:  # a field of the wrong type ("iters must be like 5000, got 'abc'") or range
             raise WarpbagsError(f"{self.path / 'config.json'}: {error}") from None
+
+    def resumable_config(self, info: dict | None = None) -> TrainConfig:
+        """`saved_config`, for a run to be continued: one whose config.json holds settings that this version has no
+        more (`RETIRED_FIELDS`) would go on training otherwise than it started.
+
+        Raises:
+            WarpbagsError: as `saved_config`, or such settings, named.
+        """
+        info = self.read_info() if info is None else info
+        saved = info.get("config") if isinstance(info, dict) else None
+        retired = retired_fields(saved) if isinstance(saved, dict) else []
+        if retired:
+            raise WarpbagsError(f"{self.path / 'config.json'} holds {', '.join(retired)}, settings of an earlier "
+                                "warpbags that this one has no more: the run cannot be continued (eval, export, "
+                                "render and view still read it)")
+        return self.saved_config(info)
 
     def trained_on(self, scene: Scene, info: dict | None = None) -> bool:
         """Whether the run here trained on `scene`'s folder (config.json's, or `info`'s, scene_root)."""

@@ -465,7 +465,7 @@ def _check_earlier_run(run_dir: Path, config: TrainConfig, scene: Scene) -> None
     info = folder.read_info()
     if not folder.trained_on(scene, info):
         raise WarpbagsError(f"{run_dir} holds a run of the scene in {info.get('scene_root')}: choose another --out")
-    saved = folder.saved_config(info)
+    saved = folder.saved_config(info) if _is_done(run_dir) else folder.resumable_config(info)  # read, or continued
     differing = differing_fields(saved.to_dict(), config.to_dict(), frozenset({"render_threads"}))
     if differing:
         name, value, asked = differing[0]

@@ -592,7 +592,7 @@ def saved_run_config(out_dir: str | Path) -> TrainConfig:
     run_folder = RunFolder(out_dir)
     if not run_folder.has_checkpoint():
         raise WarpbagsError(f"--resume: no checkpoint in {run_folder.checkpoints}")
-    return run_folder.saved_config()
+    return run_folder.resumable_config()
 
 
 def saved_run_scene(out_dir: str | Path, data_root: str | Path | None = None) -> str:
