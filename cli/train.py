@@ -108,25 +108,39 @@ def _train_with_progress_bar(trainer) -> dict:
     columns = [TextColumn("[bold]train"), BarColumn(), MofNCompleteColumn(), TextColumn("{task.fields[status]}"),
                TimeElapsedColumn(), TimeRemainingColumn()]
     # in training steps, the turn search's trial rounds included (`Trainer.steps_left`), so that the bar's rate and
-    # time left hold through the search
+    # time left hold through the search, whose trial steps move it too
     total = trainer.iteration + trainer.steps_left()
     with Progress(*columns, console=stdout, transient=False) as progress:
         task = progress.add_task("train", total=total, completed=trainer.iteration, status="")
         return trainer.train(callback=lambda record: progress.update(task, completed=total - trainer.steps_left(),
-                                                                     status=_status(record)))
+                                                                     status=_status(record)),
+                             on_trial_step=lambda done: progress.update(task, completed=done, status="turn search"))
 
 
 def _train_with_log_lines(trainer, every: int) -> dict:
     """One compact line every `every` iterations and at the end: what a log file or CI can read (no bar). The time
-    per step and the time left count the turn search's trial rounds as steps (`Trainer.steps_left`)."""
+    per step and the time left count the turn search's trial rounds as steps (`Trainer.steps_left`), and the search
+    prints a line every `every` of its trial steps, which are logged only once it ends."""
     total, started, steps = trainer.config.total_iters, time.perf_counter(), trainer.steps_left()
+    first = trainer.iteration
+    all_steps = first + steps
+
+    def seconds_per_step(done: int) -> float:
+        return (time.perf_counter() - started) / max(done - first, 1)
 
     def line(record: dict) -> None:
         if record["iter"] % every and record["iter"] != total:
             return
         left = trainer.steps_left()
-        per_step = (time.perf_counter() - started) / max(steps - left, 1)
+        per_step = seconds_per_step(all_steps - left)
         print(f"iter {record['iter']}/{total}  {_status(record)}  {per_step:.3f} s/step  eta {per_step * left:.0f} s",
               flush=True)
 
-    return trainer.train(callback=line)
+    def trial_line(done: int) -> None:
+        if done % every:
+            return
+        per_step = seconds_per_step(done)
+        print(f"turn search: step {done}/{all_steps}  {per_step:.3f} s/step  eta {per_step * (all_steps - done):.0f} s",
+              flush=True)
+
+    return trainer.train(callback=line, on_trial_step=trial_line)

@@ -1542,3 +1542,22 @@ def test_the_steps_left_count_the_turn_searchs_trial_rounds_until_it_is_done(sce
     assert trainer.steps_left() == 4
     assert make_trainer(scene_dir, tmp_path / "frozen", iters=12, rounds=3, pose_opt=False,
                         camera={"hypotheses_round": 1}).steps_left() == 12
+
+
+def test_the_turn_searchs_trial_steps_move_the_progress_display(scene_dir, tmp_path):
+    """The turn search reported nothing until it ended (1000 of the quick preset's 1400 steps), so the progress bar
+    and the log lines stood still through it: its trial steps are now counted out as they train, in the steps that
+    `steps_left` counts, and a run without a terminal prints a line every --log-every of them."""
+    trainer = make_trainer(scene_dir, tmp_path / "api", iters=12, rounds=3, pose_opt_start=0,
+                           camera={"hypotheses_round": 1, "hypothesis_angles": (10.0, 20.0)})
+    done = []
+    trainer.train(stop_at=8, on_trial_step=done.append)
+    assert done == list(range(5, 4 + 5 * 4 + 1))  # round 1 (iterations 4-7) trained unturned and with 4 turns
+    assert 12 + 4 * 4 - trainer.steps_left() == done[-1]  # where the bar goes on from after the search
+
+    result = runner.invoke(app, ["train", str(scene_dir), "--iters", "12", "--rounds", "3", "--log-every", "5",
+                                 "--max-image-size", "32", "--set", "init_points=300", "--set", "hull_resolution=16",
+                                 "--set", "camera.hypotheses_round=1", "--out", str(tmp_path / "cli")])
+    assert result.exit_code == 0, result.output
+    trial_lines = [line.split()[3] for line in result.output.splitlines() if line.startswith("turn search: step")]
+    assert trial_lines == ["5/28", "10/28", "15/28", "20/28"], result.output

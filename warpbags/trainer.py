@@ -380,12 +380,14 @@ class Trainer:
                                           settings)[0].item() for camera in movable}
         return max(movable, key=losses.__getitem__)
 
-    def _search_view_hypotheses(self) -> list[tuple[dict, torch.Tensor]] | None:
+    def _search_view_hypotheses(self, on_trial_step: Callable[[int], None] | None = None
+                                ) -> list[tuple[dict, torch.Tensor]] | None:
         """`camera.hypotheses_round`: train the round that starts now once with the worst-fit camera as it is and
         once per turn of `self.hypothesis_turns`, and keep the trial of lowest mean loss over the round's last tenth if
         it beats the unturned camera's by more than `camera.hypothesis_margin` (relative). The trainer is left at
         the kept trial's end. Returns its (log record, poses) per iteration, or None on Ctrl-C (the trainer is then
-        back at the round's start)."""
+        back at the round's start). `on_trial_step(done)` after each trial step: the run's training steps done so
+        far, counted as `steps_left` counts them."""
         camera_config = self.config.camera
         camera = self._worst_fit_view()
         round_start, round_end = self.iteration, self.schedule.round_end(self.iteration)
@@ -403,6 +405,7 @@ class Trainer:
         self.log(f"round {round_index} (0-based): camera {camera} fits worst; the round is trained unturned and with "
                  f"each of {len(self.hypothesis_turns)} turns of it about the object")
         unturned, best = None, None
+        done = round_start  # training steps before the search: its trials count from there (`steps_left`)
         for label, rotation in [("not turned", None), *self.hypothesis_turns]:
             back_to_start()
             if rotation is not None:
@@ -410,6 +413,9 @@ class Trainer:
             steps = []
             for _ in range(length):
                 steps.append((self.train_step(), self.current_viewmats()))
+                done += 1
+                if on_trial_step is not None:
+                    on_trial_step(done)
                 if self._stop_signal is not None:
                     back_to_start()
                     return None
@@ -471,7 +477,8 @@ class Trainer:
             raise KeyboardInterrupt  # `train` says which signal (`Stopped`)
         return record
 
-    def train(self, stop_at: int | None = None, callback: Callable[[dict], None] | None = None) -> dict:
+    def train(self, stop_at: int | None = None, callback: Callable[[dict], None] | None = None,
+              on_trial_step: Callable[[int], None] | None = None) -> dict:
         """Train until `stop_at` (default: all coarse and repair iterations) are done; returns the last record.
 
         Logs every iteration and records the poses every `warpbags.pose_history.RECORD_EVERY` iterations.
@@ -481,9 +488,11 @@ class Trainer:
         saves a checkpoint and raises KeyboardInterrupt. Divergence raises WarpbagsError. `callback(record)` is called
         after each iteration. The round searched for view hypotheses (`camera.hypotheses_round`) trains as a whole: a
         `stop_at` inside it stops at its start, Ctrl-C goes back to its start, only its end is checkpointed, and its
-        iterations are logged (and passed to `callback`) after the search, the trainer then at the round's end. A new
-        run of `start_or_resume` that fails (any exception, KeyboardInterrupt included) before its first checkpoint is
-        written removes the files it wrote, and the folders made for it: nothing half-written stays.
+        iterations are logged (and passed to `callback`) after the search, the trainer then at the round's end;
+        `on_trial_step(done)` is called after each of its trial steps, with the training steps done so far as
+        `steps_left` counts them, so that a progress display moves through it. A new run of `start_or_resume` that fails
+        (any exception, KeyboardInterrupt included) before its first checkpoint is written removes the files it wrote,
+        and the folders made for it: nothing half-written stays.
         """
         total = self.config.total_iters
         stop_at = total if stop_at is None else min(stop_at, total)
@@ -507,7 +516,7 @@ class Trainer:
                         if self.schedule.round_end(self.iteration) > stop_at:
                             self.save_checkpoint()  # the search trains its round as a whole: stop at its start
                             break
-                        steps = self._search_view_hypotheses()
+                        steps = self._search_view_hypotheses(on_trial_step)
                         if steps is None:  # Ctrl-C during the search: back at the round's start
                             self.save_checkpoint()
                             raise KeyboardInterrupt
