@@ -105,6 +105,14 @@ def resolution_check(resolution: int) -> tuple[bool, str]:
             f"--resolution must be in [2, {MAX_HULL_RESOLUTION}] (voxels per axis), got {resolution}")
 
 
+def procrustes_views_check(given: str, fewest: int) -> tuple[bool, str]:
+    """The `check_options` check of a script whose pose errors are after sim(3) Procrustes alignment of the camera
+    centres, which needs 3 of them: `given`, the `--views` option as the message shows it, and `fewest`, the least
+    view count it asks for (named too where the option is a list of counts)."""
+    got = "" if given == str(fewest) else f", got {fewest}"
+    return fewest >= 3, f"--views {given}: sim(3) Procrustes alignment needs 3 cameras or more{got}"
+
+
 def check_json(path: Path | None) -> None:
     """Check a `--json` file writable before any work: the scripts write it after their first row, which may come
     after hours of training, and a folder at that path (or a file where its folder should be) would fail only then.

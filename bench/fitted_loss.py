@@ -33,7 +33,8 @@ import torch
 import torch.nn.functional as F
 
 from common import (add_training_options, check_json, check_options, check_view_counts, merge_settings,
-                    open_bench_scene, pose_noise_checks, training_overrides, with_depth, write_json)
+                    open_bench_scene, pose_noise_checks, procrustes_views_check, training_overrides, with_depth,
+                    write_json)
 from warpbags.alignment import pose_errors
 from warpbags.cameras import pixel_directions, project_points
 from warpbags.cli.common import clean_errors, parse_numbers
@@ -175,8 +176,7 @@ def main() -> None:
     torch.set_num_threads(1)
     seeds, fit_seeds = parse_numbers(args.seeds, "--seeds", int), parse_numbers(args.fit_seeds, "--fit-seeds", int)
     check_options(pose_noise_checks(args.rot, args.trans))
-    # the pose sets' rotation errors are after Procrustes alignment of the camera centres, which fails on fewer than 3
-    check_options([(args.views >= 3, f"--views {args.views}: sim(3) Procrustes alignment needs 3 cameras or more")])
+    check_options([procrustes_views_check(str(args.views), args.views)])
     check_json(args.json)
     # a bad preset or setting, in every run and fit, fails before the first line of the table
     overrides = training_overrides(args, fixed={"views": "from --views", "rot_noise_deg": "from --rot",

@@ -35,7 +35,7 @@ import numpy as np
 import torch
 
 from common import (add_training_options, check_json, check_options, check_view_counts, merge_settings,
-                    open_bench_scene, training_overrides, write_json)
+                    open_bench_scene, procrustes_views_check, training_overrides, write_json)
 from warpbags.alignment import centre_floor_errors, pose_errors
 from warpbags.configs.train import load_preset
 from warpbags.data import ORBIT_RADIUS
@@ -159,7 +159,7 @@ def main() -> None:
     torch.set_num_threads(1)
     check_options([(0 < args.pose_lr < math.inf,  # a NaN fails both comparisons
                     f"--pose-lr must be a positive number, got {args.pose_lr:g}"),
-                   (args.views >= 3, f"--views {args.views}: sim(3) Procrustes alignment needs 3 cameras or more")])
+                   procrustes_views_check(str(args.views), args.views)])
     check_json(args.json)
     fit_iters, start_noises = parse_numbers(args.fit_iters, "--fit-iters", int), parse_start_noise(args.start_noise)
     overrides = training_overrides(args, fixed=FIXED)

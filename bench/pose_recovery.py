@@ -50,8 +50,8 @@ import numpy as np
 import torch
 
 from common import (add_training_options, check_json, check_options, check_view_counts, merge_settings,
-                    open_bench_scene, pose_noise_checks, quiet_trainer, timed_training, training_overrides, with_depth,
-                    write_json)
+                    open_bench_scene, pose_noise_checks, procrustes_views_check, quiet_trainer, timed_training,
+                    training_overrides, with_depth, write_json)
 from warpbags.alignment import pose_errors
 from warpbags.data import ORBIT_RADIUS
 from warpbags.errors import WarpbagsError
@@ -182,9 +182,7 @@ def main() -> None:
     torch.set_num_threads(1)
     rots, view_counts = parse_numbers(args.rot, "--rot"), parse_numbers(args.views, "--views", int)
     check_options(check for rot in rots for check in pose_noise_checks(rot, args.trans))
-    # every row's errors are after Procrustes alignment of the camera centres, which fails on fewer than 3
-    check_options([(min(view_counts) >= 3, f"--views {args.views!r}: sim(3) Procrustes alignment needs 3 cameras "
-                                           f"or more, got {min(view_counts)}")])
+    check_options([procrustes_views_check(repr(args.views), min(view_counts))])
     check_json(args.json)
     seeds = parse_numbers(args.seeds, "--seeds", int)
     variants = args.variants.split(",") + (ABLATIONS if args.ablations else [])
