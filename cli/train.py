@@ -121,9 +121,8 @@ def _train_with_log_lines(trainer, every: int) -> dict:
     """One compact line every `every` iterations and at the end: what a log file or CI can read (no bar). The time
     per step and the time left count the turn search's trial rounds as steps (`Trainer.steps_left`), and the search
     prints a line every `every` of its trial steps, which are logged only once it ends."""
-    total, started, steps = trainer.config.total_iters, time.perf_counter(), trainer.steps_left()
-    first = trainer.iteration
-    all_steps = first + steps
+    total, started, first = trainer.config.total_iters, time.perf_counter(), trainer.iteration
+    all_steps = first + trainer.steps_left()
 
     def seconds_per_step(done: int) -> float:
         return (time.perf_counter() - started) / max(done - first, 1)
