@@ -217,6 +217,32 @@ def test_distance_weights_favour_views_away_from_the_training_cameras():
     assert 0 < min(expected) and max(expected) < 1
 
 
+
+def test_the_repair_stage_draws_its_pseudo_cameras_about_the_gaussians(tmp_path):
+    """Gaussians and training cameras moved together move the pseudo cameras with them: they are drawn about the
+    Gaussians' opacity-weighted centre, which noisy poses leave away from the origin, not about the origin."""
+    from conftest import look_at
+
+    generator = torch.Generator().manual_seed(0)
+    means = 0.3 * torch.randn(200, 3, generator=generator)
+    eyes = [torch.tensor([4 * np.cos(a), 4 * np.sin(a), 1.5], dtype=torch.float32) for a in (0.3, 1.9, 3.6, 5.0)]
+    viewmats = torch.stack([look_at(eye, torch.zeros(3)) for eye in eyes])
+    shift = torch.tensor([0.5, -0.6, 0.4])
+    moved = torch.eye(4)
+    moved[:3, 3] = -shift  # the camera of world point x + shift is the camera of x moved by shift
+
+    def pseudo_viewmats(means, viewmats, folder):
+        params = {"means": means, "opacities": torch.randn(len(means), generator=torch.Generator().manual_seed(1))}
+        model = SimpleNamespace(training_views=SimpleNamespace(device="cpu"), params=params,
+                                render_views=lambda cameras: torch.full((len(cameras), 16, 16, 3), 0.5))
+        stage = RepairStage(tiny_config(weight_lpips=0.0), folder, model, viewmats, torch.Generator().manual_seed(2),
+                            log=lambda message: None, repairer=UNetRepairer(RepairConfig()))
+        stage.refresh(model, viewmats, iteration=0)
+        return stage.viewmats
+
+    at_origin = pseudo_viewmats(means, viewmats, tmp_path / "a")
+    torch.testing.assert_close(pseudo_viewmats(means + shift, viewmats @ moved, tmp_path / "b"), at_origin @ moved,
+                               rtol=0, atol=1e-5)
 # ------------------------------------------------------------------------------------------------ end to end
 def make_trainer(scene_dir, out, **repair) -> Trainer:
     config = tiny_config(**repair)
