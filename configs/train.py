@@ -15,6 +15,7 @@ import json
 import math
 import types
 import typing
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from typing import Any, Literal
 
@@ -619,8 +620,7 @@ class TrainConfig:
             WarpbagsError: an unknown field or a value of the wrong type.
         """
         values = dict(values)
-        for name in retired_fields(values):  # `RETIRED_FIELDS`: read as this version has them, not at all
-            group, _, key = name.rpartition(".")
+        for _, group, key in list(_retired_places(values)):  # read as this version has them: not at all
             if group:
                 values[group] = {field: value for field, value in values[group].items() if field != key}
             else:
@@ -878,13 +878,17 @@ def parse_settings(settings: list[str]) -> dict[str, Any]:
 
 def retired_fields(values: dict[str, Any]) -> list[str]:
     """The `RETIRED_FIELDS` that a saved config's `values` (`TrainConfig.to_dict`'s of an earlier version) hold."""
-    found = []
+    return [name for name, _, _ in _retired_places(values)]
+
+
+def _retired_places(values: dict[str, Any]) -> Iterator[tuple[str, str, str]]:
+    """(name, group, key) of each of the `RETIRED_FIELDS` that `values` hold: `values[group][key]`, or `values[key]`
+    where the group is ''."""
     for name in RETIRED_FIELDS:
         group, _, key = name.rpartition(".")
         settings = values.get(group) if group else values
         if isinstance(settings, dict) and key in settings:
-            found.append(name)
-    return found
+            yield name, group, key
 
 
 def check_repairer_used(overrides: dict[str, Any], config: TrainConfig, option: str = "--repairer") -> None:
