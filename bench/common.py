@@ -168,7 +168,9 @@ def training_overrides(args: argparse.Namespace, fixed: dict[str, str] | None = 
         settings = overrides.get(group, {}) if group else overrides
         if isinstance(settings, dict) and field in settings:
             raise WarpbagsError(f"--set {name}: this benchmark sets {name} itself ({source})")
-    load_preset(args.preset, **overrides)
+    runs = list(runs)
+    if not runs:  # with runs, only the merged settings are checked: `--set views_per_step=6` is right for --views 6
+        load_preset(args.preset, **overrides)
     given = f"--preset {args.preset}" + (f" and --set {overrides}" if overrides else "")
     for label, run in runs:
         try:

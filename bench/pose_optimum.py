@@ -162,10 +162,11 @@ def main() -> None:
                    procrustes_views_check(str(args.views), args.views)])
     check_json(args.json)
     fit_iters, start_noises = parse_numbers(args.fit_iters, "--fit-iters", int), parse_start_noise(args.start_noise)
-    overrides = training_overrides(args, fixed=FIXED)
-    if args.max_image_size is not None:
-        overrides["max_image_size"] = args.max_image_size
-    load_preset(args.preset, **run_settings(args.views, fit_iters, overrides))  # a bad setting fails before the header
+    sizes = {} if args.max_image_size is None else {"max_image_size": args.max_image_size}
+    # a bad setting fails before the header
+    overrides = training_overrides(args, fixed=FIXED, runs=[(f"the fits of --views {args.views}",
+                                                             run_settings(args.views, fit_iters, sizes))])
+    overrides.update(sizes)
     scenes = {name: open_bench_scene(name) for name in args.scenes}  # a bad name fails before the table's header
     check_view_counts(scenes, [args.views])
     print(f"{'scene':<22} {'views':>5} {'px':>5} {'fit its':>8} {'start noise':>11} {'rot start':>9} {'rot mean':>10}"

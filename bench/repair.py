@@ -125,7 +125,9 @@ def main() -> None:
     torch.set_num_threads(1)
     check_options(pose_noise_checks(args.rot, args.trans))
     overrides = training_overrides(args, fixed={"views": "from --views", "rot_noise_deg": "from --rot",
-                                                "trans_noise": "from --trans"})
+                                                "trans_noise": "from --trans"},
+                                   runs=[(f"--views {args.views}", dict(views=args.views, rot_noise_deg=args.rot,
+                                                                        trans_noise=args.trans))])
     repair_settings = overrides.pop("repair", {})
     repair = {"iters": args.repair_iters, **repair_settings}  # a repair.iters setting wins
     settings = merge_settings(overrides, dict(views=args.views, rot_noise_deg=args.rot, trans_noise=args.trans,

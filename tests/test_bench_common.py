@@ -45,6 +45,8 @@ def test_training_overrides_parses_and_validates_the_settings():
                                                             ("the run of --views 1", {"views": 1})])
     assert str(error.value) == ("the run of --views 1 with --preset quick and --set {'lambda_chamfer': 3}: --views "
                                 "must be >= 2, got 1")
+    # a setting checked with the runs' own settings, not the preset's: 6 views per step is right for --views 6
+    assert training_overrides(_args("views_per_step=6"), runs=[("--views 6", {"views": 6})]) == {"views_per_step": 6}
 
 
 def test_training_overrides_refuses_a_field_the_script_sets_itself():
