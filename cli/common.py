@@ -40,6 +40,11 @@ def clean_errors(command: Callable) -> Callable:
     return wrapper
 
 
+def _shown(bound: float) -> str:
+    """A bound as a message shows it: an integer whole (2^32 - 1 as 4294967295, not 4.29497e+09)."""
+    return str(bound) if isinstance(bound, int) else f"{bound:g}"
+
+
 def parse_numbers(text: str, option: str, kind: Callable = float, minimum: float | None = None,
                   maximum: float | None = None) -> list:
     """The comma-separated numbers of option `option` (empty items skipped): `kind` (float or int) of each.
@@ -61,9 +66,9 @@ def parse_numbers(text: str, option: str, kind: Callable = float, minimum: float
         if not math.isfinite(numbers[-1]):
             raise WarpbagsError(f"{option} {text!r}: {item.strip()!r} is not a finite number")
         if minimum is not None and numbers[-1] < minimum:
-            raise WarpbagsError(f"{option} {text!r}: {item.strip()} is below {minimum:g}")
+            raise WarpbagsError(f"{option} {text!r}: {item.strip()} is below {_shown(minimum)}")
         if maximum is not None and numbers[-1] > maximum:
-            raise WarpbagsError(f"{option} {text!r}: {item.strip()} is above {maximum:g}")
+            raise WarpbagsError(f"{option} {text!r}: {item.strip()} is above {_shown(maximum)}")
     if not numbers:
         raise WarpbagsError(f"{option} {text!r}: expected comma-separated numbers, got none")
     return numbers

@@ -11,7 +11,7 @@ from rich.table import Table
 
 from warpbags.cli.common import clean_errors, parse_numbers, stdout
 from warpbags.cli.train_options import DATA_ROOT_HELP, config_overrides
-from warpbags.configs.train import DEFAULT_PRESET
+from warpbags.configs.train import DEFAULT_PRESET, SEEDS_END
 from warpbags.errors import WarpbagsError, sigterm_stops
 from warpbags.sweep import RAY_INSTALL, SweepSpec, make_executor, run_sweep
 
@@ -57,7 +57,7 @@ def sweep(
     spec = SweepSpec(scene=scene, out=out or Path("runs") / f"sweep-{Path(scene).name}", refine_iters=refine_iters,
                      rot_noises=tuple(parse_numbers(rot_noises, "--rot-noises", minimum=0, maximum=180)),
                      views=tuple(parse_numbers(views, "--views", int, minimum=2)),  # a visual hull needs two
-                     seeds=tuple(parse_numbers(seeds, "--seeds", int)),
+                     seeds=tuple(parse_numbers(seeds, "--seeds", int, minimum=0, maximum=SEEDS_END - 1)),
                      trans_noise=trans_noise, preset=preset, overrides=overrides, device=device)
     # SIGTERM (kill, a job scheduler) stops the sweep as Ctrl-C does, between runs too: its lock and a run's
     # unfinished start are removed; each run's training takes it itself (a checkpoint saved)

@@ -628,11 +628,15 @@ class TrainConfig:
         if "fix_first_camera" in values:  # before the camera group existed (runs of warpbags <= 2026-11)
             values["camera"] = {**values.get("camera", {}), "fix_first_camera": values.pop("fix_first_camera")}
         # Saved before `validate` refused them, so that such a run still resumes: a blur without blur_until was
-        # never applied, and more render threads than MAX_RENDER_THREADS only cost time.
+        # never applied, more render threads than MAX_RENDER_THREADS only cost time, and a seed outside [0, 2^32)
+        # acted as its remainder.
         if values.get("blur_until", 0) == 0 and values.get("blur_sigma_px"):
             values["blur_sigma_px"] = 0.0
         if isinstance(values.get("render_threads"), int) and values["render_threads"] > MAX_RENDER_THREADS:
             values["render_threads"] = MAX_RENDER_THREADS
+        for name in ("seed", "noise_seed"):  # seeds outside [0, 2^32) trained as torch kept them: modulo 2^32
+            if isinstance(values.get(name), int) and not isinstance(values[name], bool):
+                values[name] %= SEEDS_END
         return _replaced(TrainConfig(), values)
 
 

@@ -323,6 +323,31 @@ def test_an_earlier_run_with_another_group_field_names_that_field(scene, tmp_pat
     assert f"{out / run.name} holds a run with lr.pose=0.01, not 0.005: choose another --out" in lines[0], lines[0]
 
 
+@pytest.mark.parametrize("finished", [False, True])
+def test_an_earlier_run_holding_retired_settings_is_refused(scene, tmp_path, monkeypatch, finished):
+    """A config.json of a reverted experiment's version (camera.restarts=3) reads back without it: a finished run was
+    skipped as done and its row joined the table as if of this sweep's settings."""
+
+    def train(*args, **kwargs):
+        raise AssertionError("a run trained")
+
+    monkeypatch.setattr("warpbags.sweep.start_or_resume", train)
+    out = tmp_path / "sweep"
+    spec = SweepSpec(scene=str(scene), out=out, rot_noises=(5,), views=(4,))
+    run = sweep_runs(spec)[0]
+    (out / run.name).mkdir(parents=True)
+    config = combination_config(spec, run).to_dict()
+    config["camera"]["restarts"] = 3
+    (out / run.name / "config.json").write_text(json.dumps({"config": config, "scene_root": str(scene.resolve())}))
+    if finished:
+        (out / run.name / "eval.json").write_text("{}")
+    result = runner.invoke(app, ["sweep", str(scene), "--rot-noises", "5", "--views", "4", "--out", str(out)])
+    lines = [line for line in result.output.splitlines() if line.strip()]
+    assert result.exit_code == 2 and len(lines) == 1, result.output
+    assert lines[0] == (f"error: sweep run {run.name}: {out / run.name} holds a run with camera.restarts, settings of "
+                        "an earlier warpbags that this one has no more: choose another --out (or remove that run)")
+
+
 def test_a_scene_whose_runs_would_have_no_test_view_is_one_line_before_anything_trains(scene, tmp_path, monkeypatch):
     """Evaluating a run needs held-out views: a capture whose every 8th view is one of the sweep's training views
     (no sparse_test.txt) trained the first run to the end and then stopped at its evaluation. It is one line before
@@ -497,10 +522,11 @@ def test_a_repairer_with_the_repair_stage_off_is_refused_as_train_refuses_it(swe
 
 
 def test_seeds_that_torch_would_take_as_another_seed_are_refused(sweep_line):
-    """torch's CPU generator keeps a seed modulo 2^32: `--seeds 0,4294967296` trained and reported one run twice."""
-    assert sweep_line("maryrose", "--seeds", "0,4294967296").endswith(
-        "--seed must be in [0, 2^32), got 4294967296: torch's CPU generator keeps a seed modulo 2^32, so it would act "
-        "as seed 0")
+    """torch's CPU generator keeps a seed modulo 2^32: `--seeds 0,4294967296` trained and reported one run twice. The
+    message names the sweep's --seeds (it named train's --seed, which the sweep has not)."""
+    assert sweep_line("maryrose", "--seeds", "0,4294967296") == (
+        "error: --seeds '0,4294967296': 4294967296 is above 4294967295")
+    assert sweep_line("maryrose", "--seeds=-1") == "error: --seeds '-1': -1 is below 0"
     assert sweep_line("maryrose", "--seeds", "0,4294967295") == "error: the scene was read"
 
 

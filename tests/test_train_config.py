@@ -5,7 +5,10 @@ from __future__ import annotations
 
 import dataclasses
 
+import pytest
+
 from warpbags.configs.train import RepairConfig, TrainConfig, paper, quick
+from warpbags.errors import WarpbagsError
 
 PAPER = {
     "preset": "paper", "views": 4, "iters": 5000, "rounds": 1, "pose_opt": True, "pose_opt_start": 1000,
@@ -84,9 +87,7 @@ def test_paper_is_the_defaults_with_its_repair_stage():
 def test_a_field_declared_of_any_length_takes_a_list_of_any_length():
     """`camera.hypothesis_angles` is `tuple[float, ...]`: one angle or three, not only the default's two; a pair such
     as `pose_round_window` keeps its length."""
-    import pytest
     from warpbags.configs.train import load_preset
-    from warpbags.errors import WarpbagsError
 
     assert load_preset("quick", camera={"hypothesis_angles": [20]}).camera.hypothesis_angles == (20,)
     assert load_preset("quick", camera={"hypothesis_angles": [10, 20, 30]}).camera.hypothesis_angles == (10, 20, 30)
@@ -99,9 +100,7 @@ def test_a_field_declared_of_any_length_takes_a_list_of_any_length():
 def test_values_that_would_break_training_later_are_refused_up_front():
     """A learning-rate schedule interpolates in log space and densification divides by its period: such values fail
     at load time with the field's name, not as a math error hundreds of iterations into a run."""
-    import pytest
     from warpbags.configs.train import load_preset
-    from warpbags.errors import WarpbagsError
 
     for overrides, message in [({"lr": {"pose_final": 0}}, "lr.pose_final must be > 0"),
                                ({"lr": {"means_init": -1e-4}}, "lr.means_init must be > 0"),
@@ -116,9 +115,7 @@ def test_values_that_would_break_training_later_are_refused_up_front():
 
 def test_parse_settings_refuses_a_field_of_a_group_set_to_a_value():
     """The benchmarks' `--set`: `repair=3` then `repair.iters=1` is one clear error, not a TypeError."""
-    import pytest
     from warpbags.configs.train import parse_settings
-    from warpbags.errors import WarpbagsError
 
     assert parse_settings(["repair.iters=1", "views=6"]) == {"repair": {"iters": 1}, "views": 6}
     with pytest.raises(WarpbagsError, match="--set 'repair.iters=1': repair was set to 3, not a group of fields"):
@@ -145,9 +142,7 @@ def test_every_float_field_must_be_finite():
     """NaN and inf pass `>= 0`-style checks (inf) or fail them with a misleading message (NaN): `--trans-noise inf`
     reached a LinAlgError in the preconditioner, `--set lambda_dssim=NaN` diverged at iteration 0. Every float field
     of the whole tree, a list's items too, is refused by one check that names it (its option where it has one)."""
-    import pytest
     from warpbags.configs.train import FLOAT_OPTIONS, load_preset
-    from warpbags.errors import WarpbagsError
 
     found = dict(_float_fields(quick()))
     assert {"trans_noise", "lr.sh_dc", "camera.hypothesis_angles", "densify.grad_threshold",
@@ -180,9 +175,7 @@ def test_range_checks_that_training_needed():
     a ZeroDivisionError in carving (hull_resolution 0), a diverging run (max_image_size 1, --trans-noise 1e30), a
     TypeError (lr.pose null), a blur that is never applied (--blur-px with --blur-until 0, the presets' default). The
     seeds' and lr.adam_eps's ranges have tests of their own, below."""
-    import pytest
     from warpbags.configs.train import load_preset
-    from warpbags.errors import WarpbagsError
 
     for overrides, message in [
             ({"trans_noise": 1e30}, r"--trans-noise must be <= 4 \(a std in normalized scene units, where the "
@@ -239,9 +232,7 @@ def test_seeds_are_refused_where_torch_would_take_them_as_another_seed():
     """torch's CPU generator keeps a seed modulo 2^32 (a negative one too), so [-2^63, 2^63) passed seeds that
     train as others: 2^32 as 0 (a sweep's `--seeds 0,4294967296` reported one run twice), -1 as 2^32 - 1. The
     message says why and which seed it would have been; a seed past 64 bits (torch's OverflowError) is refused too."""
-    import pytest
     from warpbags.configs.train import load_preset
-    from warpbags.errors import WarpbagsError
 
     for field, option in (("seed", "--seed"), ("noise_seed", "--noise-seed")):
         for seed, same in [(2**32, 0), (-1, 2**32 - 1), (2**32 + 5, 5), (2**70, 0)]:
@@ -257,10 +248,8 @@ def test_an_adam_eps_that_float32_cannot_hold_is_refused():
     """lr.adam_eps 1e-50 passed (only > 0 was checked) and is 0 in the Gaussians' float32 Adam, whose first step
     divided 0 by 0: "training diverged" at iteration 1. Below float32's smallest normal number it is refused, named;
     that number itself passes and trains finite steps where a gradient is 0."""
-    import pytest
     import torch
     from warpbags.configs.train import load_preset
-    from warpbags.errors import WarpbagsError
 
     tiny = torch.finfo(torch.float32).tiny
     for eps in (1e-50, tiny / 2, 0.0):
@@ -275,13 +264,18 @@ def test_an_adam_eps_that_float32_cannot_hold_is_refused():
 
 
 def test_a_saved_config_from_before_a_bound_still_resumes():
-    """A run saved a blur without blur_until (never applied) or more render threads than MAX_RENDER_THREADS before
-    `validate` refused them: its config reads back as what it trained with, and resuming validates it."""
+    """A run saved a blur without blur_until (never applied), more render threads than MAX_RENDER_THREADS or a seed
+    outside [0, 2^32) before `validate` refused them: its config reads back as what it trained with (torch kept the
+    seed modulo 2^32), and resuming validates it."""
     from warpbags.configs.train import MAX_RENDER_THREADS, TrainConfig
 
-    saved = TrainConfig.from_dict({"blur_sigma_px": 4.0, "blur_until": 0, "render_threads": 5000})
+    saved = TrainConfig.from_dict({"blur_sigma_px": 4.0, "blur_until": 0, "render_threads": 5000, "seed": -1,
+                                   "noise_seed": 2**32 + 7})
     assert (saved.blur_sigma_px, saved.render_threads) == (0.0, MAX_RENDER_THREADS)
+    assert (saved.seed, saved.noise_seed) == (2**32 - 1, 7)
     assert saved.replaced() == saved
+    with pytest.raises(WarpbagsError, match="seed must be like 0, got True"):
+        TrainConfig.from_dict({"seed": True})
     assert TrainConfig.from_dict({"blur_sigma_px": 4.0, "blur_until": 50}).blur_sigma_px == 4.0
 
 
@@ -289,9 +283,7 @@ def test_a_field_that_may_be_null_is_typed_by_its_declaration():
     """`resolution: int | None` and `camera.lbfgs_from_round` have the default None, which tells no type: 2.0 and true
     passed (2.0 == 2 and True == 1 pass `resolution in (None, 1, 2, 4, 8)`) and were saved so. A field that may not be
     null refuses null (it reached validate's comparisons as a TypeError), and a list of numbers refuses text."""
-    import pytest
     from warpbags.configs.train import load_preset
-    from warpbags.errors import WarpbagsError
 
     for overrides, message in [({"resolution": 2.0}, "resolution must be an integer or null, got 2.0"),
                                ({"resolution": True}, "resolution must be an integer or null, got True"),

@@ -127,7 +127,8 @@ class RunFolder:
 
     def resumable_config(self, info: dict | None = None) -> TrainConfig:
         """`saved_config`, for a run to be continued: one whose config.json holds settings that this version has no
-        more (`RETIRED_FIELDS`) would go on training otherwise than it started.
+        more (`RETIRED_FIELDS`) is refused, as it could go on training otherwise than it started (whether a value is
+        inert, as camera.restarts=1 was, is not worked out field by field).
 
         Raises:
             WarpbagsError: as `saved_config`, or such settings, named.

@@ -27,7 +27,7 @@ from pathlib import Path
 from typing import Callable, Iterator, Protocol
 
 from warpbags.configs.train import (DEFAULT_PRESET, MAX_RENDER_THREADS, TrainConfig, check_repairer_used,
-                                     differing_fields, is_number, load_preset)
+                                     differing_fields, is_number, load_preset, retired_fields)
 from warpbags.data import Scene, open_scene
 from warpbags.data.catalog import check_data_root
 from warpbags.data.splits import evaluation_views
@@ -465,7 +465,10 @@ def _check_earlier_run(run_dir: Path, config: TrainConfig, scene: Scene) -> None
     info = folder.read_info()
     if not folder.trained_on(scene, info):
         raise WarpbagsError(f"{run_dir} holds a run of the scene in {info.get('scene_root')}: choose another --out")
-    saved = folder.saved_config(info) if _is_done(run_dir) else folder.resumable_config(info)  # read, or continued
+    saved = folder.saved_config(info)
+    if retired := retired_fields(info["config"]):  # dropped from `saved`: finished, its row would mix settings too
+        raise WarpbagsError(f"{run_dir} holds a run with {', '.join(retired)}, settings of an earlier warpbags that "
+                            "this one has no more: choose another --out (or remove that run)")
     differing = differing_fields(saved.to_dict(), config.to_dict(), frozenset({"render_threads"}))
     if differing:
         name, value, asked = differing[0]
