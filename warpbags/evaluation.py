@@ -5,7 +5,7 @@ compared with the ground truth masked onto white (views without masks: rendered 
 `warpbags render` and `warpbags view` render the Gaussians, and compared with the images as they are): PSNR, SSIM
 (3DGS's, which GaussianObject scores with), FLIP (NVIDIA's LDR-FLIP through the `flip-evaluator` package: a
 perceptual error in [0, 1], lower is better, no learned weights, so it works offline) and LPIPS-VGG (the `lpips`
-package) when it and its weights are available offline. A metric that cannot be had (LPIPS without its weights, FLIP
+package, on images in [0, 1] as GaussianObject's evaluation) when it and its weights are available offline. A metric that cannot be had (LPIPS without its weights, FLIP
 if its package fails to import) is reported as null with the reason, never guessed.
 
 The held-out poses are true poses, while the Gaussians live in the frame of the optimized training poses. The
@@ -198,7 +198,11 @@ def refine_poses(params, viewmats, Ks, targets, width, height, sh_degree, iters:
 
 
 class LpipsMetric:
-    """LPIPS-VGG through the `lpips` package, or a reason why it is unavailable (no package, no weights offline)."""
+    """LPIPS-VGG through the `lpips` package, or a reason why it is unavailable (no package, no weights offline).
+
+    Images go in as they are, in [0, 1], as GaussianObject's render.py gives them for the numbers it publishes,
+    though the package documents [-1, 1]: LPIPS values compare with GaussianObject's and BAGS's tables.
+    """
 
     def __init__(self) -> None:
         self.model, self.unavailable = load_lpips()
@@ -206,7 +210,7 @@ class LpipsMetric:
     def __call__(self, image: np.ndarray, target: np.ndarray) -> float | None:
         if self.model is None:
             return None
-        to_tensor = lambda a: torch.from_numpy(a).permute(2, 0, 1)[None].float() * 2 - 1  # noqa: E731
+        to_tensor = lambda a: torch.from_numpy(a).permute(2, 0, 1)[None].float()  # noqa: E731
         with torch.no_grad():
             return float(self.model(to_tensor(image), to_tensor(target)))
 
