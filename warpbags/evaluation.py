@@ -5,8 +5,9 @@ compared with the ground truth masked onto white (views without masks: rendered 
 `warpbags render` and `warpbags view` render the Gaussians, and compared with the images as they are): PSNR, SSIM
 (3DGS's, which GaussianObject scores with), FLIP (NVIDIA's LDR-FLIP through the `flip-evaluator` package: a
 perceptual error in [0, 1], lower is better, no learned weights, so it works offline) and LPIPS-VGG (the `lpips`
-package, on images in [0, 1] as GaussianObject's evaluation) when it and its weights are available offline. A metric that cannot be had (LPIPS without its weights, FLIP
-if its package fails to import) is reported as null with the reason, never guessed.
+package, on images in [0, 1] as GaussianObject's evaluation) when it and its weights are available offline. A metric
+that cannot be had (LPIPS without its weights, FLIP if its package fails to import) is reported as null with the
+reason, never guessed.
 
 The held-out poses are true poses, while the Gaussians live in the frame of the optimized training poses. The
 test cameras are therefore mapped through the sim(3) that aligns the optimized training cameras to the true ones
