@@ -9,7 +9,7 @@ import torch
 from random_poses import F64, generator, random_sim3, random_viewmats, unit_vectors
 
 from warpbags.alignment import (Sim3, align_viewmats, alignment_for, centre_floor_errors, pose_errors, procrustes_unfit,
-                                reprojection_errors, umeyama)
+                                procrustes_weak, reprojection_errors, umeyama)
 from warpbags.cameras import camera_centers, moved_keeping_target, viewmats_from_centers
 from warpbags.data.noise import perturb_viewmats
 from warpbags.lie import so3_exp
@@ -290,6 +290,27 @@ def test_alignment_for_falls_back_to_pairwise_only_where_procrustes_cannot_fit()
     assert alignment_for(two, "pairwise") == "pairwise" and alignment_for(nine, "pairwise") == "pairwise"
     assert alignment_for(two, "none") == "none"
     assert procrustes_unfit(two) == "2 cameras: Procrustes needs at least 3 camera centres"
+
+
+def test_cameras_on_a_short_arc_are_said_to_fix_procrustes_weakly():
+    """Four cameras on a 40 deg arc with exact orientations and centres 0.5% of the orbit off read degrees off after
+    Procrustes, silently: `procrustes_weak` says so (pose_accuracy logs it), where cameras around an object pass."""
+    gen = generator(7)
+    rotations = random_viewmats(4, gen)[:, :3, :3]
+
+    def arc(degrees: float) -> torch.Tensor:
+        angles = torch.linspace(0, math.radians(degrees), 4, dtype=F64)
+        return viewmats_from_centers(rotations, 4 * torch.stack([angles.cos(), angles.sin(), 0 * angles], dim=1))
+
+    short, around = arc(40), arc(270)
+    assert procrustes_unfit(short) is None
+    assert procrustes_weak(short) == ("the camera centres spread 0.10 as far across their main line as along it: "
+                                      "Procrustes' turn about that line follows the centres' errors")
+    assert procrustes_weak(around) is None
+    noisy = viewmats_from_centers(rotations, camera_centers(short) + 0.02 * torch.randn(4, 3, generator=gen,
+                                                                                           dtype=F64))
+    assert pose_errors(noisy, short)["rotation_error_deg_mean"] > 1  # what the message warns of
+    assert pose_errors(noisy, short, "pairwise")["rotation_error_deg_mean"] < 1e-9
 
 
 def test_cameras_along_one_line_are_aligned_pairwise_and_non_finite_poses_are_named():

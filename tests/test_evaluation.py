@@ -829,6 +829,26 @@ def test_pose_accuracy_leaves_out_the_alignment_two_cameras_cannot_fit(finished_
     assert len(lines) == 1 and "procrustes left out" in lines[0] and "at least 3" in lines[0], lines
 
 
+def test_pose_accuracy_says_where_procrustes_fixes_its_turn_weakly(finished_run, tmp_path):
+    """Reference cameras on a short arc: Procrustes' errors follow the centres' noise (`procrustes_weak`), said once."""
+    run = load_run(finished_run)
+    lines = []
+    pose_accuracy(run, log=lines.append)
+    assert not any("across their main line" in line for line in lines), lines  # cameras around the object
+    folder = tmp_path / "arc"
+    shutil.copytree(finished_run, folder)
+    truth = np.load(finished_run / "poses_true.npy")
+    angles = np.linspace(0, np.radians(30), len(truth))
+    centres = 4 * np.stack([np.cos(angles), np.sin(angles), np.zeros_like(angles)], axis=1)
+    truth[:, :3, 3] = -np.einsum("cij,cj->ci", truth[:, :3, :3], centres)
+    np.save(folder / "poses_true.npy", truth)
+    lines = []
+    pose_accuracy(load_run(folder), log=lines.append)
+    weak = [line for line in lines if "across their main line" in line]
+    assert len(weak) == 1 and weak[0].startswith("pose errors: the camera centres spread 0.0"), lines
+    assert weak[0].endswith("the pairwise errors do not depend on it")
+
+
 def test_eval_of_two_cameras_falls_back_to_the_pairwise_alignment(finished_run, tmp_path):
     """Procrustes needs three camera centres: a two-view run is evaluated with the pairwise alignment, as the
     trainer's own pose errors are, and eval.json says which alignment it used."""

@@ -33,7 +33,7 @@ import torch
 from skimage.metrics import peak_signal_noise_ratio
 
 from warpbags.alignment import (align_viewmats, alignment_for, centre_floor_errors, pose_errors, procrustes_unfit,
-                                 reprojection_errors)
+                                procrustes_weak, reprojection_errors)
 from warpbags.camera_optimizer import CameraOptimizer, CameraOptimizerSettings
 from warpbags.configs.train import ALIGNMENTS, BACKGROUNDS
 from warpbags.data import ORBIT_RADIUS, Scene, load_scene
@@ -139,6 +139,8 @@ def pose_accuracy(run: TrainingRun, log=print) -> dict:
         if alignment == "procrustes" and (reason := procrustes_unfit(run.poses_true)):
             log(f"pose errors: procrustes left out: {reason}")
             continue
+        if alignment == "procrustes" and (reason := procrustes_weak(run.poses_true)):
+            log(f"pose errors: {reason}; the pairwise errors do not depend on it")
         try:
             errors_by_stage = {stage: pose_errors(poses, run.poses_true, alignment=alignment)
                                for stage, poses in poses_by_stage.items()}
