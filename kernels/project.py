@@ -63,8 +63,9 @@ def covariance_3d(quat: Any, scale: Any):
 @wp.func
 def tangent_limits(f: Any, c: Any, size: int):
     """(upper, lower) bound of x/z (or y/z) that `perspective_jacobian` clamps to, for one image axis of `size`
-    pixels with focal length f and principal point c: the edges widened by 0.3 of the image on both sides."""
-    margin = type(f)(0.3)
+    pixels with focal length f and principal point c: the edges widened by 0.3 of the half image on both sides
+    (gsplat's 0.3 tan(fov / 2); 3DGS's 1.3 tan(fov / 2) where the principal point is centred)."""
+    margin = type(f)(0.15)
     s = type(f)(size)
     return (s - c) / f + margin * s / f, c / f + margin * s / f
 
@@ -254,7 +255,7 @@ def jacobian_row_vjp(p: Any, z: Any, f: Any, c: Any, size: int, v_diagonal: Any,
     v_upper = wp.where(at_upper, v_clamped, zero)
     v_lower = wp.where(at_upper, zero, wp.where(at_lower, -v_clamped, zero))
     v_ratio = wp.where(at_upper, zero, wp.where(at_lower, zero, v_clamped))
-    # upper = (size - c) / f + 0.3 size / f and lower = c / f + 0.3 size / f
+    # upper = (size - c) / f + 0.15 size / f and lower = c / f + 0.15 size / f
     v_f += -(v_upper * upper + v_lower * lower) / f
     v_c = (v_lower - v_upper) / f
     return v_ratio / z, v_z - v_ratio * ratio / z, v_f, v_c

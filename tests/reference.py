@@ -81,8 +81,9 @@ def ewa_reference(means, quats, scales, viewmat, K, width, height, eps2d=0.3):
     p = means @ rot.T + trans
     z = p[:, 2]
     fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
-    lim_x_pos, lim_x_neg = (width - cx) / fx + 0.3 * width / fx, cx / fx + 0.3 * width / fx
-    lim_y_pos, lim_y_neg = (height - cy) / fy + 0.3 * height / fy, cy / fy + 0.3 * height / fy
+    # gsplat's limits: the image edges widened by 0.3 tan(fov / 2), 0.15 of the image
+    lim_x_pos, lim_x_neg = (width - cx) / fx + 0.15 * width / fx, cx / fx + 0.15 * width / fx
+    lim_y_pos, lim_y_neg = (height - cy) / fy + 0.15 * height / fy, cy / fy + 0.15 * height / fy
     tx = z * torch.minimum(lim_x_pos, torch.maximum(-lim_x_neg, p[:, 0] / z))
     ty = z * torch.minimum(lim_y_pos, torch.maximum(-lim_y_neg, p[:, 1] / z))
     zeros = torch.zeros_like(z)
