@@ -54,7 +54,6 @@ from common import (add_training_options, check_json, check_options, check_view_
                     training_overrides, with_depth, write_json)
 from warpbags.alignment import pose_errors
 from warpbags.data import ORBIT_RADIUS
-from warpbags.errors import WarpbagsError
 from warpbags.evaluation import evaluate_run
 from warpbags.cli.common import clean_errors, parse_numbers
 

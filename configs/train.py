@@ -56,7 +56,10 @@ class LearningRates:
     Attributes:
         means_init, means_final: position lr at the first and last iteration of each coarse round (each round
             starts fresh Gaussians), times the scene extent, exponential decay in between; the repair stage keeps
-            the final one.
+            the final one. 3DGS's decay, over the run: GaussianObject's arguments keep 3DGS's 30k-step horizon
+            for their 10k iterations, so theirs ends at about 3.4e-5, not 1.6e-6 (a review measured
+            `--set lr.means_final=3.45e-4`, that share of a round, on maryrose: 300 quick iterations fit the
+            views closer, the poses ended 1.4 deg further from the scene's).
         sh_dc, sh_rest: SH degree-0 and higher-degree coefficients.
         opacities: logit opacities.
         scales: log scales.
@@ -352,7 +355,9 @@ class TrainConfig:
             resolution, the one before at half of it, and so on for L rounds; earlier rounds stay at the coarsest
             level (1 = every round at full resolution).
         views_per_step: views rendered per iteration (0 = all training views; 1 = one random view, as 3DGS).
-        background: "white" or "black"; the ground truth is masked onto it.
+        background: "white" or "black"; the ground truth is masked onto it. GaussianObject's coarse stage draws a
+            random one every step (`--random_background`), which ties the Gaussians' alpha to the masks; here the
+            background stays fixed and `lambda_mask` weighs the rendered alpha against the masks instead.
         sh_degree: final SH degree; one degree is added every `sh_degree_every` iterations of each coarse round
             (each round's fresh Gaussians start at degree 0).
         init: "hull" (visual hull from masks and the current poses), "sfm" (the scene's SfM points, e.g. COLMAP's
