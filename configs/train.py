@@ -107,10 +107,12 @@ class DensifyConfig:
         percent_dense: the clone/split size boundary, as a fraction of the scene extent.
         prune_opacity: Gaussians below this opacity are removed.
         prune_scale: Gaussians whose largest scale exceeds this fraction of the scene extent are removed.
-        opacity_reset_every: every this many iterations before `stop` opacities are clamped to 0.01 (0 = never).
+        opacity_reset_every: every this many iterations before `stop` opacities are clamped to 0.01 (0 = never);
+            on a white background once more at `start`, as 3DGS and GaussianObject do.
         max_gaussians: no cloning/splitting beyond this count (0 = unlimited).
-        floater_every: every this many iterations, Gaussians far from their K = sqrt(N) nearest neighbours are
-            removed (GaussianObject's floater removal; 0 = never).
+        floater_every: every this many iterations before `stop`, Gaussians far from their K = sqrt(N) nearest
+            neighbours are removed (GaussianObject's floater removal, which also runs at `start` on a white
+            background; 0 = never).
         floater_std_ratio: "far" = mean neighbour distance above average + this many standard deviations.
     """
 

@@ -158,3 +158,23 @@ def test_pruning_keeps_the_most_opaque_gaussian_of_all_transparent_ones_and_no_r
     strategy.config = dataclasses.replace(strategy.config, start=1000, stop=20, opacity_reset_every=10)
     assert [("opacity_reset" in strategy.step(i, params, optimizer, torch.Generator())) for i in (10, 20, 30)] == [
         True, False, False]
+
+
+@pytest.mark.parametrize("white_background", [False, True])
+def test_floaters_and_resets_follow_gaussianobjects_schedule(white_background):
+    """GaussianObject (as 3DGS) removes floaters and resets opacities only before `stop`, and on a white background
+    once more at `start`; the floater removal ran to the end of the round, the saved model included."""
+    config = DensifyConfig(start=30, stop=100, every=1000, opacity_reset_every=40, floater_every=20)
+    strategy = DensifyStrategy(config, scene_extent=1.0, white_background=white_background)
+    done = {}
+    for iteration in range(1, 201):
+        g = torch.Generator().manual_seed(iteration)
+        means = torch.randn(100, 3, generator=g) * 0.2
+        means[0] = 10.0  # a floater at every step
+        params = {"means": torch.nn.Parameter(means), "opacities": torch.nn.Parameter(torch.zeros(100))}
+        optimizer = torch.optim.Adam([{"params": [p], "name": n} for n, p in params.items()])
+        for key in strategy.step(iteration, params, optimizer, g):
+            done.setdefault(key, []).append(iteration)
+    extra = [30] if white_background else []
+    assert done["floaters"] == sorted([20, 40, 60, 80, *extra])
+    assert done["opacity_reset"] == sorted([40, 80, *extra])

@@ -104,6 +104,13 @@ def test_floater_removal_drops_an_isolated_gaussian():
     assert report["floaters"] <= 4  # a Gaussian cloud is not eroded
 
 
+@pytest.mark.parametrize("background", ["white", "black"])
+def test_the_densification_knows_the_background(scene_dir, tmp_path, background):
+    """On a white background 3DGS and GaussianObject reset opacities and remove floaters once more at `start`."""
+    strategy = make_trainer(scene_dir, tmp_path, background=background).model.strategy
+    assert strategy.white_background == (background == "white")
+
+
 # ------------------------------------------------------------------------------------------------ trainer
 def test_short_run_lowers_loss_and_writes_files(scene_dir, tmp_path):
     trainer = make_trainer(scene_dir, tmp_path / "run")

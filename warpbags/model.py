@@ -114,7 +114,7 @@ class GaussianModel:
         self.config, self.training_views, self.generator = config, training_views, generator
         self.params = params
         self.optimizer = gaussian_optimizer(params, config, extent)
-        self.strategy = DensifyStrategy(config.densify, extent)
+        self.strategy = DensifyStrategy(config.densify, extent, white_background=config.background == "white")
 
     @property
     def scene_extent(self) -> float:

@@ -64,11 +64,14 @@ class DensifyStrategy:
     Args:
         config: thresholds and schedule.
         scene_extent: scene size the percentages refer to (1.1 x camera-centre radius, as 3DGS).
+        white_background: the opacity reset and the floater removal (where on) run once more at `config.start`, as
+            3DGS and GaussianObject do on a white background.
     """
 
-    def __init__(self, config: DensifyConfig, scene_extent: float):
+    def __init__(self, config: DensifyConfig, scene_extent: float, white_background: bool = False):
         self.config = config
         self.scene_extent = scene_extent
+        self.white_background = white_background
         self.grad_sum: torch.Tensor | None = None  # [N] accumulated NDC gradient norms
         self.grad_count: torch.Tensor | None = None  # [N] how many times each Gaussian was visible
 
@@ -126,11 +129,13 @@ class DensifyStrategy:
                 and self.grad_sum is not None):
             report = self._densify_and_prune(params, optimizer, generator)
             self._reset_stats(len(params["means"]), params["means"].device)
-        if config.floater_every and iteration % config.floater_every == 0:
+        at_white_start = self.white_background and iteration == config.start
+        if (config.floater_every and (iteration % config.floater_every == 0 or at_white_start)
+                and iteration < config.stop):
             removed = self._remove_floaters(params, optimizer)
             if removed:
                 report["floaters"] = removed
-        if (grows and config.opacity_reset_every and iteration % config.opacity_reset_every == 0
+        if (grows and config.opacity_reset_every and (iteration % config.opacity_reset_every == 0 or at_white_start)
                 and iteration < config.stop):
             self._reset_opacities(params, optimizer)
             report["opacity_reset"] = 1
