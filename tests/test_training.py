@@ -1098,6 +1098,25 @@ def test_every_configured_round_runs_and_their_lengths_differ_by_at_most_one():
         assert [schedule.round_index(start) for start in starts] == list(range(rounds))
 
 
+def test_the_gaussians_adam_takes_each_groups_rate_and_the_position_rate_scaled_by_the_extent():
+    """`--set lr.NAME=...` reaches the Gaussians' Adam: each group its own rate, the position rate times the scene
+    extent and decaying from means_init to means_final (no test read the optimizer's rates)."""
+    from warpbags.model import GaussianModel
+
+    rates = dict(means_init=1e-3, means_final=1e-5, scales=2e-3, quats=3e-3, opacities=4e-3, sh_dc=5e-3, sh_rest=6e-3)
+    config = load_preset("quick", lr=rates)
+    params = {name: torch.nn.Parameter(torch.zeros(3, 3)) for name in ("means", "scales", "quats", "opacities",
+                                                                       "sh0", "shN")}
+    model = GaussianModel(config, None, params, 2.5, torch.Generator())
+    groups = {group["name"]: group for group in model.optimizer.param_groups}
+    expected = {"means": 2.5e-3, "scales": 2e-3, "quats": 3e-3, "opacities": 4e-3, "sh0": 5e-3, "shN": 6e-3}
+    assert {name: group["lr"] for name, group in groups.items()} == pytest.approx(expected, rel=1e-12)
+    for fraction, position in ((0.0, 1e-3), (0.5, 1e-4), (1.0, 1e-5)):
+        model.set_learning_rate(fraction)
+        assert groups["means"]["lr"] == pytest.approx(2.5 * position, rel=1e-12)
+        assert groups["scales"]["lr"] == 2e-3
+
+
 def test_the_position_lr_ends_every_round_at_its_final_value():
     """The Gaussians' position lr decays over each round's own length: rounds of unequal length (11 iterations in
     rounds of 2, 3, 3, 3) each reach the final value at their last iteration."""
