@@ -238,3 +238,29 @@ def test_agree_never_writes_into_a_run_it_compares(two_runs, inside):
     assert "is inside the run folder" in " ".join(result.output.split())
     assert {path: path.read_bytes() for run in two_runs for path in run.iterdir() if path.is_file()} == before
     assert not (two_runs[1] / "sub").exists()
+
+
+def test_agree_pairwise_anchors_each_pair_on_a_camera_the_runs_agree_on(two_runs, tmp_path):
+    """`agree --pairwise` reaches the comparison, not only its title: the second run's camera 1 also ends 0.4 (10% of
+    the orbit) along its own x axis. Procrustes fits the four centres at once and spreads that move over every
+    camera, which then disagree by turns neither run made; SPARF's pairwise alignment anchors the pair on a camera
+    they agree on, so camera 1 alone disagrees (3 deg, its centre 10% of the orbit)."""
+    moved = tmp_path / "moved"
+    shutil.copytree(two_runs[1], moved)
+    poses = torch.from_numpy(np.load(moved / "poses_final.npy")).double()
+    poses[1, :3, 3] -= poses[1, :3, :3] @ (0.4 * poses[1, 0, :3])  # its centre 0.4 along its own x axis
+    np.save(moved / "poses_final.npy", poses.float().numpy())
+    saved = {}
+    for alignment, flags in (("procrustes", []), ("pairwise", ["--pairwise"])):  # procrustes: the default
+        out = tmp_path / f"{alignment}.json"
+        result = runner.invoke(app, ["agree", str(two_runs[0]), str(moved), *flags, "--json", str(out)])
+        assert result.exit_code == 0, result.output
+        assert f"pose agreement of 2 runs (4 views, {alignment} alignment" in " ".join(result.output.split())
+        saved[alignment] = json.loads(out.read_text())
+        assert saved[alignment]["alignment"] == alignment
+    pairwise, procrustes = saved["pairwise"], saved["procrustes"]
+    np.testing.assert_allclose(pairwise["rotation_deg"][0], [0, 3, 0, 0], atol=2e-3)  # float32 poses on disk
+    np.testing.assert_allclose(np.array(pairwise["centre_percent_of_orbit"][0])[[0, 2, 3]], 0, atol=1e-3)
+    assert pairwise["centre_percent_of_orbit"][0][1] == pytest.approx(10, rel=0.05)
+    # Procrustes: every camera of the pair reads turned (2.2 deg measured), camera 1 less than the others
+    assert min(np.array(procrustes["rotation_deg"][0])[[0, 2, 3]]) > 1.0, procrustes["rotation_deg"]

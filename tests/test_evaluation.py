@@ -859,6 +859,51 @@ def test_eval_of_two_cameras_falls_back_to_the_pairwise_alignment(finished_run, 
     assert json.loads((two / "eval.json").read_text())["alignment"] == "pairwise"
 
 
+def test_eval_pairwise_maps_the_held_out_cameras_by_the_pairwise_alignment(finished_run, tmp_path):
+    """`eval --pairwise` reaches the evaluation: the held-out cameras are mapped into the model's frame by SPARF's
+    pairwise sim(3), not Procrustes' (the default), so every held-out view is rendered from another pose and scores
+    other metrics (0.1-0.4 dB apart on the fixture's run), the same as `evaluate_run(alignment="pairwise")`'s. The
+    training-pose rows report both alignments whatever the flag: only the held-out views can tell."""
+    reports = {}
+    for alignment, flags in (("procrustes", []), ("pairwise", ["--pairwise"])):
+        run = _copy_of(finished_run, tmp_path / alignment)  # eval writes into the run folder
+        result = runner.invoke(app, ["eval", str(run), *flags, "--refine-iters", "0"], env={"COLUMNS": "200"})
+        assert result.exit_code == 0, result.output
+        reports[alignment] = json.loads((run / "eval.json").read_text())
+        assert reports[alignment]["alignment"] == alignment
+        assert f"held-out views ({reports[alignment]['test_views']}, {alignment} alignment)" in result.output
+        assert f"test cameras aligned by {alignment})" in (run / "report.md").read_text()
+    for procrustes, pairwise in zip(reports["procrustes"]["images"]["per_view"],
+                                    reports["pairwise"]["images"]["per_view"]):
+        assert abs(procrustes["psnr"] - pairwise["psnr"]) > 0.01 and procrustes["ssim"] != pairwise["ssim"]
+    expected = evaluate_run(_copy_of(finished_run, tmp_path / "direct"), alignment="pairwise", refine_iters=0,
+                            log=lambda message: None)
+    for got, wanted in zip(reports["pairwise"]["images"]["per_view"], expected["images"]["per_view"]):
+        for metric in ("psnr", "ssim", "flip"):  # LPIPS is null where its network does not load
+            assert got[metric] == pytest.approx(wanted[metric], rel=1e-6), metric
+
+
+def test_eval_without_a_run_folder_evaluates_the_run_under_runs_whose_config_json_is_newest(finished_run, tmp_path,
+                                                                                           monkeypatch):
+    """`warpbags eval` with no RUN_DIR takes the newest run under ./runs/ (`latest_run`): the one whose config.json,
+    written once as training starts, was modified last. Not the folder modified last (eval itself writes into the
+    run it evaluates), nor the last or first by name, nor a newer folder that is not a run."""
+    runs = tmp_path / "runs"
+    for name, config_time, folder_time in (("a-middle", 2e8, 3e8), ("b-newest", 3e8, 1e8), ("c-oldest", 1e8, 2e8)):
+        run = _copy_of(finished_run, runs / name)
+        os.utime(run / "config.json", (config_time, config_time))
+        os.utime(run, (folder_time, folder_time))
+    (runs / "notes").mkdir()
+    (runs / "notes" / "todo.txt").write_text("")
+    os.utime(runs / "notes", (4e8, 4e8))
+    monkeypatch.chdir(tmp_path)
+    result = runner.invoke(app, ["eval", "--refine-iters", "0"], env={"COLUMNS": "200"})
+    assert result.exit_code == 0, result.output
+    assert sorted(path.parent.name for path in runs.glob("*/eval.json")) == ["b-newest"]
+    assert json.loads((runs / "b-newest" / "eval.json").read_text())["run"] == str(Path("runs") / "b-newest")
+    assert f"wrote {Path('runs') / 'b-newest' / 'eval.json'}" in result.output
+
+
 def test_sweep_runs_every_combination_once_and_skips_finished_runs(finished_run, tmp_path):
     from warpbags.sweep import SweepSpec, run_sweep
 
