@@ -883,16 +883,20 @@ def test_eval_pairwise_maps_the_held_out_cameras_by_the_pairwise_alignment(finis
             assert got[metric] == pytest.approx(wanted[metric], rel=1e-6), metric
 
 
-def test_eval_without_a_run_folder_evaluates_the_run_under_runs_whose_config_json_is_newest(finished_run, tmp_path,
-                                                                                           monkeypatch):
-    """`warpbags eval` with no RUN_DIR takes the newest run under ./runs/ (`latest_run`): the one whose config.json,
-    written once as training starts, was modified last. Not the folder modified last (eval itself writes into the
-    run it evaluates), nor the last or first by name, nor a newer folder that is not a run."""
+def test_eval_without_a_run_folder_evaluates_the_run_under_runs_that_finished_last(finished_run, tmp_path,
+                                                                                  monkeypatch):
+    """`warpbags eval` with no RUN_DIR takes the run under ./runs/ that finished last (`latest_run`: its
+    gaussians.ply, written with the result, is newest). Not the folder modified last (eval itself writes into the run
+    it evaluates), nor the last or first by name, nor a newer folder that is not a run, nor a run started later and
+    still training (it took that one, and stopped on its missing gaussians.ply)."""
     runs = tmp_path / "runs"
-    for name, config_time, folder_time in (("a-middle", 2e8, 3e8), ("b-newest", 3e8, 1e8), ("c-oldest", 1e8, 2e8)):
+    for name, result_time, folder_time in (("a-middle", 2e8, 3e8), ("b-newest", 3e8, 1e8), ("c-oldest", 1e8, 2e8)):
         run = _copy_of(finished_run, runs / name)
-        os.utime(run / "config.json", (config_time, config_time))
+        os.utime(run / "gaussians.ply", (result_time, result_time))
         os.utime(run, (folder_time, folder_time))
+    training = _copy_of(finished_run, runs / "d-training")
+    (training / "gaussians.ply").unlink()
+    os.utime(training / "config.json", (5e8, 5e8))
     (runs / "notes").mkdir()
     (runs / "notes" / "todo.txt").write_text("")
     os.utime(runs / "notes", (4e8, 4e8))
@@ -902,6 +906,11 @@ def test_eval_without_a_run_folder_evaluates_the_run_under_runs_whose_config_jso
     assert sorted(path.parent.name for path in runs.glob("*/eval.json")) == ["b-newest"]
     assert json.loads((runs / "b-newest" / "eval.json").read_text())["run"] == str(Path("runs") / "b-newest")
     assert f"wrote {Path('runs') / 'b-newest' / 'eval.json'}" in result.output
+    for name in ("a-middle", "b-newest", "c-oldest"):
+        (runs / name / "gaussians.ply").unlink()
+    result = runner.invoke(app, ["eval"], env={"COLUMNS": "200"})
+    assert result.exit_code == 2 and result.output.strip() == (
+        f"error: no finished training run under {runs.resolve()} (4 unfinished); pass RUN_DIR or train first")
 
 
 def test_sweep_runs_every_combination_once_and_skips_finished_runs(finished_run, tmp_path):

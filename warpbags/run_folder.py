@@ -520,15 +520,19 @@ def run_normalization(run: TrainingRun) -> SceneNormalization:
 
 
 def latest_run(root: str | Path = "runs") -> Path:
-    """The most recently modified run folder under `root` that holds a config.json.
+    """The run folder under `root` that finished last (by its gaussians.ply, written with the result): a run still
+    training, started later, is passed over (eval, export and render, which ask for this, read finished runs).
 
     Raises:
-        WarpbagsError: no run there.
+        WarpbagsError: no finished run there.
     """
     runs = [p.parent for p in Path(root).glob("*/config.json")]
-    if not runs:
-        raise WarpbagsError(f"no training run under {Path(root).resolve()}; pass RUN_DIR or train first")
-    return max(runs, key=lambda p: (p / "config.json").stat().st_mtime)
+    finished = [run for run in runs if (run / "gaussians.ply").is_file()]
+    if not finished:
+        unfinished = f" ({len(runs)} unfinished)" if runs else ""
+        raise WarpbagsError(f"no finished training run under {Path(root).resolve()}{unfinished}; pass RUN_DIR or "
+                            "train first")
+    return max(finished, key=lambda run: (run / "gaussians.ply").stat().st_mtime)
 
 
 def load_run(path: str | Path) -> TrainingRun:
