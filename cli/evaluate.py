@@ -22,7 +22,7 @@ def _fmt(value, digits: int) -> str:
 
 
 def evaluate(
-    run_dir: Optional[Path] = typer.Argument(None, help="Run folder (default: the one under runs/ that finished last)."),
+    run_dir: Optional[Path] = typer.Argument(None, help="Run folder (default: the last finished under runs/)."),
     procrustes: bool = typer.Option(
         True, "--procrustes/--pairwise",
         help="Map test cameras into the model's frame with sim(3) Procrustes (BARF) or SPARF's pairwise alignment.",

@@ -14,7 +14,7 @@ from warpbags.export import export_run, render_turntable
 
 
 def export(
-    run_dir: Optional[Path] = typer.Argument(None, help="Run folder (default: the one under runs/ that finished last)."),
+    run_dir: Optional[Path] = typer.Argument(None, help="Run folder (default: the last finished under runs/)."),
     out: Optional[Path] = typer.Option(
         None, "--out", help="Output folder (default: RUN_DIR/export): a new or empty folder, or an earlier export, "
         "whose gaussians.ply, poses_final.npy and sparse/0/ are replaced; never the run folder, its scene folder or "
@@ -35,7 +35,7 @@ def export(
 
 
 def render(
-    run_dir: Optional[Path] = typer.Argument(None, help="Run folder (default: the one under runs/ that finished last)."),
+    run_dir: Optional[Path] = typer.Argument(None, help="Run folder (default: the last finished under runs/)."),
     frames: int = typer.Option(36, "--frames", help="Views on the orbit, 1 to 3600 (5 minutes of video)."),
     video: bool = typer.Option(True, "--video/--no-video",
                                help="Also write RUN_DIR/turntable.mp4 (--no-video removes an earlier one)."),
