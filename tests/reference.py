@@ -73,7 +73,7 @@ def sh_colors_reference(means: torch.Tensor, coeffs: torch.Tensor, viewmats: tor
 
 def ewa_reference(means, quats, scales, viewmat, K, width, height, eps2d=0.3):
     """One camera's EWA splat of every Gaussian: (mean2d [N, 2] pixels, cov2d [N, 2, 2] with the eps2d low-pass,
-    camera z [N]). The perspective Jacobian is taken at x/z, y/z clamped to 1.3x the field of view (3DGS)."""
+    camera z [N]). The perspective Jacobian is taken at x/z, y/z clamped to 1.6 tan(fov / 2) (3DGS: 1.3)."""
     rot_g = quat_to_rotmat_reference(quats)
     m = rot_g * scales[:, None, :]
     cov3d = m @ m.transpose(1, 2)
@@ -81,9 +81,8 @@ def ewa_reference(means, quats, scales, viewmat, K, width, height, eps2d=0.3):
     p = means @ rot.T + trans
     z = p[:, 2]
     fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
-    # gsplat's limits: the image edges widened by 0.3 tan(fov / 2), 0.15 of the image
-    lim_x_pos, lim_x_neg = (width - cx) / fx + 0.15 * width / fx, cx / fx + 0.15 * width / fx
-    lim_y_pos, lim_y_neg = (height - cy) / fy + 0.15 * height / fy, cy / fy + 0.15 * height / fy
+    lim_x_pos, lim_x_neg = (width - cx) / fx + 0.3 * width / fx, cx / fx + 0.3 * width / fx
+    lim_y_pos, lim_y_neg = (height - cy) / fy + 0.3 * height / fy, cy / fy + 0.3 * height / fy
     tx = z * torch.minimum(lim_x_pos, torch.maximum(-lim_x_neg, p[:, 0] / z))
     ty = z * torch.minimum(lim_y_pos, torch.maximum(-lim_y_neg, p[:, 1] / z))
     zeros = torch.zeros_like(z)

@@ -32,14 +32,14 @@ F64 = torch.float64
 
 def projection_scene(n=40, cams=2, width=29, height=23, seed=3):
     """`random_scene` (float64) plus Gaussians placed in camera 0's frame to reach every branch of the projection:
-    two large ones beside the frustum (beyond the 1.3x field-of-view clamp of the Jacobian, yet reaching into the
+    two large ones beside the frustum (beyond the field-of-view clamp of the Jacobian, yet reaching into the
     image), one behind the camera (near plane), one nearly transparent (opacity below 1/255) and one small one
     beside the image (footprint off screen)."""
     scene = random_scene(n=n, cams=cams, width=width, height=height, seed=seed)
     K, viewmat = scene["Ks"][0], scene["viewmats"][0]
     fx, cx, fy, cy = K[0, 0], K[0, 2], K[1, 1], K[1, 2]
-    lim_x = (width - cx) / fx + 0.15 * width / fx  # right edge of the clamp, in x/z
-    lim_y = cy / fy + 0.15 * height / fy  # top edge, in -y/z
+    lim_x = (width - cx) / fx + 0.3 * width / fx  # right edge of the clamp, in x/z
+    lim_y = cy / fy + 0.3 * height / fy  # top edge, in -y/z
     z = 3.0
     camera_points = torch.tensor([
         [(lim_x + 0.1) * z, 0.0, z],  # beside the frustum (right), large
@@ -88,8 +88,8 @@ def test_projection_scene_reaches_every_branch():
                                                    scene["height"])
     n = scene["means"].shape[0]
     assert (radii[0, n - 5:n - 3] > 0).all(), "the two Gaussians beside the frustum reach the image"
-    # beyond the clamp: x/z above (width - cx) / fx + 0.15 width / fx, i.e. the mean beyond 1.15 widths in pixels
-    assert means2d[0, n - 5, 0] > 1.15 * scene["width"] and means2d[0, n - 4, 1] < -0.15 * scene["height"]
+    # beyond the clamp: x/z above (width - cx) / fx + 0.3 width / fx, i.e. the mean beyond 1.3 widths in pixels
+    assert means2d[0, n - 5, 0] > 1.3 * scene["width"] and means2d[0, n - 4, 1] < -0.3 * scene["height"]
     assert (radii[0, n - 3:] == 0).all(), "behind, transparent and off-screen Gaussians are culled"
     assert (radii[:, : n - 5] > 0).float().mean() > 0.9
 
@@ -130,25 +130,25 @@ def test_projection_gradcheck_float64():
     assert torch.autograd.gradcheck(project, tuple(inputs.values()), eps=1e-6, atol=1e-7, rtol=1e-6)
 
 
-def test_the_jacobian_is_clamped_where_3dgs_clamps_it():
-    """3DGS takes the Jacobian at x/z clamped to 1.3 tan(fov / 2) (gsplat: the edges widened by 0.3 tan(fov / 2));
-    the kernel and its float64 reference clamped at 1.6 tan(fov / 2), a footprint 7% wider beside the frame. The
-    expected covariance is written out here, not taken from the reference."""
-    width, height, f, z, sigma = 100, 80, 100.0, 3.0, 0.2
+def test_the_jacobian_is_clamped_at_1_6_times_the_half_field_of_view():
+    """The Jacobian is taken at x/z clamped to 1.6 tan(fov / 2), wider than 3DGS's 1.3 (`tangent_limits` says what
+    the narrower clamp measured); the expected covariance is written out here, not taken from the reference."""
+    width, height, f, z, sigma = 100, 80, 100.0, 3.0, 0.6  # large enough to reach into the image
     tan_half = width / 2 / f
-    x = 1.45 * tan_half * z  # beyond the clamp
     K = torch.tensor([[f, 0, width / 2], [0, f, height / 2], [0, 0, 1]], dtype=F64)[None]
-    means, quats = torch.tensor([[x, 0.0, z]], dtype=F64), torch.tensor([[1.0, 0, 0, 0]], dtype=F64)
-    scales, opacities = sigma * torch.ones(1, 3, dtype=F64), torch.ones(1, dtype=F64)
-    _, conics, _, radii = project_gaussians(means, quats, scales, opacities, torch.eye(4, dtype=F64)[None], K, width,
-                                            height)
-    assert radii[0, 0] > 0
-    tx = 1.3 * tan_half * z
-    jacobian = torch.tensor([[f / z, 0, -f * tx / z**2], [0, f / z, 0]], dtype=F64)
-    cov2d = sigma**2 * jacobian @ jacobian.T + 0.3 * torch.eye(2, dtype=F64)
-    inverse = torch.linalg.inv(cov2d)
-    torch.testing.assert_close(conics[0, 0], torch.stack([inverse[0, 0], inverse[0, 1], inverse[1, 1]]),
-                               rtol=1e-12, atol=0)
+    for ratio, clamped in ((1.45, 1.45), (1.75, 1.6)):  # inside the clamp, and beyond it
+        x = ratio * tan_half * z
+        means, quats = torch.tensor([[x, 0.0, z]], dtype=F64), torch.tensor([[1.0, 0, 0, 0]], dtype=F64)
+        scales, opacities = sigma * torch.ones(1, 3, dtype=F64), torch.ones(1, dtype=F64)
+        _, conics, _, radii = project_gaussians(means, quats, scales, opacities, torch.eye(4, dtype=F64)[None], K,
+                                                width, height)
+        assert radii[0, 0] > 0
+        tx = clamped * tan_half * z
+        jacobian = torch.tensor([[f / z, 0, -f * tx / z**2], [0, f / z, 0]], dtype=F64)
+        cov2d = sigma**2 * jacobian @ jacobian.T + 0.3 * torch.eye(2, dtype=F64)
+        inverse = torch.linalg.inv(cov2d)
+        torch.testing.assert_close(conics[0, 0], torch.stack([inverse[0, 0], inverse[0, 1], inverse[1, 1]]),
+                                   rtol=1e-12, atol=0)
 
 
 def _clamps_reached(scene):
@@ -161,9 +161,9 @@ def _clamps_reached(scene):
     for axis, size in ((0, width), (1, height)):
         f, c = K[..., axis, axis], K[..., axis, 2]
         ratio = p[..., axis] / p[..., 2]
-        if ((ratio > (size - c) / f + 0.15 * size / f) & (radii > 0)).any():
+        if ((ratio > (size - c) / f + 0.3 * size / f) & (radii > 0)).any():
             reached.add((axis, "upper"))
-        if ((ratio < -(c / f + 0.15 * size / f)) & (radii > 0)).any():
+        if ((ratio < -(c / f + 0.3 * size / f)) & (radii > 0)).any():
             reached.add((axis, "lower"))
     return reached
 
