@@ -1375,12 +1375,19 @@ def test_run_files_named_wrongly_or_missing_from_a_finished_run_say_so(finished_
 
 
 def test_a_config_json_that_is_no_runs_says_so(finished_run, tmp_path):
-    """A config.json of {} was "unreadable ('config')", a KeyError's text."""
+    """A config.json of {} was "unreadable ('config')", a KeyError's text; a 'config' that is a list of pairs was
+    read as one."""
     run = _copy_of(finished_run, tmp_path / "run")
     (run / "config.json").write_text("{}")
     result = runner.invoke(app, ["eval", str(run), "--refine-iters", "0"])
     assert result.exit_code == 2 and len(_lines(result)) == 1, result.output
     assert "config.json holds no 'config' (not a run's config.json)" in " ".join(result.output.split())
+    # a 'config' of [name, value] pairs read as a config (dict() takes them) and then failed the sweep's readers
+    info = json.loads((finished_run / "config.json").read_text())
+    (run / "config.json").write_text(json.dumps({**info, "config": [list(item) for item in info["config"].items()]}))
+    result = runner.invoke(app, ["eval", str(run), "--refine-iters", "0"])
+    assert result.exit_code == 2 and len(_lines(result)) == 1, result.output
+    assert "config.json: 'config' must be a JSON object, got list" in " ".join(result.output.split())
 
 
 def test_a_malformed_saved_config_names_config_json(finished_run, tmp_path):

@@ -118,6 +118,9 @@ class RunFolder:
         info = self.read_info() if info is None else info
         if not isinstance(info, dict) or "config" not in info:
             raise WarpbagsError(f"{self.path / 'config.json'} holds no 'config' (not a run's config.json)")
+        if not isinstance(info["config"], dict):  # what every reader after this one takes it for
+            raise WarpbagsError(f"{self.path / 'config.json'}: 'config' must be a JSON object, got "
+                                f"{type(info['config']).__name__}")
         try:
             return TrainConfig.from_dict(info["config"]).validate()
         except (KeyError, TypeError, AttributeError) as error:
