@@ -830,7 +830,8 @@ def test_pose_accuracy_leaves_out_the_alignment_two_cameras_cannot_fit(finished_
 
 
 def test_pose_accuracy_says_where_procrustes_fixes_its_turn_weakly(finished_run, tmp_path):
-    """Reference cameras on a short arc: Procrustes' errors follow the centres' noise (`procrustes_weak`), said once."""
+    """Reference cameras on a short arc: Procrustes' errors follow the centres' noise (`procrustes_weak`), said once
+    in the log, and in eval.json and report.md beside the Procrustes rows."""
     run = load_run(finished_run)
     lines = []
     pose_accuracy(run, log=lines.append)
@@ -847,6 +848,12 @@ def test_pose_accuracy_says_where_procrustes_fixes_its_turn_weakly(finished_run,
     weak = [line for line in lines if "across their main line" in line]
     assert len(weak) == 1 and weak[0].startswith("pose errors: the camera centres spread 0.0"), lines
     assert weak[0].endswith("the pairwise errors do not depend on it")
+    result = runner.invoke(app, ["eval", str(folder), "--refine-iters", "0"])  # and beside the numbers it is about
+    assert result.exit_code == 0, result.output
+    poses = json.loads((folder / "eval.json").read_text())["poses"]
+    assert poses["procrustes"]["weakly_fixed"].startswith("the camera centres spread 0.0")
+    assert "weakly_fixed" not in poses["pairwise"]
+    assert "\nProcrustes: the camera centres spread 0.0" in (folder / "report.md").read_text()
 
 
 def test_eval_of_two_cameras_falls_back_to_the_pairwise_alignment(finished_run, tmp_path):

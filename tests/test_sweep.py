@@ -348,6 +348,33 @@ def test_an_earlier_run_holding_retired_settings_is_refused(scene, tmp_path, mon
                         "an earlier warpbags that this one has no more: choose another --out (or remove that run)")
 
 
+def test_a_sweep_says_where_its_views_fix_procrustes_weakly(scene, tmp_path, monkeypatch):
+    """The runs' evaluation is quiet: where the training cameras lie nearly on a line, the sweep says so itself, once
+    per view count, before anything trains (its tables hold Procrustes' errors)."""
+
+    class Stop(Exception):
+        pass
+
+    def train(*args, **kwargs):
+        raise Stop
+
+    asked = []
+
+    def weak(viewmats):
+        asked.append(len(viewmats))
+        return "the camera centres spread 0.05 as far across their main line as along it" if len(asked) == 1 else None
+
+    monkeypatch.setattr("warpbags.sweep.start_or_resume", train)
+    monkeypatch.setattr("warpbags.sweep.procrustes_weak", weak)
+    lines = []
+    with pytest.raises(Stop):
+        run_sweep(SweepSpec(scene=str(scene), out=tmp_path / "sweep", rot_noises=(5,), views=(4, 6)), log=lines.append)
+    assert asked == [4, 6]
+    assert lines[0] == ("4 views: the camera centres spread 0.05 as far across their main line as along it; the "
+                        "tables' pose errors are Procrustes' (eval.json holds pairwise ones)"), lines
+    assert not any(line.startswith("6 views") for line in lines)
+
+
 def test_a_scene_whose_runs_would_have_no_test_view_is_one_line_before_anything_trains(scene, tmp_path, monkeypatch):
     """Evaluating a run needs held-out views: a capture whose every 8th view is one of the sweep's training views
     (no sparse_test.txt) trained the first run to the end and then stopped at its evaluation. It is one line before

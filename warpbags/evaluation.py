@@ -138,8 +138,9 @@ def pose_accuracy(run: TrainingRun, log=print) -> dict:
         if alignment == "procrustes" and (reason := procrustes_unfit(run.poses_true)):
             log(f"pose errors: procrustes left out: {reason}")
             continue
-        if alignment == "procrustes" and (reason := procrustes_weak(run.poses_true)):
-            log(f"pose errors: {reason}; the pairwise errors do not depend on it")
+        weak = procrustes_weak(run.poses_true) if alignment == "procrustes" else None
+        if weak:
+            log(f"pose errors: {weak}; the pairwise errors do not depend on it")
         try:
             errors_by_stage = {stage: pose_errors(poses, run.poses_true, alignment=alignment)
                                for stage, poses in poses_by_stage.items()}
@@ -167,6 +168,8 @@ def pose_accuracy(run: TrainingRun, log=print) -> dict:
                 floor = centre_floor_errors(poses_by_stage[stage], run.poses_true, torch.zeros(3, dtype=torch.float64))
                 entry[stage]["rotation_deg_centre_floor"] = floor.tolist()
                 entry[stage]["rotation_deg_centre_floor_mean"] = floor.mean().item()
+        if weak:  # eval.json and report.md say it beside the numbers it is about
+            entry["weakly_fixed"] = weak
         report[alignment] = entry
     return report
 

@@ -104,6 +104,9 @@ def write_run_report(run_dir: Path, result: dict, training_alignment: str, recor
     lines += ["", "Centre floor: the rotation error that the camera centres alone force on cameras that look at the "
               "object (Procrustes only). Object motion: how far the pose error moves the object in each image (RMS "
               "pixels at the training resolution over the trained Gaussians' opaque centres, mean over cameras)."]
+    for name, entry in result["poses"].items():
+        if entry.get("weakly_fixed"):
+            lines += ["", f"{name.capitalize()}: {entry['weakly_fixed']}; the pairwise rows do not depend on it."]
     searches = [(r["iter"], r["view_hypotheses"]) for r in records if "view_hypotheses" in r]
     if searches:
         lines += ["", "## Turns of the worst-fit camera", "",

@@ -26,6 +26,7 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Callable, Iterator, Protocol
 
+from warpbags.alignment import procrustes_weak
 from warpbags.configs.train import (DEFAULT_PRESET, MAX_RENDER_THREADS, TrainConfig, check_repairer_used,
                                      differing_fields, is_number, load_preset, retired_fields)
 from warpbags.data import Scene, open_scene
@@ -111,6 +112,9 @@ def run_sweep(spec: SweepSpec, data_root: Path | None = None, log: Log = print,
         # at the resolution the overrides give (`--set resolution=R`; None: the preset's), as `training_scene` opens
         # it for `warpbags train`: each run's config.json records that resolution
         scene = open_scene(spec.scene, root=data_root, resolution=next(iter(configs.values())).resolution)
+        for views in spec.views:  # the runs' evaluation is quiet (`_quiet`): what it would say of the tables, said here
+            if weak := procrustes_weak(scene.viewmats[scene.train_views(views)]):
+                log(f"{views} views: {weak}; the tables' pose errors are Procrustes' (eval.json holds pairwise ones)")
         for run, config in configs.items():
             run_dir = spec.out / run.name
             with _naming(run):
