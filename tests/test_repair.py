@@ -101,19 +101,55 @@ def test_make_repairer_loads_a_plugin_and_rejects_bad_ones(tmp_path, monkeypatch
         "class TakesConfigOnly:\n"
         "    def __init__(self, config): pass\n"
         "def failing(config, seed, device): raise FileNotFoundError('weights.safetensors')\n")
+    (tmp_path / "broken_repairers.py").write_text("raise RuntimeError('no GPU: diffusers needs CUDA')\n")
     monkeypatch.syspath_prepend(str(tmp_path))
-    assert make_repairer(RepairConfig(repairer="my_repairers:Passthrough"), seed=3).seed == 3
+    assert make_repairer(RepairConfig(repairer="my_repairers:Passthrough"), seed=3).repairer.seed == 3
     assert isinstance(make_repairer(RepairConfig()), UNetRepairer)
     for spec, message in [("my_repairers:not_a_repairer", "lacks"), ("my_repairers:missing", "cannot load"),
                           ("no_such_module:factory", "cannot load"), ("diffusion", "package.module:factory"),
                           ("my_repairers:TakesConfigOnly", r"cannot be called as factory\(config, seed, device\)"),
-                          ("my_repairers:failing", r"building it failed \(FileNotFoundError: weights.safetensors\)")]:
+                          ("my_repairers:failing", r"building it failed \(FileNotFoundError: weights.safetensors\)"),
+                          ("broken_repairers:factory", r"cannot load it \(RuntimeError: no GPU: diffusers needs CUDA; "
+                                                       r"the module must be installed or on PYTHONPATH\)")]:
         with pytest.raises(WarpbagsError, match=message) as error:
             make_repairer(RepairConfig(repairer=spec))
         assert "\n" not in str(error.value)
     # the signature is checked where a run starts (`repairer_factory`), not after its coarse stage
     with pytest.raises(WarpbagsError, match="cannot be called as factory"):
         repairer_factory("my_repairers:TakesConfigOnly")
+
+
+@pytest.mark.parametrize("body, message", [
+    ("def fit(self, pairs, log): raise RuntimeError('CUDA out of memory in my LoRA')",
+     "its fit failed (RuntimeError: CUDA out of memory in my LoRA)"),
+    ("def fit(self, pairs, log): return torch.zeros(2)", "its fit returned Tensor, not a dict of statistics"),
+    ("def fit(self, pairs, log): return {'loss': torch.zeros(2)}",
+     "its fit returned statistics fit.json cannot hold (TypeError: Object of type Tensor is not JSON serializable)"),
+    ("def repair(self, images): raise ValueError('bad tile size')", "its repair failed (ValueError: bad tile size)"),
+    ("def repair(self, images): return images[:, ::2]",
+     "its repair of (2, 8, 8, 3) images on cpu returned (2, 4, 8, 3) torch.float32 on cpu"),
+    ("def state_dict(self): raise KeyError('lora')", "its state_dict failed (KeyError: 'lora')"),
+])
+def test_a_plugin_repairers_failure_is_one_line_naming_it(tmp_path, monkeypatch, body, message):
+    """A plug-in's fit, repair or state_dict that raises, or returns what the stage cannot use, came after the coarse
+    stage and the leave-one-out pairs as a traceback."""
+    methods = {"fit": "def fit(self, pairs, log): return {}", "repair": "def repair(self, images): return images",
+               "state_dict": "def state_dict(self): return {}"}
+    methods[body.split("(")[0].removeprefix("def ")] = body
+    module = tmp_path.name  # one per case: Python imports a module once
+    (tmp_path / f"{module}.py").write_text(
+        "import torch\nclass Plugin:\n    def __init__(self, config, seed, device): pass\n"
+        + "".join(f"    {method}\n" for method in methods.values())
+        + "    def load_state_dict(self, state): pass\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    repairer = make_repairer(RepairConfig(repairer=f"{module}:Plugin"))
+    images = torch.rand(2, 8, 8, 3)
+    pairs = SimpleNamespace()  # these plug-ins do not read it
+    with pytest.raises(WarpbagsError) as error:
+        repairer.fit(pairs, print)
+        repairer.repair(images)
+        repairer.state_dict()
+    assert str(error.value) == f"--repairer {module}:Plugin: {message}"
 
 
 @pytest.mark.parametrize("left_out", [0, 2])

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import importlib
 import inspect
+import json
 import math
 from typing import Callable, Protocol, runtime_checkable
 
@@ -240,8 +241,9 @@ def repairer_factory(spec: str) -> Callable[[RepairConfig, int, str], Repairer]:
         raise WarpbagsError(f"--repairer must be unet or package.module:factory, got {spec!r}")
     try:
         factory = getattr(importlib.import_module(module_name), attribute)
-    except (ImportError, AttributeError) as error:
-        raise WarpbagsError(f"--repairer {spec}: cannot load it ({error})") from None
+    except Exception as error:  # ImportError, AttributeError, or what the module raises as it is imported
+        raise WarpbagsError(f"--repairer {spec}: cannot load it ({one_line(error)}; the module must be installed or "
+                            "on PYTHONPATH)") from None
     try:  # checked where the run starts (Trainer), not where the repair stage does, after the coarse stage
         inspect.signature(factory).bind(RepairConfig(), 0, "cpu")
     except TypeError as error:
@@ -266,4 +268,51 @@ def make_repairer(config: RepairConfig, seed: int = 0, device: str = "cpu") -> R
     if not isinstance(repairer, Repairer):
         raise WarpbagsError(f"--repairer {config.repairer}: returned {type(repairer).__name__}, which lacks "
                             "fit/repair/state_dict/load_state_dict")
-    return repairer
+    return repairer if config.repairer == "unet" else PluginRepairer(repairer, config.repairer)
+
+
+class PluginRepairer:
+    """A plug-in repairer (`--repairer module:factory`) whose failures are one line naming it: its errors come
+    after the coarse stage and the leave-one-out pairs, and were tracebacks. Checks what it returns: `fit` a dict
+    that JSON can hold (fit.json), `repair` images of the shape and device it was given. A stop (KeyboardInterrupt)
+    passes through."""
+
+    def __init__(self, repairer: Repairer, spec: str):
+        self.repairer, self.spec = repairer, spec
+
+    def _call(self, what: str, call: Callable[[], object]) -> object:
+        try:
+            return call()
+        except Exception as error:  # the plug-in's own failure
+            raise WarpbagsError(f"--repairer {self.spec}: its {what} failed ({one_line(error)})") from None
+
+    def fit(self, pairs: RepairPairs, log: Callable[[str], None], should_stop: Callable[[], bool] = lambda: False
+            ) -> dict:
+        stops = "should_stop" in inspect.signature(self.repairer.fit).parameters  # a plug-in's may not take it
+        stats = self._call("fit", lambda: self.repairer.fit(pairs, log, should_stop=should_stop) if stops else
+                           self.repairer.fit(pairs, log))
+        if not isinstance(stats, dict):
+            raise WarpbagsError(f"--repairer {self.spec}: its fit returned {type(stats).__name__}, not a dict of "
+                                "statistics")
+        try:
+            json.dumps(stats)
+        except (TypeError, ValueError) as error:
+            raise WarpbagsError(f"--repairer {self.spec}: its fit returned statistics fit.json cannot hold "
+                                f"({one_line(error)})") from None
+        return stats
+
+    def repair(self, images: torch.Tensor) -> torch.Tensor:
+        repaired = self._call("repair", lambda: self.repairer.repair(images))
+        if not (isinstance(repaired, torch.Tensor) and repaired.shape == images.shape
+                and repaired.device == images.device and repaired.is_floating_point()):
+            got = (f"{tuple(repaired.shape)} {repaired.dtype} on {repaired.device}"
+                   if isinstance(repaired, torch.Tensor) else type(repaired).__name__)
+            raise WarpbagsError(f"--repairer {self.spec}: its repair of {tuple(images.shape)} images on "
+                                f"{images.device} returned {got}")
+        return repaired
+
+    def state_dict(self) -> dict:
+        return self._call("state_dict", self.repairer.state_dict)
+
+    def load_state_dict(self, state: dict) -> None:
+        self._call("load_state_dict", lambda: self.repairer.load_state_dict(state))
