@@ -235,7 +235,8 @@ def test_the_training_loss_is_the_weighted_sum_of_its_terms(scene_dir, tmp_path)
     views, viewmats = torch.arange(trainer.num_cameras), trainer.current_viewmats()
     # the silhouette terms (chamfer, mask distance) for a round's first `silhouette_until` iterations; the mask's BCE
     # throughout
-    for iteration, depth, silhouette in ((0, True, True), (trainer.config.depth_until, False, True), (20, False, False)):
+    depth_until = trainer.config.depth_until
+    for iteration, depth, silhouette in ((0, True, True), (depth_until, False, True), (20, False, False)):
         settings = trainer.schedule.at(iteration)
         assert settings.depth is depth and settings.silhouette is silhouette
         loss, terms, _ = trainer.model.loss(views, viewmats, settings)
@@ -915,6 +916,30 @@ def test_a_camera_left_rolled_off_is_turned_back_by_the_hypotheses(scene_dir, tm
     decisions = [record["view_hypotheses"] for record in log if "view_hypotheses" in record]
     assert len(decisions) == 1 and log[100]["view_hypotheses"]["kept"] and log[100]["view_hypotheses"]["camera"] == 2
     assert read_pose_history(tmp_path).iterations.tolist() == list(range(10, 201, 10))
+
+
+def test_a_turn_that_does_not_beat_the_margin_is_not_kept_and_the_run_ends_as_without_the_search(scene_dir, tmp_path):
+    """camera.hypothesis_margin: a turn is kept only when it beats the unturned trial by the margin; at 99% none
+    does, and the search goes back to its unturned trial, which trained from the same model, poses and random
+    stream as the run without the search. Its log record says so, and the two runs end at the same poses bit for
+    bit (a search that kept its best turn regardless ends elsewhere)."""
+    def final_poses(name, camera):
+        trainer = make_trainer(scene_dir, tmp_path / name, iters=8, rounds=2, pose_opt_start=0, checkpoint_every=1000,
+                               camera=camera)
+        trainer.train()
+        assert trainer.iteration == 8
+        log = [json.loads(line) for line in (tmp_path / name / "log.jsonl").read_text().splitlines()]
+        assert [record["iter"] for record in log] == list(range(1, 9))
+        return np.load(tmp_path / name / "poses_final.npy"), [record.get("view_hypotheses") for record in log]
+
+    searched, log = final_poses("search", {"hypotheses_round": 1, "hypothesis_angles": (10.0, 20.0),
+                                           "hypothesis_margin": 0.99})
+    decisions = [decision for decision in log if decision is not None]
+    assert len(decisions) == 1 and log[4] is decisions[0]  # in round 1's first record (iteration 5)
+    assert decisions[0]["kept"] is False and decisions[0]["best_loss"] > 0.01 * decisions[0]["unturned_loss"]
+    unsearched, log = final_poses("off", {"hypotheses_round": 0})
+    assert not any(log)
+    assert np.array_equal(searched, unsearched)
 
 
 def test_a_search_in_the_last_round_trains_to_the_end(scene_dir, tmp_path):
