@@ -172,7 +172,11 @@ class SilhouetteTargets:
 
     def chamfer_loss(self, points: torch.Tensor, weights: torch.Tensor, viewmats: torch.Tensor, Ks: torch.Tensor,
                      views: torch.Tensor) -> torch.Tensor:
-        """Two-sided chamfer between projected points and mask edges, in image sizes (NeRS's chamfer).
+        """Two-sided chamfer between projected points and mask edges, in image sizes. NeRS's chamfer is the
+        edge-to-point side, on 300 edge pixels drawn at random each step; here they are a fixed subset, every k-th in
+        raster order, which leans to one side of each row (a reviewer measured the optimum of a ball's image moved
+        by about 0.4 px from every edge pixel's); the point-to-edge side is NeRS's distance term applied to the
+        points.
 
         Args:
             points: [P, 3] world points (e.g. Gaussian centres). weights: [P] their weights (e.g. opacities);
