@@ -112,9 +112,6 @@ def run_sweep(spec: SweepSpec, data_root: Path | None = None, log: Log = print,
         # at the resolution the overrides give (`--set resolution=R`; None: the preset's), as `training_scene` opens
         # it for `warpbags train`: each run's config.json records that resolution
         scene = open_scene(spec.scene, root=data_root, resolution=next(iter(configs.values())).resolution)
-        for views in spec.views:  # the runs' evaluation is quiet (`_quiet`): what it would say of the tables, said here
-            if weak := procrustes_weak(scene.viewmats[scene.train_views(views)]):
-                log(f"{views} views: {weak}; the tables' pose errors are Procrustes' (eval.json holds pairwise ones)")
         for run, config in configs.items():
             run_dir = spec.out / run.name
             with _naming(run):
@@ -123,6 +120,9 @@ def run_sweep(spec: SweepSpec, data_root: Path | None = None, log: Log = print,
                 if _is_done(run_dir):  # what the tables and curves read of it: named now, not after the others train
                     _row(run_dir, run, spec.refine_iters)
                     RunFolder(run_dir).read_log()
+        for views in spec.views:  # the runs' evaluation is quiet (`_quiet`): what it would say of the tables, said here
+            if weak := procrustes_weak(scene.viewmats[scene.train_views(views)]):
+                log(f"{views} views: {weak}; the tables' pose errors are Procrustes' (eval.json holds pairwise ones)")
         rows = executor.map(spec, list(configs), scene, log)
         plot_sweep(rows, spec.out)
         _write_tables(rows, spec.out)  # last, as evaluate_run writes eval.json: a failed plot leaves the earlier tables
