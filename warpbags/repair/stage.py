@@ -19,7 +19,6 @@ Files (under the run folder's repair/):
 
 from __future__ import annotations
 
-import inspect
 import pickle
 from pathlib import Path
 from typing import Callable
@@ -148,9 +147,8 @@ class RepairStage:
     def _fit(self, pairs: RepairPairs, should_stop: Callable[[], bool]) -> None:
         """Fit the repairer on `pairs` and save its fit statistics (fit.json), a sample sheet of the pairs and, last,
         the repairer itself: a resumed run takes repairer.pt as a finished fit and writes none of the others."""
-        stops = "should_stop" in inspect.signature(self.repairer.fit).parameters  # a plugin's may not take it
-        stats = (self.repairer.fit(pairs, self.log, should_stop=should_stop) if stops else
-                 self.repairer.fit(pairs, self.log))
+        # `make_repairer`'s: the U-Net's fit takes should_stop, and a plug-in's wrapper hands it on where it takes it
+        stats = self.repairer.fit(pairs, self.log, should_stop=should_stop)
         with atomic_output(self.folder / "fit.json") as temporary:
             temporary.write_text(finite_json({"pairs": {kind: pairs.kinds.count(kind) for kind in set(pairs.kinds)},
                                               **stats}, indent=2))
