@@ -202,13 +202,19 @@ COLLINEAR_SPREAD = 1e-3
 WEAK_SPREAD = 0.25
 
 
+def _centre_spread(viewmats_ref: torch.Tensor) -> torch.Tensor:
+    """[3] singular values of the cameras' centres about their mean, largest first: their spread along their main
+    line, across it, and off their main plane."""
+    centres = camera_centers(viewmats_ref.double())
+    return torch.linalg.svdvals(centres - centres.mean(dim=0))
+
+
 def procrustes_unfit(viewmats_ref: torch.Tensor) -> str | None:
     """Why Procrustes on the centres of these reference cameras ([C, 4, 4]) cannot fix the alignment, or None: fewer
     than 3 centres, or centres on one line (`COLLINEAR_SPREAD`; a capture along a slider or a dolly track)."""
     if len(viewmats_ref) < 3:
         return f"{len(viewmats_ref)} cameras: Procrustes needs at least 3 camera centres"
-    centres = camera_centers(viewmats_ref.double())
-    spread = torch.linalg.svdvals(centres - centres.mean(dim=0))
+    spread = _centre_spread(viewmats_ref)
     if not torch.isfinite(spread).all():
         return None  # pose_errors names the non-finite poses
     if spread[0] == 0 or spread[1] <= COLLINEAR_SPREAD * spread[0]:
@@ -220,8 +226,7 @@ def procrustes_weak(viewmats_ref: torch.Tensor) -> str | None:
     """Why Procrustes on the centres of these reference cameras ([C, 4, 4], >= 3 of them off one line) fixes its turn
     only weakly, or None: centres spread across their main line less than `WEAK_SPREAD` of along it (a capture from
     one side, on a short arc)."""
-    centres = camera_centers(viewmats_ref.double())
-    spread = torch.linalg.svdvals(centres - centres.mean(dim=0))
+    spread = _centre_spread(viewmats_ref)
     if not torch.isfinite(spread).all() or spread[0] == 0 or spread[1] >= WEAK_SPREAD * spread[0]:
         return None
     return (f"the camera centres spread {spread[1] / spread[0]:.2f} as far across their main line as along it: "
