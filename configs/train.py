@@ -163,8 +163,7 @@ class CameraConfig:
             Object parameterization only.
         round_anchor: from the second coarse round on, each rendered camera's corrections since its round started
             cost round_anchor / 2 |delta|^2 (delta in the parameterization's units: radians, focal lengths, log
-            depth; in the repair stage, since the last coarse round started, or since the averaged poses where
-            `average_share` > 0). A round's fresh, half-fitted
+            depth; in the repair stage, since the coarse stage's final poses). A round's fresh, half-fitted
             Gaussians pull the poses where they explain the images best, which on a real capture is partly along
             directions the images barely constrain; the anchor lets a later round move a camera only as far as the
             images pull it firmly (a proximal step; the first round, which starts far off, is free). 0 = off.
@@ -192,7 +191,7 @@ class CameraConfig:
             0.083 against 0.075-0.076 for the seeds that converge). Costs one round per turn.
         hypothesis_axes, hypothesis_angles, hypothesis_margin: the axes of the camera's frame turned about, through
             the object centre ("z": parallel to the optical axis, a roll when the object is in the middle of the
-            view; "x", "y": an orbit), the angles (degrees, each with both signs), and the relative loss decrease a
+            view; "x", "y": an orbit), the angles (degrees, each with both signs but 180), and the relative loss decrease a
             turn must bring to be kept.
         average_share: the final poses are the mean of the pose estimates after each step of the last coarse
             round's pose window, over its last `average_share` (chordal mean of the rotations, mean of the centres;
@@ -500,7 +499,7 @@ class TrainConfig:
              f"camera.hypothesis_axes must be different letters of xyz, got {self.camera.hypothesis_axes!r}"),
             (len(self.camera.hypothesis_angles) > 0 and all(0 < angle <= 180 for angle in self.camera.hypothesis_angles)
              and len(set(self.camera.hypothesis_angles)) == len(self.camera.hypothesis_angles),
-             f"camera.hypothesis_angles must be different degrees in (0, 180] (each turned both ways), got "
+             f"camera.hypothesis_angles must be different degrees in (0, 180] (each turned both ways, 180 once), got "
              f"{list(self.camera.hypothesis_angles)}"),
             (0 <= self.camera.hypothesis_margin < 1,
              f"camera.hypothesis_margin must be in [0, 1), got {self.camera.hypothesis_margin}"),

@@ -202,6 +202,18 @@ def test_round_anchor_holds_later_rounds_near_their_start(scene_dir, tmp_path):
     assert moved[1e4] < 0.2 * moved[0.0]
 
 
+def test_the_repair_stage_anchors_at_the_coarse_stages_final_poses(scene_dir, tmp_path):
+    """Without an average (`camera.average_share` 0) the coarse stage's end still folds the corrections into the
+    base poses: with one round the repair stage's anchor pulled towards the round's start, the noisy given poses."""
+    trainer = make_trainer(scene_dir, tmp_path, iters=20, pose_opt_start=0, rot_noise_deg=5.0,
+                           camera={"average_share": 0.0, "round_anchor": 1.0})
+    given = trainer.current_viewmats()
+    trainer.train(stop_at=20)
+    cameras = trainer.cameras
+    assert (cameras.base_viewmats - given).abs().max().item() > 1e-3  # the poses moved, and the base with them
+    assert cameras.params().abs().max().item() == 0.0
+
+
 def test_the_chamfer_computed_beside_the_render_is_the_steps_own(scene_dir, tmp_path):
     # GaussianModel.loss computes the silhouette chamfer on a side thread while it renders: the term must be the
     # chamfer of the step's poses and Gaussians, with its gradient in the poses.

@@ -41,7 +41,7 @@ class StepSettings:
         orbit_free: the object-centric orbit rows are optimized (`camera.orbit_from_round`).
         pose_anchor: weight of the pull of the rendered cameras' corrections towards where the round started
             (`camera.round_anchor` from the second round on and in the repair stage, where it pulls towards the
-            coarse stage's final poses when those are an average, else 0).
+            coarse stage's final poses).
         pose_average: the poses after this step join the average that becomes the final poses
             (`camera.average_share`).
         densify: the densification strategy may add Gaussians or reset opacities after this step; not at a coarse
@@ -192,7 +192,7 @@ class Schedule:
         pose_fraction = 1.0 if in_repair else (iteration - pose_start) / max(pose_end - pose_start - 1, 1)
         # a linear ramp over the first `lr.pose_warmup` steps of each window and of the repair stage, from where the
         # poses first move in it (`pose_opt_start` may come later): Adam's moments start at zero there (each round
-        # rebases the cameras; the last round's average resets them)
+        # rebases the cameras, and so does the coarse stage's end)
         warmup_steps = config.lr.pose_warmup
         window_start = max(config.iters if in_repair else pose_start, config.pose_opt_start)
         warmup = 1.0 if warmup_steps <= 0 else min(1.0, max(iteration - window_start + 1, 1) / warmup_steps)

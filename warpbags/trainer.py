@@ -219,6 +219,10 @@ class Trainer:
             with self._divergence_reported():
                 self.model.check_finite_parameters(self.cameras)  # the last step's, before they are averaged away
                 self.cameras.apply_average()
+            # averaged or not, the repair stage starts from the coarse stage's final poses: its anchor
+            # (camera.round_anchor) pulls towards them, not towards where the last round started (with one round, the
+            # noisy given poses), and its pose lr warms up from zeroed Adam moments (a no-op after an average)
+            self.cameras.rebase()
         return self._record("coarse", loss, terms, started)
 
     def _solve_poses(self, settings: StepSettings) -> None:
