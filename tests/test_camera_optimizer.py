@@ -358,6 +358,7 @@ def test_a_turn_about_the_object_keeps_its_centre_and_turns_by_the_angle(paramet
     assert [label for label, _ in turns] == ["+15 deg about z", "-15 deg about z", "+15 deg about x",
                                              "-15 deg about x", "+30 deg about z", "-30 deg about z",
                                              "+30 deg about x", "-30 deg about x"]
+    assert [label for label, _ in hypothesis_turns("y", (180.0,))] == ["+180 deg about y"]  # -180 is the same turn
     cameras.turn_about_object(1, turns[0][1].to(before))
     after = cameras.viewmats()
     torch.testing.assert_close(after[[0, 2]], before[[0, 2]], rtol=0, atol=1e-12)  # the others stay

@@ -354,11 +354,12 @@ class CameraOptimizer(torch.nn.Module):
 
 def hypothesis_turns(axes: str, angles_deg: tuple[float, ...]) -> list[tuple[str, torch.Tensor]]:
     """(label, [3] float64 axis-angle) of every turn by +-each of `angles_deg` about each of `axes` ("x", "y", "z" of
-    a camera's frame), for `CameraOptimizer.turn_about_object`; smaller angles first."""
+    a camera's frame), for `CameraOptimizer.turn_about_object`; smaller angles first. A half turn is listed once: both
+    ways it is the same rotation, and each turn trains a whole round."""
     turns = []
     for angle in sorted(angles_deg):
         for axis in axes:
-            for sign in (1, -1):
+            for sign in (1,) if angle == 180 else (1, -1):
                 rotation = torch.zeros(3, dtype=torch.float64)
                 rotation["xyz".index(axis)] = sign * math.radians(angle)
                 turns.append((f"{sign * angle:+g} deg about {axis}", rotation))
