@@ -427,8 +427,10 @@ def test_tile_sizes_cameras_and_dtypes_the_kernels_cannot_take_are_named():
     in the binning; int64 means blamed the quaternions ("quats is torch.float64; expected torch.int64")."""
     scene = random_scene(n=5, cams=2)
     for tile_size in (0, -4, 2.5, True):
-        with pytest.raises(ValueError, match=f"tile_size must be a positive int \\(pixels\\), got {tile_size!r}"):
+        with pytest.raises(ValueError, match=f"tile_size must be an int >= 1, got {tile_size!r}"):
             warpbags.rasterization(**scene, tile_size=tile_size)
+    colors, _, _ = warpbags.rasterization(**scene, tile_size=np.int64(4))  # numpy integers as the image size's
+    torch.testing.assert_close(colors, warpbags.rasterization(**scene, tile_size=4)[0], rtol=0, atol=0)
     with pytest.raises(ValueError, match="viewmats must hold at least one camera"):
         warpbags.rasterization(**{**scene, "viewmats": scene["viewmats"][:0], "Ks": scene["Ks"][:0]})
     with pytest.raises(ValueError, match="^means must be float32 or float64, got torch.int64"):

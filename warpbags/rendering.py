@@ -77,15 +77,13 @@ def rasterization(
             `retain_grad()` on it for densification), "conics", "depths", "radii" [C, N], "colors" [C, N, 3], "bins"
             (tile intersections), "tile_size", "width", "height", "n_cameras".
     """
-    width, height, sh_degree, cpu_threads = _checked_scalars(width, height, sh_degree, near_plane, far_plane, eps2d,
-                                                             cpu_threads)
+    width, height, sh_degree, tile_size, cpu_threads = _checked_scalars(width, height, sh_degree, tile_size,
+                                                                        near_plane, far_plane, eps2d, cpu_threads)
     _check_inputs(means, quats, scales, opacities, colors, viewmats, Ks, sh_degree, backgrounds, pose_deltas, render_mode)
     if pose_deltas is not None:
         viewmats = apply_pose_deltas(viewmats, pose_deltas)
     if tile_size is None:
         tile_size = DEFAULT_TILE_SIZE["cuda" if means.is_cuda else "cpu"]
-    if isinstance(tile_size, bool) or not isinstance(tile_size, int) or tile_size < 1:
-        raise ValueError(f"tile_size must be a positive int (pixels), got {tile_size!r}")
 
     means2d, conics, depths, radii = project_gaussians(
         means, quats, scales, opacities, viewmats, Ks, width, height, near_plane, far_plane, eps2d, cpu_threads
@@ -118,7 +116,7 @@ def rasterization(
     return render_colors, alpha, meta
 
 
-def _checked_scalars(width, height, sh_degree, near_plane, far_plane, eps2d, cpu_threads):
+def _checked_scalars(width, height, sh_degree, tile_size, near_plane, far_plane, eps2d, cpu_threads):
     """The integer arguments as Python ints (numpy integers too: Warp takes no other integer type), after checking
     every scalar argument. Unchecked, a float or bool was a Warp type error once the projection had run, a negative
     size a torch error, and a negative near plane rendered the Gaussians behind the camera."""
@@ -126,6 +124,8 @@ def _checked_scalars(width, height, sh_degree, near_plane, far_plane, eps2d, cpu
     height = _integer_argument("height", height, 0)
     if sh_degree is not None:
         sh_degree = _integer_argument("sh_degree", sh_degree, 0, 3)
+    if tile_size is not None:  # pixels
+        tile_size = _integer_argument("tile_size", tile_size, 1)
     if cpu_threads is not None:  # 0 is the default, as in the stages' own wrappers
         cpu_threads = _integer_argument("cpu_threads", cpu_threads, 0) or None
     if not 0 < near_plane < far_plane:  # also refuses NaN
@@ -133,7 +133,7 @@ def _checked_scalars(width, height, sh_degree, near_plane, far_plane, eps2d, cpu
                          f"far_plane={far_plane!r}")
     if not eps2d >= 0:
         raise ValueError(f"eps2d must be >= 0 (pixels^2), got {eps2d!r}")
-    return width, height, sh_degree, cpu_threads
+    return width, height, sh_degree, tile_size, cpu_threads
 
 
 def _integer_argument(name: str, value, lowest: int, highest: int | None = None) -> int:
