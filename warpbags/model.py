@@ -247,16 +247,17 @@ class GaussianModel:
             epipolar = epipolar_loss(cameras(), self.training_views.Ks, matches)
             loss = loss + self.config.lambda_epipolar * epipolar
             terms["epipolar"] = epipolar.item()
-        self.optimize(loss, cameras, views if settings.pose_active else None, settings.pose_anchor,
+        self.optimize(loss, cameras, views, settings,
                       after_backward=lambda: self.strategy.accumulate(settings.round_iteration, meta))
         densified = self.strategy.step(settings.round_iteration + 1, self.params, self.optimizer, self.generator,
                                        grows=settings.densify)
         return loss, {**terms, **densified}
 
-    def optimize(self, loss: torch.Tensor, cameras: CameraOptimizer, pose_views: torch.Tensor | None,
-                 pose_anchor: float = 0.0, after_backward: Callable[[], None] | None = None) -> None:
-        """Backward, one Adam step of the Gaussians and of cameras `pose_views` (None: no camera steps), whose
-        corrections since the last rebase add `pose_anchor` x `CameraOptimizer.anchor_loss` to the loss.
+    def optimize(self, loss: torch.Tensor, cameras: CameraOptimizer, views: torch.Tensor, settings: StepSettings,
+                 after_backward: Callable[[], None] | None = None) -> None:
+        """Backward, one Adam step of the Gaussians and, where `settings.pose_active`, of the cameras `views` that
+        `loss` rendered, whose corrections since the last rebase add `settings.pose_anchor` x
+        `CameraOptimizer.anchor_loss` to the loss.
 
         Only the rendered cameras step (the others keep their values and moments); the gauge camera's gradient is
         zero.
@@ -264,8 +265,9 @@ class GaussianModel:
         Raises:
             Diverged: the loss or a parameter is not finite (nothing was stepped).
         """
-        if pose_views is not None and pose_anchor > 0:
-            loss = loss + pose_anchor * cameras.anchor_loss(pose_views)
+        pose_views = views if settings.pose_active else None
+        if pose_views is not None and settings.pose_anchor > 0:
+            loss = loss + settings.pose_anchor * cameras.anchor_loss(pose_views)
         self._check_finite(loss, cameras)
         loss.backward()
         if after_backward is not None:

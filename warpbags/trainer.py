@@ -255,7 +255,7 @@ class Trainer:
             pseudo, pseudo_terms = self.repair_stage.loss(self.model, self.current_viewmats(), self.iteration)
             loss, terms = loss + ratio * pseudo, {**terms, **pseudo_terms}
         with self._divergence_reported():
-            self.model.optimize(loss, self.cameras, views if settings.pose_active else None, settings.pose_anchor)
+            self.model.optimize(loss, self.cameras, views, settings)
         self.iteration += 1
         return self._record("repair", loss, terms, started)
 
