@@ -202,6 +202,15 @@ def test_round_anchor_holds_later_rounds_near_their_start(scene_dir, tmp_path):
     assert moved[1e4] < 0.2 * moved[0.0]
 
 
+def test_a_scene_without_depth_maps_is_said_unless_the_depth_term_is_off(scene_dir, tmp_path):
+    for overrides, said in (({}, True), ({"lambda_depth": 0.0}, False), ({"depth_until": 0}, False)):
+        notes = []
+        config = tiny_config(**overrides)
+        scene = dataclasses.replace(training_scene(load_scene(scene_dir, name="tiny"), config), depths=None)
+        Trainer(scene, config, tmp_path / str(len(overrides)) / str(said), log=notes.append)
+        assert any("no depth maps in this scene: depth term skipped" in note for note in notes) == said, notes
+
+
 def test_the_repair_stage_anchors_at_the_coarse_stages_final_poses(scene_dir, tmp_path):
     """Without an average (`camera.average_share` 0) the coarse stage's end still folds the corrections into the
     base poses: with one round the repair stage's anchor pulled towards the round's start, the noisy given poses."""

@@ -88,7 +88,7 @@ class Trainer:
         self.viewmats_init = viewmats_init.to(self.device).float()
         self.viewmats_start, self.object_center = starting_poses(self.viewmats_init, full.masks, full.Ks, config, log)
         self.scene_extent = scene_extent(self.viewmats_init)
-        if full.depths is None and config.depth_until > 0:
+        if full.depths is None and config.depth_until > 0 and config.lambda_depth > 0:
             # The depth term is what takes the synthetic scene's cameras in from 15 degrees of noise (README, "Pose
             # recovery"): without depth maps poses rest on the images and masks alone.
             self.log("no depth maps in this scene: depth term skipped" + (
