@@ -1148,6 +1148,7 @@ def test_every_configured_round_runs_and_their_lengths_differ_by_at_most_one():
         schedule = Schedule(load_preset("quick", iters=iters, rounds=rounds))
         starts = [i for i in range(iters) if i == 0 or schedule.starts_round(i)]
         assert schedule.rounds == rounds and [schedule.round_end(start) - start for start in starts] == lengths
+        assert [schedule.round_length(k) for k in range(rounds)] == lengths
         assert [schedule.round_index(start) for start in starts] == list(range(rounds))
 
 

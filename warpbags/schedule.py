@@ -125,6 +125,11 @@ class Schedule:
         next_round = self.round_index(iteration) + 1
         return self.round_starts[next_round] if next_round < self.rounds else self.config.iters
 
+    def round_length(self, round_index: int) -> int:
+        """The iterations of coarse round `round_index`."""
+        round_start = self.round_starts[round_index]
+        return self.round_end(round_start) - round_start
+
     def orbit_free(self, iteration: int) -> bool:
         return self.round_index(iteration) >= self.config.camera.orbit_from_round
 
@@ -152,8 +157,7 @@ class Schedule:
         """[first, stop) of coarse round `round_index`'s pose window, in iterations from the round's start: the
         round's entry of `pose_round_windows`, else `pose_round_window`, as shares of the round's own length, so
         that rounds of unequal length each have theirs."""
-        round_start = self.round_starts[round_index]
-        length = max(self.round_end(round_start) - round_start, 1)
+        length = max(self.round_length(round_index), 1)
         windows = self.config.pose_round_windows or (self.config.pose_round_window,)
         window_start, window_end = windows[min(round_index, len(windows) - 1)]
         return share_of(window_start, length), share_of(window_end, length)
@@ -186,7 +190,7 @@ class Schedule:
         # GaussianObject's repair keeps the final position lr; the poses keep their final lr. The pose lr decays
         # within each round's pose window (a warm restart per round: each round is a fresh coarse-to-fine fit).
         # The position lr decays over the round's own length: rounds of unequal length all end at its final value.
-        this_round_length = self.round_end(iteration) - self.round_starts[self.round_index(iteration)]
+        this_round_length = self.round_length(self.round_index(iteration))
         gaussian_fraction = 1.0 if in_repair else round_iteration / max(this_round_length - 1, 1)
         pose_start, pose_end = self.pose_window(iteration)
         pose_fraction = 1.0 if in_repair else (iteration - pose_start) / max(pose_end - pose_start - 1, 1)

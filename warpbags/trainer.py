@@ -449,9 +449,8 @@ class Trainer:
         left = self.config.total_iters - self.iteration
         round_index = self.config.camera.hypotheses_round
         if self.config.pose_opt and 0 < round_index < self.schedule.rounds:
-            start = self.schedule.round_starts[round_index]
-            if self.iteration <= start:
-                left += len(self.hypothesis_turns) * (self.schedule.round_end(start) - start)
+            if self.iteration <= self.schedule.round_starts[round_index]:
+                left += len(self.hypothesis_turns) * self.schedule.round_length(round_index)
         return left
 
     def _hypotheses_due(self) -> bool:
