@@ -384,7 +384,8 @@ def test_repair_stage_runs_end_to_end_and_writes_its_samples(scene_dir, tmp_path
     loo = [i for i, kind in enumerate(pairs.kinds) if kind == LEAVE_ONE_OUT]
     views = [pairs.views[i] for i in loo]
     coarse = load_run(tmp_path / "coarse")
-    coarse_renders, _, _ = render_gaussians(coarse.params, coarse.poses_final[views].float(), trainer.Ks[views],
+    trained = trainer.model.training_views
+    coarse_renders, _, _ = render_gaussians(coarse.params, coarse.poses_final[views].float(), trained.Ks[views],
                                             trainer.scene.width, trainer.scene.height,
                                             sh_degree=sh_degree_of(coarse.params), backgrounds=torch.ones(len(views), 3))
     loo_errors = (pairs.corrupted[loo] - pairs.targets[loo]).abs().mean(dim=(1, 2, 3))

@@ -34,9 +34,6 @@ class PoseHistory:
     iterations: np.ndarray
     viewmats: np.ndarray
 
-    def __len__(self) -> int:
-        return len(self.iterations)
-
 
 def read_pose_history(run_dir: str | Path) -> PoseHistory | None:
     """The run's pose history, or None when it recorded none.

@@ -15,7 +15,7 @@ The trainer adds the loop itself: rounds, the search of one round over turns of 
 (`camera.hypotheses_round`), the repair stage, checkpoint cadence, the log and Ctrl-C. The module also
 holds the run's entry points that the command line, the benchmarks, the sweep and the tests import from here
 (`training_scene`, `start_or_resume`, `default_run_dir`) and the attributes they read (`params`, `cameras`,
-`scene`, `Ks`, `pose_error`).
+`scene`, `pose_error`).
 """
 
 from __future__ import annotations
@@ -171,11 +171,6 @@ class Trainer:
     def scene(self) -> Scene:
         """The training views at the current round's resolution."""
         return self.model.training_views.scene
-
-    @property
-    def Ks(self) -> torch.Tensor:
-        """[C,3,3] intrinsics at the current round's resolution."""
-        return self.model.training_views.Ks
 
     @property
     def in_repair(self) -> bool:
