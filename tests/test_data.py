@@ -37,7 +37,7 @@ from warpbags.data import (
 from warpbags.data import loaders
 from warpbags.data.catalog import packaged_scene_dir
 from warpbags.data.colmap import read_model, write_model
-from warpbags.data.images import read_image, read_masks, scene_bytes
+from warpbags.data.images import read_image, read_images, read_masks, scene_bytes
 from warpbags.data.synthetic import (LIGHT_DIRECTION, LIGHT_IN_CAMERA, OBJECT_CENTER, dome_viewmats, intrinsics,
                                      view_lighting)
 from warpbags.errors import WarpbagsError
@@ -691,6 +691,22 @@ def test_jpeg_photographs_and_masks_are_decoded_reduced(synthetic_dir, tmp_path)
     read = read_masks(tmp_path, ["photo.jpg"], 64, 64, 4)[0]
     expected = cv2.resize(mask.astype(np.float32) / 255, (64, 64), interpolation=cv2.INTER_AREA) >= 0.5
     assert np.mean(read == expected) > 0.99
+
+
+def test_a_jpeg_whose_sides_the_reduction_does_not_divide_is_read_where_a_png_is(tmp_path):
+    """libjpeg's 1/8 decode of a 2001-row image is 251 rows, its last from one row of pixels: stretched to the 250 rows
+    the intrinsics scale to, an edge 20 rows from the bottom moved 0.86 px from where the same image as PNG put it."""
+    photo = np.zeros((2001, 96, 3), np.uint8)
+    photo[:1981] = 255  # white above a dark band along the bottom
+    rows = {}
+    for suffix in (".png", ".jpg"):
+        path = tmp_path / f"edge{suffix}"
+        cv2.imwrite(str(path), photo, [cv2.IMWRITE_JPEG_QUALITY, 100])
+        images, _, width, height = read_images([path], [path], 8)  # a full-size file read at 1/8
+        assert (width, height) == (12, 250)
+        rows[suffix] = images[0, :, 4:8, 1].sum(axis=0).mean()  # the white rows, to a fraction of a row
+    assert rows[".jpg"] == pytest.approx(rows[".png"], abs=0.05)
+    assert rows[".png"] == pytest.approx(1981 / 2001 * 250, abs=0.05)
 
 
 def test_a_jpeg_cut_short_is_refused_by_name_as_image_and_as_mask(synthetic_dir, tmp_path):

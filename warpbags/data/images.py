@@ -97,8 +97,14 @@ def resolution_path(root: Path, full_path: Path, resolution: int) -> Path:
 
 
 def _decoded_reduced(path: Path, reduction: int) -> bool:
-    """Whether libjpeg decodes `path` at 1/`reduction` itself (a JPEG, and a reduction of 2, 4 or 8)."""
-    return reduction in JPEG_REDUCED_FLAGS and path.suffix.lower() in JPEG_EXTENSIONS
+    """Whether libjpeg decodes `path` at 1/`reduction` itself: a JPEG, a reduction of 2, 4 or 8, and sides that it
+    divides. Its reduced decode of other sides is ceil(size / reduction), the last row and column from fewer pixels,
+    where the images and masks are round(size / reduction) of the whole: stretched to that, it put an edge up to 0.9 px
+    from where the intrinsics see it. Those are decoded whole and resized."""
+    if reduction not in JPEG_REDUCED_FLAGS or path.suffix.lower() not in JPEG_EXTENSIONS:
+        return False
+    width, height = image_size(path)
+    return width % reduction == 0 and height % reduction == 0
 
 
 # After a JPEG marker 0xFF: the bytes that do not end its entropy-coded scan data (a stuffed 0x00, the restart
@@ -191,12 +197,10 @@ def read_images(
     for index, (path, full_path) in enumerate(zip(files, full_paths)):
         reduction = resolution if path == full_path else 1  # a full-size file read for a downsampled folder
         image = read_image(path, reduction)
-        if reduction > 1:
-            # libjpeg's reduced decode is ceil(size / reduction); the full size comes from the header then
-            full_width, full_height = image_size(path) if _decoded_reduced(path, reduction) else image.shape[1::-1]
-            target = (round(full_width / reduction), round(full_height / reduction))
-            if image.shape[1::-1] != target:
-                image = cv2.resize(image, target, interpolation=cv2.INTER_AREA)
+        if reduction > 1 and not _decoded_reduced(path, reduction):  # decoded whole
+            full_height, full_width = image.shape[:2]
+            image = cv2.resize(image, (round(full_width / reduction), round(full_height / reduction)),
+                               interpolation=cv2.INTER_AREA)
         if images is None:
             height, width = image.shape[:2]
             images = np.empty((len(files), height, width, 3), dtype=np.float32)
@@ -337,10 +341,8 @@ def _read_mask(path: Path, width: int, height: int) -> tuple[np.ndarray, str]:
         # a 64 px image (where a 130 px PNG is refused) and name its reduced size for one of a wrong size
         _require_size(full_width, full_height, width, height, path, "mask")
         reduction = round(full_width / width)
-        # libjpeg's reduced decode is ceil(size / reduction), the images round(size / reduction): a mask whose sides
-        # do not divide is decoded whole and resized as they are (`_resize_to`)
-        reduced = (_decoded_reduced(path, reduction) and full_width % reduction == 0
-                   and full_height % reduction == 0)
+        # a mask `_decoded_reduced` refuses is decoded whole and resized as the images are (`_resize_to`)
+        reduced = _decoded_reduced(path, reduction)
         mask = _decoded(path, JPEG_REDUCED_FLAGS[reduction][1] if reduced else
                         cv2.IMREAD_GRAYSCALE | cv2.IMREAD_ANYDEPTH | _AS_STORED, "mask")
         if mask is None:
