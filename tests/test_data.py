@@ -894,7 +894,8 @@ def test_a_mask_whose_object_vanishes_at_a_resolution_says_so(scene_copy):
 
 def test_images_and_calibration_of_another_shape_are_named(scene_copy):
     """A calibration of 64x64 for images cropped (or rotated) to another shape would scale fx and fy apart; a pixel
-    less, as the rounding of a reduced size leaves (400 x 300 at 1/8: 50 x 38), is not another shape."""
+    less, as the rounding of a reduced size leaves (400 x 300 at 1/8: 50 x 38), is not another shape; a few rows of
+    a larger image are."""
     paths = sorted((scene_copy / "images").glob("*.png"))
     for path in paths:
         cv2.imwrite(str(path), cv2.imread(str(path))[:63])
@@ -904,6 +905,12 @@ def test_images_and_calibration_of_another_shape_are_named(scene_copy):
     for path in paths:
         cv2.imwrite(str(path), cv2.imread(str(path))[:48])
     _expect_error(scene_copy, r"image .*view_000.png is 64x48, its camera is calibrated at 64x64: another shape")
+    # a crop of under 1% of a larger image is as far from the calibration's shape (it took 3 rows of 640)
+    shutil.rmtree(scene_copy / "depths")
+    for folder in ("images", "masks"):
+        for path in (scene_copy / folder).glob("*.png"):
+            cv2.imwrite(str(path), cv2.resize(cv2.imread(str(path)), (640, 640), interpolation=cv2.INTER_NEAREST)[:637])
+    _expect_error(scene_copy, r"image .*view_000.png is 640x637, its camera is calibrated at 64x64: another shape")
 
 
 def test_an_alpha_channel_in_some_images_only_is_named_where_alphas_are_the_masks(scene_copy):
