@@ -30,6 +30,18 @@ def test_accumulate_adds_ndc_gradient_norms_of_visible_gaussians():
     torch.testing.assert_close(strategy.grad_count, torch.tensor([1.0, 0.0, 1.0]))
 
 
+def test_accumulate_restarts_statistics_of_another_length():
+    """A checkpoint of an earlier version saved after a floater removal holds statistics of the length before it:
+    they restart rather than fail to add up."""
+    strategy = DensifyStrategy(DensifyConfig(), scene_extent=1.0)
+    strategy.load_state_dict({"grad_sum": torch.ones(4), "grad_count": torch.ones(4)})
+    meta = _meta()
+    (meta["means2d"] * torch.tensor([[[1.0, 2.0], [5.0, 5.0], [0.0, -1.0]]])).sum().backward()
+    strategy.accumulate(0, meta)
+    torch.testing.assert_close(strategy.grad_sum, torch.tensor([(16.0 + 36.0) ** 0.5, 0.0, 3.0]))
+    torch.testing.assert_close(strategy.grad_count, torch.tensor([1.0, 0.0, 1.0]))
+
+
 def test_accumulate_without_the_means2d_gradient_is_an_error():
     strategy = DensifyStrategy(DensifyConfig(), scene_extent=1.0)
     with pytest.raises(WarpbagsError, match=r"retain_grad\(\)") as error:
@@ -80,7 +92,8 @@ def _four_gaussians():
 def test_clone_split_and_prune_change_the_rows_as_3dgs_does():
     params, optimizer, strategy = _four_gaussians()
     before = {name: value.detach().clone() for name, value in params.items()}
-    moments = {name: optimizer.state[value]["exp_avg"].clone() for name, value in params.items()}
+    moments = {(name, key): optimizer.state[value][key].clone() for name, value in params.items()
+               for key in ("exp_avg", "exp_avg_sq")}
     report = strategy.step(1, params, optimizer, torch.Generator().manual_seed(0))
     assert report == {"cloned": 1, "split": 1, "pruned": 1}
     # rows: G0, G2 kept; G0's clone; G1's two children (G1 itself replaced, G3 pruned)
@@ -96,11 +109,43 @@ def test_clone_split_and_prune_change_the_rows_as_3dgs_does():
     torch.testing.assert_close(params["means"][3:].detach(), before["means"][1] + draws @ rotation.T)
     torch.testing.assert_close(params["scales"][3:].detach(), (before["scales"][1].exp() / 1.6).log().expand(2, 3))
     torch.testing.assert_close(params["opacities"][3:].detach(), before["opacities"][1].expand(2))
-    # Adam's moments follow their rows; new rows start at zero
-    for name, value in params.items():
-        state = optimizer.state[value]["exp_avg"]
-        torch.testing.assert_close(state[[0, 1]], moments[name][[0, 2]])
+    # Adam's moments (both) follow their rows; new rows start at zero
+    for (name, key), moment in moments.items():
+        state = optimizer.state[params[name]][key]
+        assert state.shape == params[name].shape
+        torch.testing.assert_close(state[[0, 1]], moment[[0, 2]])
         assert not state[2:].any()
+
+
+def test_a_large_flat_gaussian_is_split_not_cloned():
+    """Clone or split is decided by a Gaussian's largest axis: a flat one (0.1 long, 0.005 thin, against
+    percent_dense 0.01) is large."""
+    params, optimizer, strategy = _four_gaussians()
+    with torch.no_grad():
+        params["scales"][1] = torch.log(torch.tensor([0.1, 0.005, 0.005]))
+    report = strategy.step(1, params, optimizer, torch.Generator().manual_seed(0))
+    assert report == {"cloned": 1, "split": 1, "pruned": 1}  # G0 cloned, G1 split
+    torch.testing.assert_close(params["scales"][3:].detach().exp(), torch.tensor([[0.1, 0.005, 0.005]]).expand(2, 3)
+                               / 1.6)
+
+
+def test_densification_restarts_the_gradient_statistics():
+    """After a densification the statistics start again from zero, one per Gaussian of the new set."""
+    params, optimizer, strategy = _four_gaussians()
+    strategy.step(1, params, optimizer, torch.Generator().manual_seed(0))
+    assert len(params["means"]) == 5
+    torch.testing.assert_close(strategy.grad_sum, torch.zeros(5))
+    torch.testing.assert_close(strategy.grad_count, torch.zeros(5))
+
+
+@pytest.mark.parametrize(("iteration", "densifies"), [(1, True), (2, False)])
+def test_densification_runs_before_stop_and_not_at_it(iteration, densifies):
+    """The schedule is [start, stop): with stop = 2, iteration 1 densifies and iteration 2 changes nothing."""
+    params, optimizer, strategy = _four_gaussians()
+    strategy.config = dataclasses.replace(strategy.config, stop=2)
+    report = strategy.step(iteration, params, optimizer, torch.Generator().manual_seed(0))
+    assert (report == {"cloned": 1, "split": 1, "pruned": 1}) == densifies
+    assert (len(params["means"]) == 4) != densifies
 
 
 def test_oversized_gaussians_are_pruned():
@@ -160,6 +205,16 @@ def test_pruning_keeps_the_most_opaque_gaussian_of_all_transparent_ones_and_no_r
         True, False, False]
 
 
+def _cloud_with_a_floater(count, generator, distance=10.0):
+    """`count` means around the origin (standard deviation 0.2), Gaussian 0 at (`distance`,) * 3; Adam over the
+    means and opacities."""
+    means = torch.randn(count, 3, generator=generator) * 0.2
+    means[0] = distance
+    params = {"means": torch.nn.Parameter(means), "opacities": torch.nn.Parameter(torch.zeros(count))}
+    optimizer = torch.optim.Adam([{"params": [p], "name": n} for n, p in params.items()])
+    return params, optimizer
+
+
 @pytest.mark.parametrize("white_background", [False, True])
 def test_floaters_and_resets_follow_gaussianobjects_schedule(white_background):
     """GaussianObject (as 3DGS) removes floaters and resets opacities only before `stop`, and on a white background
@@ -169,12 +224,39 @@ def test_floaters_and_resets_follow_gaussianobjects_schedule(white_background):
     done = {}
     for iteration in range(1, 201):
         g = torch.Generator().manual_seed(iteration)
-        means = torch.randn(100, 3, generator=g) * 0.2
-        means[0] = 10.0  # a floater at every step
-        params = {"means": torch.nn.Parameter(means), "opacities": torch.nn.Parameter(torch.zeros(100))}
-        optimizer = torch.optim.Adam([{"params": [p], "name": n} for n, p in params.items()])
+        params, optimizer = _cloud_with_a_floater(100, g)  # a floater at every step
         for key in strategy.step(iteration, params, optimizer, g):
             done.setdefault(key, []).append(iteration)
     extra = [30] if white_background else []
     assert done["floaters"] == sorted([20, 40, 60, 80, *extra])
     assert done["opacity_reset"] == sorted([40, 80, *extra])
+
+
+def test_a_smaller_floater_std_ratio_removes_more():
+    """`floater_std_ratio` is how many standard deviations above the average neighbour distance "far" begins."""
+    removed = {}
+    for ratio in (0.5, 3.0):
+        generator = torch.Generator().manual_seed(0)
+        # not so far that it alone makes the standard deviation, which would leave only it above any ratio
+        params, optimizer = _cloud_with_a_floater(400, generator, distance=5.0)
+        config = DensifyConfig(floater_every=10, opacity_reset_every=0, floater_std_ratio=ratio)
+        removed[ratio] = DensifyStrategy(config, 1.0).step(10, params, optimizer, generator).get("floaters", 0)
+    assert removed[0.5] > removed[3.0] >= 1, removed
+
+
+def test_a_floater_removal_keeps_the_survivors_gradient_statistics():
+    """Off the densification grid (`floater_every` not a multiple of `every`) the survivors' statistics of the
+    interval so far stay: restarted, the next densification would judge on the steps after the removal only."""
+    params, optimizer = _cloud_with_a_floater(100, torch.Generator().manual_seed(0))
+    config = DensifyConfig(start=0, stop=1000, every=100, floater_every=30, opacity_reset_every=0)
+    strategy = DensifyStrategy(config, scene_extent=1.0)
+    strategy.grad_sum, strategy.grad_count = torch.arange(100.0), torch.full((100,), 29.0)
+    assert strategy.step(30, params, optimizer, torch.Generator()) == {"floaters": 1}  # Gaussian 0
+    torch.testing.assert_close(strategy.grad_sum, torch.arange(1.0, 100.0))
+    # the next step adds to them
+    means2d = torch.zeros(1, 99, 2, requires_grad=True)
+    means2d.sum().backward()
+    strategy.accumulate(30, {"means2d": means2d, "radii": torch.ones(1, 99, dtype=torch.int32), "width": 2,
+                             "height": 2})
+    torch.testing.assert_close(strategy.grad_count, torch.full((99,), 30.0))
+    torch.testing.assert_close(strategy.grad_sum, torch.arange(1.0, 100.0) + 2 ** 0.5)

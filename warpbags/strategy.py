@@ -102,6 +102,8 @@ class DensifyStrategy:
             raise WarpbagsError("densification needs the gradient of meta['means2d']: call "
                                 "meta['means2d'].retain_grad() before backward()")
         count = means2d.shape[1]
+        # Every row change here keeps the statistics in step; a checkpoint of an earlier version saved after a
+        # floater removal holds them at the length before it, so they restart.
         if self.grad_sum is None or len(self.grad_sum) != count:
             self._reset_stats(count, means2d.device)
         # The loss is a mean over the batch's cameras, so each camera's gradient is 1/C of what it would be alone:
@@ -190,6 +192,10 @@ class DensifyStrategy:
         floaters = mean_distance > mean_distance.mean() + self.config.floater_std_ratio * mean_distance.std()
         if floaters.any():
             replace_rows(params, optimizer, ~floaters)
+            # The survivors keep their statistics (as gsplat's `remove`): left at the old length, `accumulate` would
+            # restart them all and the interval's densification would see only the steps after the removal.
+            if self.grad_sum is not None and len(self.grad_sum) == count:
+                self.grad_sum, self.grad_count = self.grad_sum[~floaters], self.grad_count[~floaters]
         return int(floaters.sum())
 
     def _reset_opacities(self, params, optimizer) -> None:
