@@ -649,6 +649,21 @@ def test_downsampled_pngs_of_jpeg_images_are_the_files_read(scene_copy):
                                   np.stack(pngs).astype(np.float32) / 255)
 
 
+def test_images_that_no_camera_names_are_said(scene_copy, caplog):
+    """A COLMAP model that registered some of the photographs (failed SfM, or an images.txt written one line per
+    image, whose every other line pycolmap reads as points) trained on the rest without a word."""
+    with caplog.at_level("WARNING", logger="warpbags.data"):
+        load_scene(scene_copy)
+    assert "left out" not in caplog.text
+    shutil.copy(scene_copy / "images" / "view_003.png", scene_copy / "images" / "view_100.png")
+    shutil.copy(scene_copy / "images" / "view_003.png", scene_copy / "images" / "._view_003.png")  # macOS's copy
+    (scene_copy / "images" / "notes.txt").write_text("not an image")
+    with caplog.at_level("WARNING", logger="warpbags.data"):
+        scene = load_scene(scene_copy)
+    assert scene.num_views == 12
+    assert "1 image(s) in images/ have no camera in its colmap poses (e.g. images/view_100.png): left out" in caplog.text
+
+
 def test_photographs_too_large_for_memory_are_read_at_a_factor_that_fits(synthetic_dir, synthetic, monkeypatch,
                                                                         caplog):
     """A folder of full-size photographs whose float32 images and masks would pass the memory budget (119 photographs

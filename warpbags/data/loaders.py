@@ -17,15 +17,16 @@ readers are in `layouts.py`, images/masks/depths in `images.py`, the split files
 from __future__ import annotations
 
 import logging
+import os
 from pathlib import Path
 
 import numpy as np
 import torch
 
 from warpbags.cameras import camera_centers
-from warpbags.data.images import (FACTORS, IMAGE_MEMORY_BUDGET, default_resolution, factor_within_budget, image_size,
-                                  mask_folder, masks_from_alphas, physical_memory, read_depths, read_images, read_masks,
-                                  resolution_path, scene_bytes, undistort)
+from warpbags.data.images import (FACTORS, IMAGE_EXTENSIONS, IMAGE_MEMORY_BUDGET, default_resolution,
+                                  factor_within_budget, image_size, mask_folder, masks_from_alphas, physical_memory,
+                                  read_depths, read_images, read_masks, resolution_path, scene_bytes, undistort)
 from warpbags.data.layouts import LayoutCameras, read_layout_cameras, scaled_intrinsics
 from warpbags.data.scene import ORBIT_RADIUS, Scene, SceneNormalization
 from warpbags.data.splits import read_splits
@@ -65,6 +66,9 @@ def load_scene(
     if not root.is_dir():
         raise WarpbagsError(f"scene folder {root} does not exist")
     cameras = read_layout_cameras(root)
+    if unposed := _images_without_a_camera(root, cameras):
+        logger.warning("%s: %d image(s) in images/ have no camera in its %s poses (e.g. %s): left out (images SfM did "
+                       "not register?)", root, len(unposed), cameras.layout, unposed[0].relative_to(root))
     resolution = _resolution(root, cameras, resolution)
     image_files = [resolution_path(root, path, resolution) for path in cameras.image_paths]
     images, alphas, width, height = read_images(image_files, cameras.image_paths, resolution,
@@ -132,6 +136,17 @@ def load_scene(
     )
     scene.splits, scene.split_sources = read_splits(root, scene, default_splits, cameras.test_names)
     return scene
+
+
+def _images_without_a_camera(root: Path, cameras: LayoutCameras) -> list[Path]:
+    """The image files under `root`/images that no camera of `cameras` names (hidden files, such as macOS's "._"
+    copies, are not images)."""
+    folder = root / "images"
+    if not folder.is_dir():
+        return []
+    named = {Path(os.path.normpath(path)) for path in cameras.image_paths}
+    return sorted(path for path in folder.rglob("*") if path.suffix in IMAGE_EXTENSIONS and not path.name.startswith(".")
+                  and path.is_file() and Path(os.path.normpath(path)) not in named)
 
 
 def _resolution(root: Path, cameras: LayoutCameras, asked: int | None) -> int:
