@@ -161,14 +161,16 @@ class CameraConfig:
             half-fitted model lets cameras slide along it: on the near-cylindrical maryrose the cameras drift ~6 deg
             from the reference poses that way. A value of `rounds` or more keeps the orbit fixed to the end.
             Object parameterization only.
-        round_anchor: from the second coarse round on, each rendered camera's corrections since its round started
-            cost round_anchor / 2 |delta|^2 (delta in the parameterization's units: radians, focal lengths, log
-            depth; in the repair stage, since the coarse stage's final poses). A round's fresh, half-fitted
+        round_anchor: from the second coarse round on, each step's loss adds round_anchor / 2 |delta|^2 averaged
+            over the step's rendered cameras, delta a camera's corrections since its round started (in the
+            parameterization's units: radians, focal lengths, log depth; in the repair stage, since the coarse
+            stage's final poses): with B views per step, each camera pays 1/B of it. A round's fresh, half-fitted
             Gaussians pull the poses where they explain the images best, which on a real capture is partly along
             directions the images barely constrain; the anchor lets a later round move a camera only as far as the
             images pull it firmly (a proximal step; the first round, which starts far off, is free). 0 = off.
-            Measured at 1 (15 deg / 0.3, 4 views, seeds 0-2): maryrose 10.64 -> 8.13 deg, the telephoto synthetic
-            scene 0.79 -> 2.89 (its later rounds gain by the same kind of moves), so off by default.
+            Measured at 1 (15 deg / 0.3, 4 views, all rendered in every step: each pays 1/4; seeds 0-2): maryrose
+            10.64 -> 8.13 deg, the telephoto synthetic scene 0.79 -> 2.89 (its later rounds gain by the same kind of
+            moves), so off by default.
         lbfgs_from_round: from this coarse round on (0-based), the poses no longer take an Adam step with every
             Gaussian step: in the pose window, at every iteration i with i + 1 a multiple of `lbfgs_every` (counted
             from the start of training, not of the window) and at the window's last iteration, all training cameras

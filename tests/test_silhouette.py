@@ -8,6 +8,7 @@ import math
 
 import pytest
 import torch
+from conftest import look_at
 
 import warpbags
 from warpbags.alignment import pose_errors
@@ -93,6 +94,20 @@ def test_a_forward_facing_rig_keeps_its_poses_and_takes_the_origin_as_object_cen
     start, center = starting_poses(viewmats, masks, Ks, load_preset("quick", pose_opt=pose_opt), messages.append)
     assert torch.equal(start, viewmats) and torch.equal(center, torch.zeros(3))
     assert any("nearly parallel" in message for message in messages), messages
+
+
+def test_without_masks_the_object_centre_is_where_the_optical_axes_meet():
+    """Four cameras around a point off the origin, no masks: the poses stay as given and the centre is that point.
+    The test above has identity rotations only, where taking a column of the world-to-camera rotation for the
+    optical axis instead of its third row passed; here the two differ."""
+    target = torch.tensor([0.1, -0.2, 0.05], dtype=torch.float64)
+    viewmats = torch.stack([look_at(torch.tensor([4 * math.cos(a), 4 * math.sin(a), 0.7], dtype=torch.float64), target)
+                            for a in (0.0, 1.6, 3.1, 4.7)]).float()
+    Ks = torch.tensor([[100.0, 0, 32], [0, 100, 32], [0, 0, 1]]).repeat(4, 1, 1)
+    messages = []
+    start, center = starting_poses(viewmats, None, Ks, load_preset("quick"), messages.append)
+    assert torch.equal(start, viewmats) and messages == ["no masks: no mask-centroid start"], messages
+    torch.testing.assert_close(center.double(), target, rtol=0, atol=1e-5)
 
 
 def test_mask_centroids_and_edge_pixels_lie_at_pixel_centres():

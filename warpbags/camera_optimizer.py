@@ -133,9 +133,6 @@ class CameraOptimizer(torch.nn.Module):
     def __init__(self, base_viewmats: torch.Tensor, settings: CameraOptimizerSettings, object_center: torch.Tensor,
                  Ks: torch.Tensor | None = None, width: int = 0, height: int = 0, points: torch.Tensor | None = None):
         super().__init__()
-        if settings.parameterization not in PARAMETERIZATIONS:
-            raise WarpbagsError(f"camera.parameterization must be one of {', '.join(PARAMETERIZATIONS)}, "
-                                f"got {settings.parameterization!r}")
         self.settings = settings
         cams, options = base_viewmats.shape[0], dict(dtype=base_viewmats.dtype, device=base_viewmats.device)
         self.register_buffer("base_viewmats", base_viewmats.detach().clone())
@@ -262,7 +259,8 @@ class CameraOptimizer(torch.nn.Module):
 
     def anchor_loss(self, views: torch.Tensor) -> torch.Tensor:
         """Mean over cameras `views` ([B] long) of 1/2 |corrections|^2: after a `rebase`, a differentiable pull of
-        those cameras towards where they were then (`camera.round_anchor`)."""
+        those cameras towards where they were then (`camera.round_anchor`). A mean, not a sum: with B views per step
+        each camera pays 1/B, the scale at which the anchor's weight was measured."""
         return 0.5 * (self.params()[views] ** 2).sum(-1).mean()
 
     def set_learning_rate(self, lr: float) -> None:
