@@ -603,6 +603,21 @@ def test_a_text_colmap_model_directly_in_sparse_is_read(scene_copy, synthetic):
     assert scene.num_views == synthetic.num_views and scene.layout == synthetic.layout
 
 
+def test_a_colmap_model_without_its_points_file_is_named_and_one_without_points_is_read(scene_copy, synthetic):
+    """pycolmap refused a model of known poses without points3D.txt in its own words ("Check failed:
+    (file).is_open()")."""
+    write_model(scene_copy / "sparse" / "0", synthetic.image_names, synthetic.viewmats.double().numpy(),
+                synthetic.Ks.double().numpy(), synthetic.width, synthetic.height, binary=False)
+    for path in (scene_copy / "sparse" / "0").glob("*.bin"):
+        path.unlink()
+    points = scene_copy / "sparse" / "0" / "points3D.txt"
+    points.unlink()
+    _expect_error(scene_copy, r"points3D.txt is missing \(COLMAP model incomplete \(a model without points holds an "
+                  r"empty points3D.txt\)\)")
+    points.write_text("")
+    assert load_scene(scene_copy).num_views == synthetic.num_views
+
+
 @pytest.mark.parametrize("field, value", [("distortion", math.inf), ("cx", math.nan)])
 def test_a_colmap_calibration_that_is_not_finite_is_refused_by_name(scene_copy, synthetic, field, value):
     """An infinite distortion coefficient loaded, and undistorted the view into an all-black image with an empty
@@ -661,7 +676,8 @@ def test_images_that_no_camera_names_are_said(scene_copy, caplog):
     with caplog.at_level("WARNING", logger="warpbags.data"):
         scene = load_scene(scene_copy)
     assert scene.num_views == 12
-    assert "1 image(s) in images/ have no camera in its colmap poses (e.g. images/view_100.png): left out" in caplog.text
+    said = "1 image(s) in images/ have no camera in its colmap poses (e.g. images/view_100.png): left out"
+    assert said in caplog.text
 
 
 def test_photographs_too_large_for_memory_are_read_at_a_factor_that_fits(synthetic_dir, synthetic, monkeypatch,

@@ -78,9 +78,12 @@ def find_model_files(model_dir: Path) -> str:
     """Return "bin" or "txt" for the complete model in `model_dir`, or raise naming the missing file."""
     for extension in ("bin", "txt"):
         if (model_dir / f"cameras.{extension}").is_file() or (model_dir / f"images.{extension}").is_file():
-            for stem in ("cameras", "images"):
+            for stem in ("cameras", "images", "points3D"):
                 if not (model_dir / f"{stem}.{extension}").is_file():
-                    raise WarpbagsError(f"{model_dir / f'{stem}.{extension}'} is missing (COLMAP model incomplete)")
+                    # a model of known poses written by hand (COLMAP's own recipe) may hold no points
+                    empty = " (a model without points holds an empty points3D.txt)" if stem == "points3D" else ""
+                    raise WarpbagsError(f"{model_dir / f'{stem}.{extension}'} is missing (COLMAP model "
+                                        f"incomplete{empty})")
             return extension
     raise WarpbagsError(f"no COLMAP model in {model_dir}: expected cameras.bin and images.bin (or .txt)")
 
