@@ -336,6 +336,8 @@ def test_llff_layout_matches_exact_poses(request, tmp_path, scene_name, options)
     would be 48 x 64, for images of 64 x 48)."""
     folder = _strip_to_images(request.getfixturevalue(scene_name), tmp_path / "llff")
     np.save(folder / "poses_bounds.npy", _llff_poses_bounds(options))
+    # a hidden copy (macOS's ._ files on a shared drive) is not an image: it was counted against poses_bounds.npy
+    shutil.copy(folder / "images" / "view_000.png", folder / "images" / "._view_000.png")
     scene = load_scene(folder, normalize=False)
     assert scene.layout == "llff" and (scene.width, scene.height) == (options.width, options.height)
     torch.testing.assert_close(scene.viewmats, torch.from_numpy(dome_viewmats(options)).float(), atol=1e-5, rtol=0)

@@ -118,7 +118,8 @@ def llff_cameras(root: Path) -> LayoutCameras:
     if poses_bounds.ndim != 2 or poses_bounds.shape[1] != 17:
         raise WarpbagsError(f"{path} has shape {poses_bounds.shape}, expected [N,17]")
     image_dir = first_existing_image_dir(root)
-    names = sorted(p.name for p in image_dir.iterdir() if p.suffix.lower() in IMAGE_EXTENSIONS)
+    names = sorted(p.name for p in image_dir.iterdir()  # hidden files such as macOS's "._" copies are not images
+                   if p.suffix.lower() in IMAGE_EXTENSIONS and not p.name.startswith("."))
     if len(names) != len(poses_bounds):
         raise WarpbagsError(f"{path} has {len(poses_bounds)} poses but {image_dir} holds {len(names)} images")
     matrices = poses_bounds[:, :15].reshape(-1, 3, 5)
