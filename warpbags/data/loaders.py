@@ -88,6 +88,8 @@ def load_scene(
     masks = read_masks(root, cameras.image_names, width, height, resolution)
     if masks is None and alphas is not None:
         masks = masks_from_alphas(alphas, image_files)
+    if masks is not None:
+        _warn_of_background_masks(root, masks, cameras.image_names)
     depths, depth_units = (None, None)
     if load_depths:
         depths, depth_units = read_depths(root, cameras.image_names, width, height)
@@ -136,6 +138,21 @@ def load_scene(
     )
     scene.splits, scene.split_sources = read_splits(root, scene, default_splits, cameras.test_names)
     return scene
+
+
+def _warn_of_background_masks(root: Path, masks: np.ndarray, names: list[str]) -> None:
+    """Say where the masks look like something else than an object's silhouette: most of the image border marked
+    as object in most views (inverted masks, or crop masks such as nerfstudio's, which mark the pixels to train on),
+    or a view marked as object everywhere (no silhouette). Both trained without a word, the poses far off."""
+    borders = np.concatenate([masks[:, 0], masks[:, -1], masks[:, 1:-1, 0], masks[:, 1:-1, -1]], axis=1)
+    object_borders = borders.mean(axis=1) > 0.5
+    if object_borders.mean() > 0.5:
+        logger.warning("%s: the masks of %d of %d views mark most of the image border as object (e.g. %s): a mask "
+                       "marks the object (white) on the background (black); inverted or crop masks train the "
+                       "silhouettes wrong", root, object_borders.sum(), len(masks), names[np.argmax(object_borders)])
+    elif (whole := masks.reshape(len(masks), -1).all(axis=1)).any():
+        logger.warning("%s: the mask of %s marks every pixel as object: that view holds no silhouette", root,
+                       names[np.argmax(whole)])
 
 
 def _images_without_a_camera(root: Path, cameras: LayoutCameras) -> list[Path]:
