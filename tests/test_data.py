@@ -398,6 +398,25 @@ def test_transforms_json_matches_exact_poses(synthetic_dir, tmp_path):
     assert scene.masks is not None
 
 
+def test_transforms_json_mask_and_depth_files_are_said_not_read(synthetic_dir, tmp_path, caplog):
+    """nerfstudio's mask_path (the pixels to train on) and depth_file_path were dropped without a word: a scene whose
+    object masks sat there trained without masks."""
+    folder = _strip_to_images(synthetic_dir, tmp_path / "nerfstudio")
+    _write_transforms(folder, SYNTHETIC, {"camera_angle_x": math.radians(SYNTHETIC.fov_deg)})
+    with caplog.at_level("WARNING", logger="warpbags.data"):
+        load_scene(folder)
+    assert "not read" not in caplog.text
+    meta = json.loads((folder / "transforms.json").read_text())
+    for frame in meta["frames"]:
+        frame["mask_path"] = frame["file_path"].replace("images/", "segmentation/") + ".png"
+    meta["frames"][0]["depth_file_path"] = "depth/view_011.png"
+    (folder / "transforms.json").write_text(json.dumps(meta))
+    with caplog.at_level("WARNING", logger="warpbags.data"):
+        load_scene(folder)
+    assert "its frames' mask_path files are not read (warpbags reads object masks in masks/<image name>)" in caplog.text
+    assert "its frames' depth_file_path files are not read (warpbags reads depth maps in depths/" in caplog.text
+
+
 def _write_transforms(folder: Path, options: SyntheticOptions, fields: dict) -> None:
     """A transforms.json in `folder` of the exact cameras of the synthetic scene of `options` (frames without
     extension, in reverse order), with the file-wide `fields` (intrinsics, distortion)."""

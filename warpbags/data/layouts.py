@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import functools
 import json
+import logging
 import math
 import os
 from dataclasses import dataclass
@@ -22,6 +23,8 @@ from warpbags.data.colmap import read_model
 from warpbags.data.images import FACTORS, IMAGE_EXTENSIONS, first_existing_image_dir, image_size, resolution_path
 from warpbags.errors import WarpbagsError
 from warpbags.files import read_array
+
+logger = logging.getLogger("warpbags.data")
 
 # OpenGL (x right, y up, z back) camera axes to OpenCV (x right, y down, z forward): flip y and z.
 OPENGL_TO_OPENCV = np.diag([1.0, -1.0, -1.0, 1.0])
@@ -170,6 +173,12 @@ def transforms_cameras(root: Path) -> LayoutCameras:
             frames.append((path, meta, frame))
             if path.name == "transforms_test.json":
                 test_names.add(_frame_name(root, frame, path))
+        # nerfstudio's per-frame masks mark the pixels to train on, not an object, and its depth files have its own
+        # units: neither is what warpbags reads, so a scene that names them is told where its own files go
+        for key, place in (("mask_path", "object masks in masks/<image name>"),
+                           ("depth_file_path", "depth maps in depths/<image stem>.npy or zoe_depth/<image stem>.png")):
+            if any(isinstance(frame, dict) and key in frame for frame in meta["frames"]):
+                logger.warning("%s: its frames' %s files are not read (warpbags reads %s)", path, key, place)
     rows = []
     for path, meta, frame in frames:
         name = _frame_name(root, frame, path)
