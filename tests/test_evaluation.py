@@ -177,6 +177,9 @@ def test_ssim_counts_the_border_as_gaussianobject_does():
     image = np.clip(target + 0.3 * rng.standard_normal(target.shape) * (target < 1), 0, 1)
     ours = ssim(image, target)
     assert ours == pytest.approx(_gaussian_window_ssim(image, target), rel=1e-12)
+    # in float64 whatever the arrays' dtype (float32 statistics are off by about 1e-6)
+    single = image.astype(np.float32), target.astype(np.float32)
+    assert ssim(*single) == pytest.approx(_gaussian_window_ssim(*(a.astype(np.float64) for a in single)), rel=1e-12)
     cropped = structural_similarity(target, image, channel_axis=-1, data_range=1.0, gaussian_weights=True, sigma=1.5,
                                     use_sample_covariance=False)
     assert ours > cropped + 0.01
@@ -227,6 +230,34 @@ def test_image_metrics_report_the_lpips_network_distance(monkeypatch):
     for view in range(2):
         assert metrics["per_view"][view]["lpips"] == pytest.approx(expected[view].item(), rel=1e-5)
     assert metrics["mean"]["lpips"] == pytest.approx(expected.mean().item(), rel=1e-5)
+
+
+class RecordingMeanAbsoluteDifference(MeanAbsoluteDifference):
+    """`MeanAbsoluteDifference` that keeps the images it was given."""
+
+    def __init__(self):
+        super().__init__()
+        self.inputs = []
+
+    def forward(self, images, targets):
+        self.inputs.append((images, targets))
+        return super().forward(images, targets)
+
+
+def test_lpips_metric_gives_the_network_the_images_in_zero_to_one(monkeypatch):
+    """`LpipsMetric` feeds the network [1, 3, H, W] float32 images as they are, in [0, 1], as GaussianObject's
+    render.py does for the numbers it publishes (the package documents [-1, 1]; the repair loss scales to that)."""
+    network = RecordingMeanAbsoluteDifference()
+    package = types.ModuleType("lpips")
+    package.LPIPS = lambda **options: network
+    monkeypatch.setitem(sys.modules, "lpips", package)
+    rng = np.random.default_rng(2)
+    image, target = rng.random((6, 5, 3)), rng.random((6, 5, 3))
+    LpipsMetric()(image, target)
+    (given_image, given_target), = network.inputs
+    expected = lambda a: torch.from_numpy(a).permute(2, 0, 1)[None].float()  # noqa: E731
+    torch.testing.assert_close(given_image, expected(image), rtol=0, atol=0)
+    torch.testing.assert_close(given_target, expected(target), rtol=0, atol=0)
 
 
 def test_flip_is_zero_for_the_same_image_and_grows_with_the_distortion():

@@ -21,7 +21,7 @@ from warpbags.data.noise import perturb_viewmats
 from warpbags.kernels.coherence import BEHIND_CAMERA_DISTANCE
 from warpbags.lie import so3_exp
 from warpbags.losses import mask_loss
-from warpbags.silhouette import (COHERENCE_SAMPLES, SilhouetteTargets, centroid_start, mask_centroids,
+from warpbags.silhouette import (COHERENCE_SAMPLES, EDGE_POINTS, SilhouetteTargets, centroid_start, mask_centroids,
                                  nearest_distances, rays_meeting_point)
 from warpbags.wrapper import least_outside_samples, nearest_points
 
@@ -453,3 +453,71 @@ def test_distance_loss_of_masks_continued_beyond_the_frame_reads_the_frames_own_
     plain = SilhouetteTargets(masks).distance_loss(alphas, views)
     continued = SilhouetteTargets(masks, continued_beyond_frame=True).distance_loss(alphas, views)
     assert plain > 0 and torch.allclose(continued, plain, rtol=1e-5, atol=0)
+
+
+def _block_case(size=40, block=(10, 30)):
+    """Targets of a [size, size] mask whose pixels block[0]..block[1] - 1 are set in both directions, and a camera
+    at the world origin looking down +z with focal `size` and the principal point at the image centre."""
+    masks = torch.zeros(1, size, size)
+    masks[0, block[0]:block[1], block[0]:block[1]] = 1
+    Ks = torch.tensor([[[float(size), 0, size / 2], [0, float(size), size / 2], [0, 0, 1]]])
+    return SilhouetteTargets(masks), torch.eye(4)[None], Ks
+
+
+def test_distance_loss_is_the_mean_of_alpha_times_the_euclidean_distance_to_the_mask():
+    """One opaque pixel, (2, 5), outside a block mask whose nearest pixel is (10, 10): the loss is its Euclidean
+    distance, sqrt(8^2 + 5^2) = 9.43 px (cv2's 5 x 5 approximation: 9.39), in image sizes, over the H W pixels.
+    An L1 distance transform (13 px) or a sum over pixels instead of the mean passed every test."""
+    targets, _, _ = _block_case()
+    alphas = torch.zeros(1, 40, 40)
+    alphas[0, 5, 2] = 1.0
+    distance_px = targets.distance_loss(alphas, torch.tensor([0])).item() * 40 * 40 * 40
+    assert distance_px == pytest.approx(math.hypot(8, 5), abs=0.1)
+
+
+def test_chamfer_loss_is_the_weighted_distance_outside_the_mask_plus_the_edges_distance_to_the_solid_points():
+    """The chamfer's value on a hand-made case: a 20 x 20 px block mask and four points, at (5.5, 20.5) (5 px left
+    of the mask, weight 0.9), (20.5, 20.5) (inside, 0.5), (35, 12) (5.5 px right of it, 0.05: below the 0.1 cut-off
+    of the edge side) and one behind the camera (0.9) whose meaningless pixel is the mask's corner. The point side is
+    the weighted mean distance outside the mask of the points in front, (0.9 * 5 + 0.05 * 5.5) / 1.45 px; the edge
+    side the mean, over the block's 76 border pixels, of the distance to the nearer of the two solid points in
+    front; both in image sizes. Six mutants survived without it: the behind point in either side, no cut-off, the
+    point side dropped, the edge side in pixels, the point side's mean unweighted."""
+    targets, viewmats, Ks = _block_case()
+    depth = 2.0
+    in_front = [[(u - 20) * depth / 40, (v - 20) * depth / 40, depth] for u, v in ((5.5, 20.5), (20.5, 20.5), (35, 12))]
+    behind = [(10.5 - 20) / 40, (10.5 - 20) / 40, -depth]  # `project_points` divides by 1 behind the camera
+    points = torch.tensor([*in_front, behind])
+    weights = torch.tensor([0.9, 0.5, 0.05, 0.9])
+    value = targets.chamfer_loss(points, weights, viewmats, Ks, torch.tensor([0])).item()
+    point_side = (0.9 * 5 + 0.05 * 5.5) / (0.9 + 0.5 + 0.05) / 40
+    border = torch.tensor([[x + 0.5, y + 0.5] for y in range(10, 30) for x in range(10, 30) if {x, y} & {10, 29}])
+    solid = torch.tensor([[5.5, 20.5], [20.5, 20.5]])
+    edge_side = torch.cdist(border, solid).min(dim=1).values.mean().item() / 40
+    assert len(border) == 76 and point_side > 0.05 and edge_side > 0.1
+    assert value == pytest.approx(point_side + edge_side, abs=1e-6)
+
+
+def test_chamfer_edge_pixels_are_spread_over_the_whole_contour():
+    """More contour pixels than `EDGE_POINTS`: every k-th in raster order is kept, from the first row of the contour
+    to its last, about half in each half of the image; the first 300 stopped at row 90 of a contour down to 179."""
+    masks = torch.zeros(1, 200, 200)
+    masks[0, 20:180, 20:180] = 1  # 636 contour pixels
+    rows = SilhouetteTargets(masks).edges[0][:, 1]
+    assert len(rows) == EDGE_POINTS and rows.min() == 20.5 and rows.max() == 179.5
+    assert abs(int((rows < 100).sum()) - EDGE_POINTS // 2) <= 3
+
+
+def test_object_radius_is_one_and_a_half_times_the_largest_half_extent_at_its_cameras_distance():
+    """Two views of a block mask at the origin: a 20 px block (pixel centres 19 px apart) from 2 units away and a
+    12 px one (11 px) from 4; focal 40 px. Half-extents in scene units are 9.5 / 40 * 2 = 0.475 and 5.5 / 40 * 4 =
+    0.55: the radius is 1.5 * 0.55. The whole extent, another factor than 1.5, or one camera's distance for every
+    view read otherwise."""
+    masks = torch.zeros(2, 40, 40)
+    masks[0, 10:30, 10:30] = 1
+    masks[1, 14:26, 14:26] = 1
+    viewmats = torch.eye(4).repeat(2, 1, 1)
+    viewmats[0, 2, 3], viewmats[1, 2, 3] = 2.0, 4.0
+    Ks = torch.tensor([[40.0, 0, 20], [0, 40, 20], [0, 0, 1]]).repeat(2, 1, 1)
+    radius = SilhouetteTargets(masks).object_radius(viewmats, Ks, torch.zeros(3))
+    assert radius == pytest.approx(1.5 * 5.5 / 40 * 4.0, rel=1e-6)

@@ -42,6 +42,7 @@ from warpbags.errors import WarpbagsError, one_line
 from warpbags.files import atomic_output, finite_json, writable_file, writable_folder
 from warpbags.gaussians import object_points, opacity_weighted_center, render_gaussians, sh_degree_of
 from warpbags.losses import load_lpips, photometric_loss
+from warpbags.losses import ssim as loss_ssim
 from warpbags.report import REPORT_FILES, write_image_grid, write_run_report
 from warpbags.run_folder import RunFolder, TrainingRun, load_run, require_info, run_normalization
 from warpbags.threads import torch_threads
@@ -250,33 +251,15 @@ def psnr(image: np.ndarray, target: np.ndarray) -> float:
     return float(peak_signal_noise_ratio(target, image, data_range=1.0))
 
 
-SSIM_WINDOW = 11  # pixels, of a Gaussian of sigma 1.5 (3DGS's window)
-
-
 def ssim(image: np.ndarray, target: np.ndarray) -> float:
     """SSIM of an [H,W,3] image in [0, 1] against its target as GaussianObject reports it: 3DGS's `ssim`
     (utils/loss_utils.py, which GaussianObject's render.py scores with). Wang et al.'s statistics in an 11 x 11
     Gaussian window of sigma 1.5 (population statistics, C1 = 0.01^2, C2 = 0.03^2), the images zero-padded where
     the window passes the border, averaged over every pixel and channel; in float64. scikit-image's (as torchmetrics'
     and nerfstudio's) leaves the 5-pixel border out instead, and reads lower where the border is background (at 128
-    px about 0.02-0.07 on maryrose)."""
-    offsets = torch.arange(SSIM_WINDOW, dtype=torch.float64) - SSIM_WINDOW // 2
-    weights = torch.exp(-offsets ** 2 / (2 * 1.5 ** 2))
-    weights = weights / weights.sum()
-    window = (weights[:, None] * weights[None, :])[None, None]  # [1, 1, 11, 11]
-
-    def local_mean(x: torch.Tensor) -> torch.Tensor:  # [3, 1, H, W], each channel alone
-        return torch.nn.functional.conv2d(x, window, padding=SSIM_WINDOW // 2)
-
-    x = torch.from_numpy(np.ascontiguousarray(image, dtype=np.float64)).permute(2, 0, 1)[:, None]
-    y = torch.from_numpy(np.ascontiguousarray(target, dtype=np.float64)).permute(2, 0, 1)[:, None]
-    mean_x, mean_y = local_mean(x), local_mean(y)
-    var_x, var_y = local_mean(x * x) - mean_x ** 2, local_mean(y * y) - mean_y ** 2
-    covariance = local_mean(x * y) - mean_x * mean_y
-    c1, c2 = 0.01 ** 2, 0.03 ** 2
-    ssim_map = ((2 * mean_x * mean_y + c1) * (2 * covariance + c2)
-                / ((mean_x ** 2 + mean_y ** 2 + c1) * (var_x + var_y + c2)))
-    return float(ssim_map.mean())
+    px about 0.02-0.07 on maryrose). The training loss's D-SSIM is the same SSIM (`warpbags.losses.ssim`)."""
+    image, target = (torch.from_numpy(np.ascontiguousarray(array, dtype=np.float64))[None] for array in (image, target))
+    return float(loss_ssim(image, target))
 
 
 def image_metrics(images: torch.Tensor, targets: torch.Tensor, lpips_metric: LpipsMetric,

@@ -37,7 +37,8 @@ def ssim(images: torch.Tensor, targets: torch.Tensor) -> torch.Tensor:
     return ssim_map.mean()
 
 
-def photometric_loss(images: torch.Tensor, targets: torch.Tensor, lambda_dssim: float = 0.2) -> tuple[torch.Tensor, dict]:
+def photometric_loss(images: torch.Tensor, targets: torch.Tensor,
+                     lambda_dssim: float = 0.2) -> tuple[torch.Tensor, dict]:
     """``(1 - lambda_dssim) L1 + lambda_dssim (1 - SSIM)`` over [B, H, W, 3] images; returns (loss, terms).
 
     SSIM is `ssim`'s (11 x 11 Gaussian window, zero padding). The loss and its gradient in `images` come from the
@@ -131,7 +132,10 @@ def repair_loss(images: torch.Tensor, targets: torch.Tensor, weight_l1: float, w
     losses = weight_l1 * l1 + weight_l2 * l2
     terms = {"pseudo_l1": l1.mean().item(), "pseudo_l2": l2.mean().item()}
     if lpips_network is not None and weight_lpips > 0:
-        to_lpips = lambda x: x.permute(0, 3, 1, 2) * 2 - 1  # noqa: E731 - [B,3,H,W] in [-1, 1]
+        # [B,3,H,W] in [-1, 1], the range the lpips package's networks were trained on. GaussianObject's repair
+        # loss feeds [0, 1] (torchmetrics' LPIPS, normalize=False); eval does too (`evaluation.LpipsMetric`), only
+        # so that its numbers compare with GaussianObject's tables: a loss has no table to match.
+        to_lpips = lambda x: x.permute(0, 3, 1, 2) * 2 - 1  # noqa: E731
         perceptual = lpips_network(to_lpips(images), to_lpips(targets)).reshape(-1)
         losses = losses + weight_lpips * perceptual
         terms["pseudo_lpips"] = perceptual.mean().item()
