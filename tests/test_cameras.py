@@ -5,8 +5,8 @@ from __future__ import annotations
 import torch
 from random_poses import F64, generator, random_rotations, random_viewmats, skew_reference
 
-from warpbags.cameras import (camera_centers, mean_viewmats, moved_keeping_target, pixel_directions, project_points,
-                              viewmats_from_centers)
+from warpbags.cameras import (camera_centers, improper_viewmats, mean_viewmats, moved_keeping_target, pixel_directions,
+                              project_points, viewmats_from_centers)
 
 
 def test_camera_centers_map_to_camera_origin():
@@ -19,6 +19,20 @@ def test_camera_centers_map_to_camera_origin():
     simple = torch.eye(4, dtype=F64)
     simple[:3, 3] = torch.tensor([-1.0, -2.0, -3.0], dtype=F64)
     torch.testing.assert_close(camera_centers(simple[None])[0], torch.tensor([1.0, 2.0, 3.0], dtype=F64))
+
+
+def test_improper_viewmats_names_sheared_scaled_and_projective_matrices():
+    """Each of `improper_viewmats`' checks refuses a matrix the determinant alone passes or that `POSE_TOLERANCE`
+    must catch: a shear with det 1 (orthogonality), a homogeneous scale in the last row, and a 5% scale (det 1.16);
+    poses rounded to float32, as files store them, pass."""
+    good = random_viewmats(7, generator(41))
+    bad = good.clone()
+    bad[1, :3, :3] = bad[1, :3, :3] @ torch.tensor([[1.0, 0.5, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]], dtype=F64)
+    bad[3, 3, 3] = 2.0
+    bad[5, :3, :3] *= 1.05
+    assert improper_viewmats(good).tolist() == []
+    assert improper_viewmats(good.float()).tolist() == []
+    assert improper_viewmats(bad).tolist() == [1, 3, 5]
 
 
 def test_viewmats_from_centers_inverts_camera_centers():

@@ -76,6 +76,17 @@ def test_se3_exp_matches_matrix_exp_of_twist(dtype, atol):
     torch.testing.assert_close(actual.to(F64), expected, rtol=0, atol=atol)
 
 
+def test_se3_exp_float32_jacobian_near_zero():
+    """Below `_SERIES_THETA2` the coefficients come from their series: the closed form's (theta - sin theta) /
+    theta^3 cancels in float32 near 0, and its gradient at theta = 1e-3 is off by far more than float32 rounding
+    (only values were checked in float32)."""
+    axis = torch.tensor([0.3, -0.5, 0.8], dtype=F64)
+    xi = torch.cat([axis / axis.norm() * 1e-3, torch.tensor([0.7, -1.2, 0.4], dtype=F64)])
+    expected = torch.autograd.functional.jacobian(se3_exp, xi)
+    actual = torch.autograd.functional.jacobian(se3_exp, xi.float())
+    torch.testing.assert_close(actual.double(), expected, rtol=0, atol=1e-6)
+
+
 def test_exp_is_batched_over_leading_dimensions():
     xi = torch.randn(2, 5, 6, generator=generator(6), dtype=F64)
     batched = se3_exp(xi)

@@ -95,7 +95,7 @@ def umeyama(
     dst_centered = dst - dst_mean
 
     src_singular = torch.linalg.svdvals(src_centered)
-    rank_tolerance = src_singular[0] * max(num_points, 3) * torch.finfo(src.dtype).eps
+    rank_tolerance = src_singular[0] * num_points * torch.finfo(src.dtype).eps
     if src_singular[0] == 0 or src_singular[1] <= rank_tolerance:
         raise ValueError(
             "umeyama needs source points that are not all collinear (or coincident): the rotation is undetermined"
@@ -223,9 +223,12 @@ def procrustes_unfit(viewmats_ref: torch.Tensor) -> str | None:
 
 
 def procrustes_weak(viewmats_ref: torch.Tensor) -> str | None:
-    """Why Procrustes on the centres of these reference cameras ([C, 4, 4], >= 3 of them off one line) fixes its turn
-    only weakly, or None: centres spread across their main line less than `WEAK_SPREAD` of along it (a capture from
-    one side, on a short arc)."""
+    """Why Procrustes on the centres of these reference cameras ([C, 4, 4]) fixes its turn only weakly, or None:
+    centres spread across their main line less than `WEAK_SPREAD` of along it (a capture from one side, on a short
+    arc). None too where Procrustes does not apply (`procrustes_unfit`: 2 cameras, a line), as evaluation aligns those
+    pairwise (`alignment_for`) and a warning about Procrustes would describe errors nobody reads."""
+    if procrustes_unfit(viewmats_ref):
+        return None
     spread = _centre_spread(viewmats_ref)
     if not torch.isfinite(spread).all() or spread[0] == 0 or spread[1] >= WEAK_SPREAD * spread[0]:
         return None

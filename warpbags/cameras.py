@@ -52,8 +52,6 @@ def camera_centers(viewmats: torch.Tensor) -> torch.Tensor:
     return -(rotations.transpose(-1, -2) @ translations[..., None])[..., 0]
 
 
-
-
 def project_points(viewmats: torch.Tensor, Ks: torch.Tensor, points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """Pinhole projection of world points into every camera.
 

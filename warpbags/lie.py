@@ -132,12 +132,10 @@ def so3_log(rotations: torch.Tensor) -> torch.Tensor:
     ratio = torch.where(small, 1.0 + theta2_series / 6.0 + 7.0 * theta2_series**2 / 360.0, theta / safe_sin)
     omega_antisymmetric = ratio[..., None] * sin_axis
 
-    # Beyond 90 degrees: axis from the symmetric part, column with the largest diagonal entry.
-    one_minus_cos = (1.0 - cos_theta).clamp_min(1.0)  # >= 1 wherever this branch is selected
+    # Beyond 90 degrees: axis from the symmetric part, column with the largest diagonal entry. Its factor
+    # (1 - cos(theta)) > 0 is left in: it changes neither which diagonal entry is largest nor the normalized column.
     identity = torch.eye(3, dtype=rotations.dtype, device=rotations.device)
-    outer = (0.5 * (rotations + rotations.transpose(-1, -2)) - cos_theta[..., None, None] * identity) / (
-        one_minus_cos[..., None, None]
-    )
+    outer = 0.5 * (rotations + rotations.transpose(-1, -2)) - cos_theta[..., None, None] * identity
     best = outer.diagonal(dim1=-2, dim2=-1).argmax(dim=-1)
     column = torch.gather(outer, -1, best[..., None, None].expand(*outer.shape[:-1], 1))[..., 0]
     axis = column / torch.linalg.vector_norm(column, dim=-1, keepdim=True).clamp_min(1e-30)
