@@ -193,8 +193,8 @@ class CameraConfig:
             0.083 against 0.075-0.076 for the seeds that converge). Costs one round per turn.
         hypothesis_axes, hypothesis_angles, hypothesis_margin: the axes of the camera's frame turned about, through
             the object centre ("z": parallel to the optical axis, a roll when the object is in the middle of the
-            view; "x", "y": an orbit), the angles (degrees, each with both signs but 180), and the relative loss decrease a
-            turn must bring to be kept.
+            view; "x", "y": an orbit), the angles (degrees, each with both signs but 180), and the relative loss
+            decrease a turn must bring to be kept.
         average_share: the final poses are the mean of the pose estimates after each step of the last coarse
             round's pose window, over its last `average_share` (chordal mean of the rotations, mean of the centres;
             Polyak's iterate averaging), instead of the last step's (0). Within a round the estimates wander with the
