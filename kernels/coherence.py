@@ -75,29 +75,30 @@ def least_outside_sample_kernel(rays: wp.array(dtype=Any), ray_views: wp.array(d
     best = zero  # read only once best_sample >= 0
     best_sample = int(-1)
     for step in range(samples):
-        # from the middle of the depth range outwards, where the object is: a low total found early prunes the rest
+        # from the middle of the depth range outwards, where the object is: a low total found early prunes the rest.
+        # Steps 0, 1, 2, ... visit S/2, S/2 - 1, S/2 + 1, ... down to 0 and up to S - 1, each sample once: s needs
+        # no bounds check
         s = samples / 2 + (step + 1) / 2
         if step % 2 == 1:
             s = samples / 2 - (step + 1) / 2
-        if s < samples:
-            point = origin + direction * depths[view, s]
-            total = zero
-            pruned = int(0)
-            for other in range(viewmats.shape[0]):
-                # the terms are >= 0, so a partial sum above the best can only end above it: stop there
-                if other != view and pruned == 0:
-                    camera = wp.transform_point(viewmats[other], point)
-                    z = camera[2]
-                    if z <= type(z)(MIN_DEPTH):
-                        total = total + type(z)(BEHIND_CAMERA_DISTANCE)
-                    else:
-                        k = intrinsics[other]
-                        u = k[0] * camera[0] / z + k[2]
-                        v = k[1] * camera[1] / z + k[3]
-                        total = total + outside_mask_distance(distances, other, u, v, margin, size)
-                    if best_sample >= 0 and total > best:
-                        pruned = 1
-            if pruned == 0 and (best_sample < 0 or total < best or (total == best and s < best_sample)):
-                best = total
-                best_sample = s
+        point = origin + direction * depths[view, s]
+        total = zero
+        pruned = int(0)
+        for other in range(viewmats.shape[0]):
+            # the terms are >= 0, so a partial sum above the best can only end above it: stop there
+            if other != view and pruned == 0:
+                camera = wp.transform_point(viewmats[other], point)
+                z = camera[2]
+                if z <= type(z)(MIN_DEPTH):
+                    total = total + type(z)(BEHIND_CAMERA_DISTANCE)
+                else:
+                    k = intrinsics[other]
+                    u = k[0] * camera[0] / z + k[2]
+                    v = k[1] * camera[1] / z + k[3]
+                    total = total + outside_mask_distance(distances, other, u, v, margin, size)
+                if best_sample >= 0 and total > best:
+                    pruned = 1
+        if pruned == 0 and (best_sample < 0 or total < best or (total == best and s < best_sample)):
+            best = total
+            best_sample = s
     least[r] = best_sample

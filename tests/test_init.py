@@ -7,7 +7,7 @@ import torch
 from conftest import look_at
 
 from warpbags.cameras import pixel_directions, project_points
-from warpbags.init import hull_or_random_points, initial_gaussians, visual_hull
+from warpbags.init import hull_or_random_points, initial_gaussians, point_colors, visual_hull
 from warpbags.kernels.sh import SH_C0
 from warpbags.wrapper import mean_neighbour_distances
 
@@ -183,3 +183,69 @@ def test_sfm_points_keep_their_own_colours():
     assert note == "SfM points: 25 of 60" and points.shape == colors.shape == (25, 3)
     assert torch.cdist(points.double(), sfm_points).min(dim=1).values.max() < 1e-6  # the scene's points, no others
     torch.testing.assert_close(colors, torch.sigmoid(points.double()).float(), rtol=0, atol=1e-6)
+
+
+def test_initial_scales_are_the_log_of_the_mean_distance_to_the_three_nearest_points():
+    """Nothing read the initial scales back: the 4 nearest points instead of 3, or the scales stored without their
+    log, passed. Each Gaussian starts round, its log scale the log of its brute-force mean distance to the 3 nearest
+    other points; the higher SH coefficients, one row per basis function past the DC, start at zero."""
+    points = torch.rand(50, 3, generator=torch.Generator().manual_seed(0))
+    brute = _brute_mean_distances(points, 3)
+    for degree in (0, 1, 3):
+        params = initial_gaussians(points, torch.rand(50, 3), degree)
+        torch.testing.assert_close(params["scales"].double(), brute.log()[:, None].expand(50, 3), rtol=0, atol=1e-5)
+        if degree == 0:
+            assert "shN" not in params
+        else:
+            assert params["shN"].shape == (50, (degree + 1) ** 2 - 1, 3) and not params["shN"].any(), degree
+
+
+def _box_silhouettes(eyes: torch.Tensor, half_extent: torch.Tensor, size: int = 64):
+    """Cameras at `eyes` looking at the origin, and the silhouette in each of the box [-half_extent, half_extent]
+    (pixels whose ray meets it: the slab test)."""
+    viewmats = torch.stack([look_at(eye, torch.zeros(3)) for eye in eyes])
+    Ks = torch.tensor([[60.0, 0.0, size / 2], [0.0, 60.0, size / 2], [0.0, 0.0, 1.0]]).expand(len(eyes), 3, 3)
+    ys, xs = torch.meshgrid(torch.arange(float(size)) + 0.5, torch.arange(float(size)) + 0.5, indexing="ij")
+    masks = []
+    for viewmat, K, eye in zip(viewmats, Ks, eyes):
+        rays = pixel_directions(torch.stack([xs, ys], -1).reshape(-1, 2), K) @ viewmat[:3, :3]
+        enter, leave = (-half_extent - eye) / rays, (half_extent - eye) / rays
+        near, far = torch.minimum(enter, leave).amax(-1), torch.maximum(enter, leave).amin(-1)
+        masks.append(((near <= far) & (far > 0)).float().reshape(size, size))
+    return viewmats, Ks, torch.stack(masks)
+
+
+def test_the_hull_of_an_elongated_object_reaches_both_of_its_ends():
+    """The fine pass carves a cube around the coarse pass's box, sized by that box's longest side: sized by its
+    shortest, it cut a 3 x 0.6 x 0.6 object down to a 0.6 cube and passed every test of round objects."""
+    eyes = torch.tensor([[0.3, 5.0, 0.4], [0.4, 0.3, 5.0], [5.0, 0.3, 0.4], [-3.5, 3.5, 1.0]])
+    viewmats, Ks, masks = _box_silhouettes(eyes, torch.tensor([1.5, 0.3, 0.3]))
+    voxels, _ = visual_hull(masks, viewmats, Ks, resolution=32, missed_views=0)
+    assert voxels[:, 0].max() > 1.4 and voxels[:, 0].min() < -1.4, (voxels[:, 0].min(), voxels[:, 0].max())
+
+
+def test_a_point_no_view_sees_inside_its_mask_is_grey():
+    """A point's colour is its mean over the views that see it inside the mask; one that no view sees inside is the
+    documented 0.5 grey (black passed), while one inside the object takes its views' colours."""
+    eyes = torch.tensor([[4.0, 0.0, 0.0], [0.0, 4.0, 0.0]])
+    viewmats, Ks, masks = _box_silhouettes(eyes, torch.tensor([0.5, 0.5, 0.5]))
+    images = torch.rand(2, 64, 64, 3, generator=torch.Generator().manual_seed(0))
+    points = torch.tensor([[0.0, 0.0, 0.0], [0.0, 0.0, 1.5]])  # inside the box; above it, off both masks
+    colors = point_colors(points, images, masks, viewmats, Ks)
+    torch.testing.assert_close(colors[1], torch.full((3,), 0.5), rtol=0, atol=0)
+    seen = torch.stack([images[0, 32, 32], images[1, 32, 32]]).mean(0)  # the origin is each image's centre pixel
+    torch.testing.assert_close(colors[0], seen, rtol=0, atol=1e-6)
+
+
+def test_a_hull_of_exactly_min_voxels_is_kept_and_one_voxel_fewer_is_not():
+    """The hull is used when it has at least `min_voxels` voxels, else random points: the cut-off was never tested
+    at its edge (ten times the threshold passed)."""
+    eyes = torch.tensor([[4.0, 0.0, 0.0], [0.0, 4.0, 0.0], [0.0, 0.0, 4.0]])
+    viewmats, Ks, masks = _box_silhouettes(eyes, torch.tensor([0.3, 0.3, 0.3]))
+    voxels, _ = visual_hull(masks, viewmats, Ks, resolution=8, missed_views=0)
+    images = torch.rand(3, 64, 64, 3, generator=torch.Generator().manual_seed(0))
+    notes = [hull_or_random_points(images, masks, viewmats, Ks, method="hull", count=50, resolution=8, dilation_px=0,
+                                   missed_views=0, generator=torch.Generator().manual_seed(0),
+                                   min_voxels=len(voxels) + extra)[2] for extra in (0, 1)]
+    assert notes[0].startswith(f"visual hull: {len(voxels)} voxels") and notes[1].startswith(
+        f"visual hull had only {len(voxels)} voxels"), notes

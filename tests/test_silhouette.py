@@ -521,3 +521,57 @@ def test_object_radius_is_one_and_a_half_times_the_largest_half_extent_at_its_ca
     Ks = torch.tensor([[40.0, 0, 20], [0, 40, 20], [0, 0, 1]]).repeat(2, 1, 1)
     radius = SilhouetteTargets(masks).object_radius(viewmats, Ks, torch.zeros(3))
     assert radius == pytest.approx(1.5 * 5.5 / 40 * 4.0, rel=1e-6)
+
+
+@pytest.mark.parametrize("samples", [95, 96])
+def test_the_coherence_search_visits_the_first_and_last_samples_of_an_even_or_odd_count(samples):
+    """The middle-out walk (kernels/coherence.py) must reach both ends of the depth range, for an even and an odd
+    sample count: started on the other side, it skipped sample 0 of an even count, and no test had the least at an
+    end. Camera 1 stands 0.01 past sample 0 of camera 0's ray facing back at camera 0 (or 0.01 before the last
+    sample, facing the same way): that end alone is in front of it and on its mask, every other sample behind it."""
+    masks = torch.zeros(2, 32, 32)
+    masks[:, 12:20, 12:20] = 1
+    targets = SilhouetteTargets(masks)
+    Ks = torch.tensor([[50.0, 0, 16], [0, 50, 16], [0, 0, 1]], dtype=torch.float64).repeat(2, 1, 1)
+    depths = torch.linspace(4.0, 6.0, samples, dtype=torch.float64)[None].repeat(2, 1)
+    ray = torch.tensor([[0.0, 0.0, 1.0]], dtype=torch.float64)  # camera 0's optical axis
+    for end, (facing, at) in {0: (-1.0, 4.01), samples - 1: (1.0, 5.99)}.items():
+        viewmats = torch.eye(4, dtype=torch.float64).repeat(2, 1, 1)
+        viewmats[1, 0, 0] = viewmats[1, 2, 2] = facing  # -1: turned half about y, looking down -z
+        viewmats[1, 2, 3] = -facing * at  # centre at z = at
+        chosen = least_outside_samples(ray, torch.zeros(1, dtype=torch.long), camera_centers(viewmats), depths,
+                                       viewmats, Ks, targets.outside_distance, targets.margin, targets.size)
+        assert chosen.tolist() == [end], (samples, end, chosen)
+
+
+def test_the_coherence_search_reads_fx_fy_cx_cy_each_in_its_own_place():
+    """Every coherence test had square images, fx == fy and the principal point in the middle: the search reading
+    cx for cy, fx for fy, or the wrapper passing cx and cy swapped all passed. With 48 x 32 images, fx != fy and a
+    principal point off the middle, the search still picks on each ray a least sample of the torch charge
+    (`_outside_other_views`), which projects with `project_points`."""
+    width, height = 48, 32
+    eyes = torch.tensor([[4.0, 0.3, 0.5], [0.4, 4.0, 0.8], [-3.0, -2.5, 1.2], [0.5, -0.3, 4.0]])
+    viewmats = torch.stack([look_at(eye, torch.zeros(3)) for eye in eyes])
+    K = torch.tensor([[55.0, 0.0, 27.0], [0.0, 40.0, 13.0], [0.0, 0.0, 1.0]])
+    ys, xs = torch.meshgrid(torch.arange(float(height)) + 0.5, torch.arange(float(width)) + 0.5, indexing="ij")
+    pixels = torch.stack([xs, ys], -1).reshape(-1, 2)
+    half_extent = torch.tensor([0.6, 0.4, 0.5])
+    masks = []
+    for viewmat, eye in zip(viewmats, eyes):  # the box's silhouettes: pixels whose rays meet it (the slab test)
+        rays = pixel_directions(pixels, K) @ viewmat[:3, :3]
+        enter, leave = (-half_extent - eye) / rays, (half_extent - eye) / rays
+        near, far = torch.minimum(enter, leave).amax(-1), torch.maximum(enter, leave).amin(-1)
+        masks.append(((near <= far) & (far > 0)).float().reshape(height, width))
+    targets = SilhouetteTargets(torch.stack(masks))
+    viewmats = perturb_viewmats(viewmats.double(), 4.0, 0.1, seed=0)  # silhouettes that disagree a little
+    Ks = K.double().expand(len(eyes), 3, 3)
+    centers = camera_centers(viewmats)
+    depths = centers.norm(dim=-1)[:, None] + torch.linspace(-1.0, 1.0, 96, dtype=torch.float64)
+    for view in range(len(viewmats)):
+        rays = pixel_directions(targets.foreground[view].double(), Ks[view]) @ viewmats[view, :3, :3]
+        chosen = least_outside_samples(rays, torch.full((len(rays),), view), centers, depths, viewmats, Ks,
+                                       targets.outside_distance, targets.margin, targets.size)
+        points = centers[view] + rays[:, None] * depths[view][None, :, None]
+        totals = targets._outside_other_views(points.reshape(-1, 3), view, viewmats, Ks).reshape(points.shape[:2])
+        torch.testing.assert_close(totals.gather(1, chosen[:, None])[:, 0], totals.min(dim=1).values,
+                                   rtol=0, atol=1e-12)

@@ -16,6 +16,12 @@ from warpbags.lie import rotation_between, so3_exp, so3_log
 
 __all__ = ["azimuth_order", "interpolated_viewmats", "mean_up_axis", "turntable_viewmats"]
 
+# Gaps whose cameras are more nearly opposite than this (their angle about the centre) turn about the cameras' common
+# up, not along their great circle: within 10 deg of opposite, the circle's elevation half-way moves 11 times or more
+# as far as the cameras' elevations do (a hair above level, it ran over the object; below, under it), and exactly
+# opposite there is no circle.
+OPPOSITE_GAP_DEG = 170.0
+
 
 def mean_up_axis(viewmats: torch.Tensor) -> torch.Tensor:
     """[3] unit world direction of the cameras' common "up": the direction most nearly perpendicular to every
@@ -88,9 +94,11 @@ def interpolated_viewmats(viewmats: torch.Tensor, gaps: torch.Tensor, fractions:
     Gap g runs from the g-th to the (g+1)-th camera in `azimuth_order` about `center` (the last gap closes the loop).
     A camera at fraction s of a gap has its centre slerped in direction about `center` with the distance interpolated
     linearly, so it stays on the orbit, and its orientation slerped, ``R_a exp(s log(R_a^T R_b))`` in
-    camera-to-world form, then turned the least so that it sees `center` in the direction its two cameras' see it
-    in, interpolated. The Gaussians of a run trained from noisy poses lie away from the origin (0.4 units on maryrose
-    from 15 deg / 0.3): cameras slerped about the origin saw them 8-50 px of 128 off where their neighbours do.
+    camera-to-world form (cameras more nearly opposite than `OPPOSITE_GAP_DEG`: both turned about the cameras' common
+    up, the elevation interpolated), then turned the least so that it sees `center` in the direction its two cameras'
+    see it in, interpolated. The Gaussians of a run trained from noisy poses lie away from the origin (0.4 units on
+    maryrose from 15 deg / 0.3): cameras slerped about the origin saw them 8-50 px of 128 off where their neighbours
+    do.
 
     Args:
         viewmats: [C, 4, 4] world-to-camera matrices, C >= 2.
@@ -121,6 +129,24 @@ def interpolated_viewmats(viewmats: torch.Tensor, gaps: torch.Tensor, fractions:
     weight_b = torch.where(safe, torch.sin(fractions * angle) / sin_angle.clamp_min(1e-6), fractions)
     directions = weight_a * direction_a + weight_b * direction_b
     directions = directions / directions.norm(dim=-1, keepdim=True)
+    # Nearly opposite cameras (OPPOSITE_GAP_DEG) have no great circle to follow: exactly opposite, the mixed direction
+    # is zero (NaN cameras); a hair above level, the circle ran over the object and a hair below it, under. Those gaps
+    # turn about the cameras' common up instead, the way the azimuth order runs, the elevation interpolated, and the
+    # orientation with them: turned as the centre is, the rest of the way to the second camera slerped (the half
+    # turn between two opposite cameras could turn either way).
+    opposite = angle > math.radians(OPPOSITE_GAP_DEG)
+    up = mean_up_axis(viewmats)
+    height_a, height_b = direction_a @ up, direction_b @ up  # [K] sines of the elevations
+    level_a, level_b = direction_a - height_a[:, None] * up, direction_b - height_b[:, None] * up
+    sweep = torch.atan2(torch.linalg.cross(level_a, level_b) @ up, (level_a * level_b).sum(-1)) % (2 * math.pi)
+    elevation = ((1 - fractions) * torch.atan2(height_a, level_a.norm(dim=-1))[:, None]
+                 + fractions * torch.atan2(height_b, level_b.norm(dim=-1))[:, None])
+    turns = so3_exp(fractions * sweep[:, None] * up)  # [K, 3, 3] about the up axis
+    level = (turns @ level_a[..., None])[..., 0] / level_a.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+    directions = torch.where(opposite, torch.cos(elevation) * level + torch.sin(elevation) * up, directions)
+    turned_a = so3_exp(sweep[:, None] * up) @ to_world_a
+    turned = turns @ to_world_a @ so3_exp(fractions * so3_log(turned_a.transpose(1, 2) @ to_world_b))
+    rotations = torch.where(opposite[..., None], turned, rotations)
     centers = directions * ((1 - fractions) * distance_a + fractions * distance_b)
     # The slerped orientation turns about one axis, the centre along the great circle, which rises between cameras
     # on a ring: re-aimed, each camera sees the object centre where its neighbours do (their directions to it,

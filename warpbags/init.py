@@ -98,7 +98,8 @@ def visual_hull(
     return _carve(center - half, center + half, resolution, masks, viewmats, Ks, missed_views)
 
 
-def point_colors(points: torch.Tensor, images: torch.Tensor, masks: torch.Tensor, viewmats: torch.Tensor, Ks: torch.Tensor) -> torch.Tensor:
+def point_colors(points: torch.Tensor, images: torch.Tensor, masks: torch.Tensor, viewmats: torch.Tensor,
+                 Ks: torch.Tensor) -> torch.Tensor:
     """Mean colour [P, 3] of each point over the views in which it projects inside the mask (0.5 grey if none)."""
     num_cameras, height, width, _ = images.shape
     rows, cols, in_image = _project(points, viewmats.float().cpu(), Ks.float().cpu(), width, height)
@@ -110,8 +111,8 @@ def point_colors(points: torch.Tensor, images: torch.Tensor, masks: torch.Tensor
     return torch.where(count > 0, total / count.clamp_min(1), torch.full_like(total, 0.5))
 
 
-def random_points(count: int, viewmats: torch.Tensor, Ks: torch.Tensor, width: int, height: int, generator: torch.Generator,
-                  bound: float = 1.5) -> tuple[torch.Tensor, int]:
+def random_points(count: int, viewmats: torch.Tensor, Ks: torch.Tensor, width: int, height: int,
+                  generator: torch.Generator, bound: float = 1.5) -> tuple[torch.Tensor, int]:
     """Points uniform in the cube [-bound, bound]^3, kept only where every camera sees them, if enough are.
 
     Returns:
@@ -125,8 +126,10 @@ def random_points(count: int, viewmats: torch.Tensor, Ks: torch.Tensor, width: i
 
 
 def _initial_scales(points: torch.Tensor, k: int = 3) -> torch.Tensor:
-    """[P] 3DGS's initial scale of a Gaussian at each point: the mean distance to its k nearest other points, at
-    least 1e-7 (a grid search in Warp, `warpbags.wrapper.mean_neighbour_distances`)."""
+    """[P] initial scale of a Gaussian at each point: the mean distance to its k nearest other points, at least 1e-7
+    (a grid search in Warp, `warpbags.wrapper.mean_neighbour_distances`). 3DGS (distCUDA2) and gsplat take the root
+    of the mean squared distance to the 3 nearest instead, never smaller: kept as it is, as every result was trained
+    from it."""
     if len(points) <= 1:
         return torch.full((len(points),), 0.01)
     return mean_neighbour_distances(points, min(k, len(points) - 1)).clamp_min(1e-7)
@@ -178,12 +181,14 @@ def hull_or_random_points(
         method = "random-fallback"
     num_cameras, height, width, _ = images.shape
     if method == "hull" and masks is not None:
-        voxels, voxel = visual_hull(masks, viewmats, Ks, resolution=resolution, dilation_px=dilation_px, missed_views=missed_views)
+        voxels, voxel = visual_hull(masks, viewmats, Ks, resolution=resolution, dilation_px=dilation_px,
+                                    missed_views=missed_views)
         if len(voxels) >= min_voxels:
             pick = torch.randperm(len(voxels), generator=generator)[:count]
             jitter = (torch.rand(len(pick), 3, generator=generator) - 0.5) * voxel
             points = voxels[pick] + jitter
-            return points, point_colors(points, images, masks, viewmats, Ks), f"visual hull: {len(voxels)} voxels, {len(points)} points"
+            colors = point_colors(points, images, masks, viewmats, Ks)
+            return points, colors, f"visual hull: {len(voxels)} voxels, {len(points)} points"
         note = f"visual hull had only {len(voxels)} voxels; random points instead"
     else:
         note = {"random": "random points", "random-fallback": "no SfM points: random points"}.get(
