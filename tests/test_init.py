@@ -82,18 +82,26 @@ def test_mean_neighbour_distances_rejects_what_it_cannot_measure():
         mean_neighbour_distances(points, 3)
 
 
-def _sphere_silhouettes(eyes: torch.Tensor, size: int = 64):
-    """Cameras at `eyes` looking at the origin, and the unit sphere's silhouette in each (rays within 1 of it)."""
+def _silhouettes(eyes: torch.Tensor, hits, size: int = 64):
+    """Cameras at `eyes` looking at the origin, and in each the silhouette of the pixels whose ray (from `eye`, along
+    [P, 3] `rays`) `hits(eye, rays)` says meets the object."""
     viewmats = torch.stack([look_at(eye, torch.zeros(3)) for eye in eyes])
     Ks = torch.tensor([[60.0, 0.0, size / 2], [0.0, 60.0, size / 2], [0.0, 0.0, 1.0]]).expand(len(eyes), 3, 3)
     ys, xs = torch.meshgrid(torch.arange(float(size)) + 0.5, torch.arange(float(size)) + 0.5, indexing="ij")
     masks = []
     for viewmat, K, eye in zip(viewmats, Ks, eyes):
         rays = pixel_directions(torch.stack([xs, ys], -1).reshape(-1, 2), K) @ viewmat[:3, :3]
+        masks.append(hits(eye, rays).float().reshape(size, size))
+    return viewmats, Ks, torch.stack(masks)
+
+
+def _sphere_silhouettes(eyes: torch.Tensor, size: int = 64):
+    """The unit sphere's silhouettes (`_silhouettes`): rays that pass within 1 of the origin."""
+    def hits(eye, rays):
         rays = rays / rays.norm(dim=-1, keepdim=True)
         along = -(eye * rays).sum(-1)
-        masks.append(((eye + along[:, None] * rays).norm(dim=-1) < 1.0).float().reshape(size, size))
-    return viewmats, Ks, torch.stack(masks)
+        return (eye + along[:, None] * rays).norm(dim=-1) < 1.0
+    return _silhouettes(eyes, hits, size)
 
 
 def test_the_masks_dilation_widens_the_hull_to_hold_what_slightly_wrong_poses_carve_off():
@@ -201,18 +209,12 @@ def test_initial_scales_are_the_log_of_the_mean_distance_to_the_three_nearest_po
 
 
 def _box_silhouettes(eyes: torch.Tensor, half_extent: torch.Tensor, size: int = 64):
-    """Cameras at `eyes` looking at the origin, and the silhouette in each of the box [-half_extent, half_extent]
-    (pixels whose ray meets it: the slab test)."""
-    viewmats = torch.stack([look_at(eye, torch.zeros(3)) for eye in eyes])
-    Ks = torch.tensor([[60.0, 0.0, size / 2], [0.0, 60.0, size / 2], [0.0, 0.0, 1.0]]).expand(len(eyes), 3, 3)
-    ys, xs = torch.meshgrid(torch.arange(float(size)) + 0.5, torch.arange(float(size)) + 0.5, indexing="ij")
-    masks = []
-    for viewmat, K, eye in zip(viewmats, Ks, eyes):
-        rays = pixel_directions(torch.stack([xs, ys], -1).reshape(-1, 2), K) @ viewmat[:3, :3]
+    """The silhouettes of the box [-half_extent, half_extent] (`_silhouettes`): rays that meet it (the slab test)."""
+    def hits(eye, rays):
         enter, leave = (-half_extent - eye) / rays, (half_extent - eye) / rays
         near, far = torch.minimum(enter, leave).amax(-1), torch.maximum(enter, leave).amin(-1)
-        masks.append(((near <= far) & (far > 0)).float().reshape(size, size))
-    return viewmats, Ks, torch.stack(masks)
+        return (near <= far) & (far > 0)
+    return _silhouettes(eyes, hits, size)
 
 
 def test_the_hull_of_an_elongated_object_reaches_both_of_its_ends():
