@@ -1450,6 +1450,25 @@ def test_continue_from_takes_the_other_models_extent_for_its_densification_too()
     assert model.scene_extent == model.strategy.scene_extent == 3.0
 
 
+def test_a_runs_results_end_with_gaussians_ply_which_marks_it_finished(tmp_path, monkeypatch):
+    """`latest_run` takes a run holding gaussians.ply for a finished one: written before poses_final.npy, a failure
+    between the two (a full disk, a kill) left a run that eval and export took and refused."""
+    from warpbags.run_folder import RunFolder
+
+    folder = RunFolder(tmp_path / "run")
+    folder.path.mkdir()
+
+    def full_disk(*args, **kwargs):
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(run_folder.np, "save", full_disk)
+    params = {"means": torch.zeros(2, 3), "quats": torch.tensor([[1.0, 0, 0, 0]] * 2), "scales": torch.zeros(2, 3),
+              "opacities": torch.zeros(2), "sh0": torch.zeros(2, 1, 3)}
+    with pytest.raises(OSError):
+        folder.write_results(params, torch.eye(4).repeat(2, 1, 1))
+    assert not (folder.path / "gaussians.ply").exists()
+
+
 def test_a_checkpoint_write_cut_short_is_not_the_latest_checkpoint(tmp_path):
     """A SIGKILL during `atomic_output` leaves checkpoint_N.tmp.pt, which sorts after checkpoint_N.pt: resuming from
     it would fail, and a new run would take the folder for a run to --resume."""

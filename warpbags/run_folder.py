@@ -215,10 +215,11 @@ class RunFolder:
         return arrays
 
     def write_results(self, params: dict[str, torch.Tensor], viewmats: torch.Tensor) -> None:
-        """gaussians.ply and poses_final.npy ([C,4,4] world-to-camera)."""
-        write_ply(self.path / "gaussians.ply", params)
+        """poses_final.npy ([C,4,4] world-to-camera), then gaussians.ply: last, as `latest_run` takes a run holding it
+        for a finished one (written first, a failure before the poses left eval and export a run they refused)."""
         with atomic_output(self.path / "poses_final.npy") as temporary:
             np.save(temporary, viewmats.cpu().numpy())
+        write_ply(self.path / "gaussians.ply", params)
 
     # ----------------------------------------------------------------------------------------------- log
     @contextmanager

@@ -356,7 +356,7 @@ class Trainer:
                                self.viewmats_start)
 
     def write_results(self, folder: Path | None = None) -> None:
-        """gaussians.ply and poses_final.npy into `folder` (default: the run folder)."""
+        """poses_final.npy, then gaussians.ply (`RunFolder.write_results`), into `folder` (default: the run folder)."""
         (self.run_folder if folder is None else RunFolder(folder)).write_results(self.params, self.current_viewmats())
 
     def remove_if_unfinished(self) -> None:
