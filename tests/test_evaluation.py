@@ -19,7 +19,7 @@ from typer.testing import CliRunner
 
 from warpbags.alignment import centre_floor_errors
 from warpbags.cli.main import app
-from warpbags.data import SyntheticOptions, ensure_synthetic_scene, load_scene
+from warpbags.data import ORBIT_RADIUS, SyntheticOptions, ensure_synthetic_scene, load_scene
 from warpbags.data.colmap import read_model, write_model
 from warpbags.errors import WarpbagsError
 from warpbags.evaluation import (FlipMetric, LpipsMetric, comparison_file_names, evaluate_run, image_metrics,
@@ -557,16 +557,19 @@ def test_a_turntable_render_stopped_by_sigterm_leaves_the_earlier_one(finished_r
     assert (run / "turntable.mp4").read_bytes() == video and not list(run.glob("*.tmp*"))
 
 
-def test_a_turntable_of_an_odd_size_keeps_every_pixel_in_its_video(finished_run, tmp_path):
+@pytest.mark.parametrize("height", [47, 48])
+def test_a_turntable_of_an_odd_size_keeps_every_pixel_in_its_video(finished_run, tmp_path, height):
     """mp4v holds even sizes only: OpenCV wrote a 63 x 47 run's video at 62 x 46, its last column and row gone. The
-    video is padded to 64 x 48 instead, the frames stay 63 x 47."""
+    video is padded to 64 x 48 instead, the frames stay 63 x 47; of 63 x 48 only the width is padded (the rows and
+    columns padded the other way round make frames the writer drops)."""
     import cv2
 
     run = _copy_of(finished_run, tmp_path / "run")
     info = json.loads((run / "config.json").read_text())
-    (run / "config.json").write_text(json.dumps({**info, "width": 63, "height": 47}))
-    assert runner.invoke(app, ["render", str(run), "--frames", "2"]).exit_code == 0
-    assert cv2.imread(str(run / "turntable" / "frame_0000.png")).shape[:2] == (47, 63)
+    (run / "config.json").write_text(json.dumps({**info, "width": 63, "height": height}))
+    result = runner.invoke(app, ["render", str(run), "--frames", "2"])
+    assert result.exit_code == 0, result.output
+    assert cv2.imread(str(run / "turntable" / "frame_0000.png")).shape[:2] == (height, 63)
     capture = cv2.VideoCapture(str(run / "turntable.mp4"))
     assert (capture.get(cv2.CAP_PROP_FRAME_WIDTH), capture.get(cv2.CAP_PROP_FRAME_HEIGHT)) == (64, 48)
 
@@ -1346,6 +1349,8 @@ def _not_finite(poses):
     ("poses_true", lambda P: P[0], "poses_true.npy: expected [C,4,4] world-to-camera poses, got an array of shape "
                                    "[4, 4]"),
     ("poses_true", lambda P: P[:3], "poses_true.npy holds 3 cameras, the run's poses 4 (poses_final.npy)"),
+    ("poses_final", lambda P: P[:0], "poses_final.npy: expected [C,4,4] world-to-camera poses, got an array of shape "
+                                     "[0, 4, 4]"),
 ])
 def test_malformed_camera_files_are_named_by_every_command_that_reads_them(finished_run, tmp_path, name, damage,
                                                                            message):
@@ -1402,14 +1407,18 @@ def test_gaussians_that_are_not_finite_are_named_and_render_nothing(finished_run
 
 def test_run_files_named_wrongly_or_missing_from_a_finished_run_say_so(finished_run, tmp_path):
     """A run's config.json given for the run said "not a training run (no config.json)"; a finished run missing a pose
-    file said it had not finished and to --resume it."""
+    file said it had not finished and to --resume it. Without poses_final.npy (what a kill between the results'
+    writes left, when an earlier warpbags wrote gaussians.ply first) every command that reads the run says so in one
+    line, not a TypeError traceback from the camera files' reader."""
     result = runner.invoke(app, ["eval", str(finished_run / "config.json"), "--refine-iters", "0"])
     assert result.exit_code == 2 and "config.json is a file: name the run's folder" in " ".join(result.output.split())
-    run = _copy_of(finished_run, tmp_path / "run")
-    (run / "poses_true.npy").unlink()
-    result = runner.invoke(app, ["eval", str(run), "--refine-iters", "0"])
-    assert result.exit_code == 2 and len(_lines(result)) == 1, result.output
-    assert "poses_true.npy is missing from the finished run" in " ".join(result.output.split())
+    for name in ("poses_true.npy", "poses_final.npy"):
+        run = _copy_of(finished_run, tmp_path / f"without-{name}")
+        (run / name).unlink()
+        for command in (["eval", str(run), "--refine-iters", "0"], ["export", str(run)], ["render", str(run)]):
+            result = runner.invoke(app, command)
+            assert result.exit_code == 2 and len(_lines(result)) == 1, result.output
+            assert f"{name} is missing from the finished run" in " ".join(result.output.split())
 
 
 def test_a_config_json_that_is_no_runs_says_so(finished_run, tmp_path):
@@ -1520,6 +1529,7 @@ def test_a_capture_of_few_views_is_evaluated_on_every_8th_view_it_did_not_train_
     names = load_scene(scene).image_names
     run, _ = _run_on_scene(_copy_of(finished_run, tmp_path / "source"), tmp_path, scene,
                            image_names=[names[i] for i in (0, 4, 12, 14)])
+    caplog.clear()  # the load_scene above said the same: the warning must come from held_out_views
     with caplog.at_level("WARNING", logger="warpbags.data"):
         assert held_out_views(load_run(run)).image_names == [names[8]]
     assert "sparse_test.txt missing, test views [8]" in caplog.text
@@ -1722,3 +1732,165 @@ def test_a_run_whose_config_holds_settings_of_an_earlier_version_is_read_not_con
     assert result.exit_code == 2 and _lines(result) == [
         f"error: {run / 'config.json'} holds camera.restarts, depth_patch, settings of an earlier warpbags that this "
         "one has no more: the run cannot be continued (eval, export, render and view still read it)"], result.output
+
+
+# ------------------------------------------------------------------------------------- export and eval, more cases
+def test_a_colmap_workspace_or_a_model_beside_other_files_is_not_an_earlier_export(finished_run, tmp_path):
+    """An export replaces only what an earlier export wrote: sparse/0/ of *.txt or *.bin files beside its
+    gaussians.ply. COLMAP's own workspace (the model, no gaussians.ply) and a model folder holding a user's other file
+    are refused in one line, their files kept: replaced, the user's reconstruction would be gone."""
+    workspace = tmp_path / "workspace"
+    (workspace / "sparse" / "0").mkdir(parents=True)
+    for name in ("cameras.bin", "images.bin", "points3D.bin"):
+        (workspace / "sparse" / "0" / name).write_bytes(b"mine")
+    export = tmp_path / "export"
+    assert runner.invoke(app, ["export", str(finished_run), "--out", str(export)]).exit_code == 0
+    (export / "sparse" / "0" / "database.db").write_bytes(b"mine")
+    for out, message in [(workspace, "is not empty and not an earlier export (no gaussians.ply)"),
+                         (export, "holds more than the COLMAP model sparse/0/ an export writes")]:
+        before = {path: path.read_bytes() for path in out.rglob("*") if path.is_file()}
+        result = runner.invoke(app, ["export", str(finished_run), "--out", str(out)])
+        assert result.exit_code == 2 and len(_lines(result)) == 1, result.output
+        assert message in " ".join(result.output.split())
+        assert {path: path.read_bytes() for path in out.rglob("*") if path.is_file()} == before
+
+
+def test_a_model_staged_by_a_killed_export_is_not_taken_into_the_next(finished_run, tmp_path):
+    """The model is staged in sparse/0.partial/ and renamed to sparse/0/ once read back: one that a killed export
+    left (here a binary file of a model of names with spaces) must not end up beside the next export's text model."""
+    out = tmp_path / "export"
+    assert runner.invoke(app, ["export", str(finished_run), "--out", str(out)]).exit_code == 0
+    staging = out / "sparse" / "0.partial"
+    staging.mkdir()
+    (staging / "images.bin").write_bytes(b"cut")
+    result = runner.invoke(app, ["export", str(finished_run), "--out", str(out)])
+    assert result.exit_code == 0, result.output
+    assert sorted(path.name for path in (out / "sparse").iterdir()) == ["0"]
+    written = {path.name for path in (out / "sparse" / "0").iterdir()}
+    assert "images.txt" in written and all(name.endswith(".txt") for name in written), written
+
+
+def test_the_colmap_model_names_the_full_size_images_where_the_scene_holds_them(finished_run, tmp_path):
+    """A run at --resolution 2 of a scene holding images/ and images_2/: the model names the full-size images with
+    the calibration as given, which COLMAP-reading trainers downsample themselves; images_2/ only where images/ is
+    missing (the test above)."""
+    import cv2
+
+    info = json.loads((finished_run / "config.json").read_text())
+    scene = tmp_path / "scene"
+    shutil.copytree(info["scene_root"], scene)
+    (scene / "images_2").mkdir()
+    for image_path in (scene / "images").glob("*.png"):
+        half = cv2.resize(cv2.imread(str(image_path)), (32, 32), interpolation=cv2.INTER_AREA)
+        assert cv2.imwrite(str(scene / "images_2" / image_path.name), half)
+    run, _ = _run_on_scene(finished_run, tmp_path, scene, resolution=2)
+    result = runner.invoke(app, ["export", str(run), "--out", str(tmp_path / "export")])
+    assert result.exit_code == 0, result.output
+    said = "".join(result.output.split())  # Rich wraps a long path anywhere, even inside a name
+    assert said.endswith("".join(f"the model's images are in {scene / 'images'}".split())), result.output
+    source = read_model(scene / "sparse" / "0")
+    given = dict(zip(source.image_names, source.cameras))
+    model = read_model(tmp_path / "export" / "sparse" / "0")
+    for name, camera in zip(model.image_names, model.cameras):
+        assert (camera.width, camera.height) == (64, 64)
+        np.testing.assert_allclose(camera.K, given[name].K, atol=1e-9)
+
+
+def test_the_mean_metrics_are_the_means_of_the_views(monkeypatch):
+    """The table's PSNR, SSIM and FLIP are means over the held-out views (the field's protocol), not medians: three
+    views of very different noise, whose mean and median differ by dBs."""
+    generator = torch.Generator().manual_seed(0)
+    targets = torch.rand(3, 16, 16, 3, generator=generator)
+    noise = torch.tensor([0.01, 0.1, 0.3])[:, None, None, None]
+    images = targets + noise * torch.randn(3, 16, 16, 3, generator=generator)
+    metrics = image_metrics(images, targets, lambda image, target: None)
+    psnrs = [view["psnr"] for view in metrics["per_view"]]
+    assert abs(np.mean(psnrs) - np.median(psnrs)) > 1.0
+    for key in ("psnr", "ssim", "flip"):
+        assert metrics["mean"][key] == pytest.approx(np.mean([view[key] for view in metrics["per_view"]]), rel=1e-12)
+    assert metrics["mean"]["lpips"] is None
+
+
+def _turned_about_z(viewmat: torch.Tensor, degrees: float) -> torch.Tensor:
+    """`viewmat` with its camera turned by `degrees` about its viewing axis."""
+    angle = math.radians(degrees)
+    turn = torch.eye(4, dtype=viewmat.dtype)
+    turn[:2, :2] = torch.tensor([[math.cos(angle), -math.sin(angle)], [math.sin(angle), math.cos(angle)]])
+    return turn @ viewmat
+
+
+def test_the_pose_table_holds_medians_the_orbit_percent_and_each_stages_own_object_motion(finished_run):
+    """Given the true poses, and final poses with one camera turned 5 deg and another moved: the medians are the
+    per-camera errors' medians (not their means), the translation is in percent of the orbit radius (x100, not a
+    fraction), and the initial stage's object motion is measured under the initial stage's own sim(3): the true poses
+    move the object by nothing, where the final stage's alignment moved it by a pixel in every view."""
+    run = load_run(finished_run)
+    run.poses_init = run.poses_true.clone()
+    final = run.poses_true.clone()
+    final[0] = _turned_about_z(final[0], 5.0)
+    final[1, :3, 3] += torch.tensor([0.2, -0.1, 0.05], dtype=final.dtype)
+    run.poses_final = final
+    report = pose_accuracy(run, log=lambda message: None)
+    assert set(report) == {"procrustes", "pairwise"}
+    for name, entry in report.items():
+        for stage in ("initial", "final"):
+            errors = entry[stage]
+            assert errors["rotation_deg_median"] == pytest.approx(np.median(errors["rotation_deg"]), abs=1e-9)
+            assert errors["translation_median"] == pytest.approx(np.median(errors["translation"]), abs=1e-9)
+            assert errors["translation_percent_of_orbit"] == pytest.approx(
+                100 * errors["translation_mean"] / ORBIT_RADIUS)
+        final_errors = entry["final"]
+        assert abs(final_errors["rotation_deg_median"] - final_errors["rotation_deg_mean"]) > 0.3, name
+        assert final_errors["translation_mean"] > 0.01 and final_errors["reprojection_px_mean"] > 0.1, name
+        assert max(entry["initial"]["reprojection_px"]) < 1e-3, (name, entry["initial"]["reprojection_px"])
+
+
+def test_an_earlier_evaluations_pictures_do_not_stay(finished_run, tmp_path):
+    """eval/ holds this evaluation's comparisons only: one of an earlier evaluation on another split (or of a view
+    since renamed) would stand in the report beside them as a held-out view."""
+    import cv2
+
+    run = _copy_of(finished_run, tmp_path / "run")
+    (run / "eval").mkdir()
+    assert cv2.imwrite(str(run / "eval" / "view_of_another_split.png"), np.zeros((4, 4, 3), np.uint8))
+    result = evaluate_run(run, refine_iters=0, log=lambda message: None)
+    pictures = sorted(path.name for path in (run / "eval").iterdir())
+    assert len(pictures) == result["test_views"] >= 2 and "view_of_another_split.png" not in pictures
+    assert "view_of_another_split" not in (run / "report.md").read_text()
+
+
+def test_eval_of_a_scene_normalized_otherwise_than_the_run_is_one_line(finished_run, tmp_path):
+    """The held-out cameras are put in the run's normalized frame by the normalization the scene gives now: a scene
+    whose cameras or points changed since training (another centre) would score the run on cameras off by as much."""
+    run = _copy_of(finished_run, tmp_path / "run")
+    info = json.loads((run / "config.json").read_text())
+    info["normalization"]["center"] = [value + 0.5 for value in info["normalization"]["center"]]
+    (run / "config.json").write_text(json.dumps(info))
+    result = runner.invoke(app, ["eval", str(run), "--refine-iters", "0"])
+    assert result.exit_code == 2 and len(_lines(result)) == 1, result.output
+    assert "no longer matches the run's normalization: was the scene changed?" in " ".join(result.output.split())
+    assert not (run / "eval.json").exists() and not (run / "eval").exists()
+
+
+def test_eval_with_negative_refinement_iterations_is_one_line(finished_run, tmp_path):
+    """--refine-iters -1 evaluated without refinement and reported it as done; refused before anything is read."""
+    run = _copy_of(finished_run, tmp_path / "run")
+    result = runner.invoke(app, ["eval", str(run), "--refine-iters", "-1"])
+    assert result.exit_code == 2 and len(_lines(result)) == 1, result.output
+    assert "--refine-iters must be >= 0, got -1" in result.output
+    assert not (run / "eval.json").exists() and not (run / "eval").exists()
+
+
+def test_the_training_curves_are_labelled_with_the_alignment_training_logged_its_errors_after(finished_run, tmp_path,
+                                                                                               monkeypatch):
+    """The curves plot the pose errors training logged, after the run's `pose_alignment`: an evaluation aligning
+    its test cameras otherwise (`warpbags eval --pairwise`) must not relabel them."""
+    import warpbags.report
+
+    run = _copy_of(finished_run, tmp_path / "run")
+    labels = []
+    monkeypatch.setattr(warpbags.report, "plot_training_curves",
+                        lambda records, path, alignment: labels.append(alignment))
+    result = evaluate_run(run, alignment="pairwise", refine_iters=0, log=lambda message: None)
+    assert result["alignment"] == "pairwise" and load_run(run).config.pose_alignment == "procrustes"
+    assert labels == ["procrustes"]

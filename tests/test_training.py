@@ -1660,3 +1660,40 @@ def test_the_turn_searchs_trial_steps_move_the_progress_display(scene_dir, tmp_p
     assert result.exit_code == 0, result.output
     trial_lines = [line.split()[3] for line in result.output.splitlines() if line.startswith("turn search: step")]
     assert trial_lines == ["5/28", "10/28", "15/28", "20/28"], result.output
+
+
+def test_resuming_with_the_runs_views_in_another_order_is_refused(tmp_path):
+    """The checkpoint's poses and per-camera state go with the views by position: the run's own views listed in
+    another order (a split file rewritten) would resume every camera with another's pose."""
+    from warpbags.run_folder import RunFolder
+
+    info = {"image_names": ["a.png", "b.png", "c.png"], "width": 8, "height": 8}
+    scene = types.SimpleNamespace(image_names=["a.png", "b.png", "c.png"], width=8, height=8)
+    assert RunFolder(tmp_path).view_differences(scene, info) == []
+    scene.image_names = ["b.png", "a.png", "c.png"]
+    assert RunFolder(tmp_path).view_differences(scene, info) == ["the views are the run's in another order"]
+
+
+def test_a_run_killed_between_its_coarse_result_and_its_first_checkpoint_is_an_unfinished_start(tmp_path):
+    """With a repair stage and --checkpoint-every above --iters, the coarse stage's end writes coarse/ (its setup
+    files and results) just before the first checkpoint. A SIGKILL between the two left a folder that a new run
+    called "not empty" and a resumed sweep refused, rather than a run stopped before its first checkpoint, which the
+    sweep trains again; `remove_unfinished` (a failed start, the sweep) clears coarse/ with the rest."""
+    from warpbags.files import missing_folders
+    from warpbags.run_folder import SETUP_FILES, RunFolder
+
+    folder = RunFolder(tmp_path / "made" / "run")
+    made = missing_folders(folder.path)
+    (folder.path / "coarse").mkdir(parents=True)
+    for name in (*SETUP_FILES, "log.jsonl"):
+        (folder.path / name).write_text("")
+    for name in (*SETUP_FILES, "poses_final.npy", "gaussians.tmp.ply"):  # killed while it wrote gaussians.ply
+        (folder.path / "coarse" / name).write_text("")
+    assert folder.holds_unfinished_start()
+    with pytest.raises(WarpbagsError, match="stopped before its first checkpoint"):
+        folder.require_new()
+    (folder.path / "coarse" / "notes.txt").write_text("mine")
+    assert not folder.holds_unfinished_start()  # a file no run writes there
+    (folder.path / "coarse" / "notes.txt").unlink()
+    folder.remove_unfinished(made)
+    assert not (tmp_path / "made").exists()

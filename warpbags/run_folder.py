@@ -57,6 +57,7 @@ STARTING_FILE = ".starting"
 # The fields of every log record that the reports and plots read (the trainer's `_record` writes more).
 LOG_NUMBERS = ("loss", "rot_err_deg", "trans_err")
 SETUP_FILES = ("config.json", "poses_true.npy", "poses_init.npy", "poses_start.npy", "intrinsics.npy")
+RESULT_FILES = ("poses_final.npy", "gaussians.ply")  # `RunFolder.write_results`, in its order
 POSE_ARRAYS = ("poses_final", "poses_true", "poses_init", "poses_start")
 CAMERA_ARRAYS = (*POSE_ARRAYS, "intrinsics")  # `RunFolder.read_cameras`
 
@@ -335,17 +336,26 @@ class RunFolder:
     def holds_unfinished_start(self) -> bool:
         """Whether the folder holds nothing but what a new run writes before its first checkpoint (its setup files,
         log and pose history, their atomic writes' temporaries, a checkpoints/ that is empty or holds only the
-        temporary of a checkpoint write cut short): a run killed there (SIGKILL, power), which can be neither resumed
-        nor evaluated, and which `remove_unfinished` may clear."""
+        temporary of a checkpoint write cut short, a coarse/ of the coarse stage's setup files and results, which a
+        repair stage writes before its first checkpoint where --checkpoint-every is above --iters): a run killed there
+        (SIGKILL, power), which can be neither resumed nor evaluated, and which `remove_unfinished` may clear."""
         if not self.path.is_dir() or self.has_checkpoint():
             return False
         names = {*SETUP_FILES, LOG_FILE, HISTORY_FILE}
         names |= {temporary_name(name) for name in names} | {STARTING_FILE}
+        coarse_names = {*SETUP_FILES, *RESULT_FILES}
+        coarse_names |= {temporary_name(name) for name in coarse_names}
+
+        def written(entry: Path, written_names: set[str]) -> bool:
+            return entry.name in written_names and entry.is_file() and not entry.is_symlink()
+
         entries = list(self.path.iterdir())
         return bool(entries) and all(
-            (entry.name in names and entry.is_file() and not entry.is_symlink())
+            written(entry, names)
             or (entry == self.checkpoints and entry.is_dir()
                 and set(entry.iterdir()) <= set(self._cut_short_checkpoints()))
+            or (entry == self.path / "coarse" and entry.is_dir() and not entry.is_symlink()
+                and all(written(file, coarse_names) for file in entry.iterdir()))
             for entry in entries)
 
     def remove_unfinished(self, made_folders: list[Path]) -> None:
@@ -355,7 +365,7 @@ class RunFolder:
         in a new or empty folder (`require_new`) and has no checkpoint: it cannot be resumed, and a half-written run
         folder must not stay."""
         for folder in (self.path / "coarse", self.path):
-            for name in (*SETUP_FILES, "gaussians.ply", "poses_final.npy", LOG_FILE, HISTORY_FILE):
+            for name in (*SETUP_FILES, *RESULT_FILES, LOG_FILE, HISTORY_FILE):
                 for written in (name, temporary_name(name)):  # and a write cut short
                     (folder / written).unlink(missing_ok=True)
         for cut_short in self._cut_short_checkpoints():
