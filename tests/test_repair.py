@@ -24,10 +24,12 @@ from warpbags.blur import gaussian_blur
 from warpbags.camera_paths import turntable_viewmats
 from warpbags.cameras import camera_centers
 from warpbags.repair import RepairPairs, UNetRepairer, make_repairer
-from warpbags.repair.network import repairer_factory
-from warpbags.repair.pairs import (LEAVE_ONE_OUT, NOISE, NOISY_PARAMETERS, NoiseStatistics, noise_statistics,
+from warpbags.repair import pairs as pairs_module
+from warpbags.repair.network import PluginRepairer, repairer_factory
+from warpbags.repair.pairs import (LEAVE_ONE_OUT, NOISE, NOISY_PARAMETERS, LeaveOneOutFit, NoiseStatistics,
+                                   build_pairs, leave_one_out, leave_one_out_config, noise_statistics,
                                    perturbed_gaussians)
-from warpbags.repair.stage import RepairStage, distance_weights
+from warpbags.repair.stage import RepairStage, distance_weights, pseudo_ratio
 from warpbags.model import GaussianModel, TrainingViews
 from warpbags.trainer import Trainer, training_scene
 
@@ -164,8 +166,6 @@ def test_a_leave_one_out_model_never_trains_on_the_view_it_leaves_out(scene_dir,
     training view (`others = list(range(views.num_views))` in `leave_one_out`) left the pairs without their
     failures and went unseen: each model's Gaussians are followed here through their initialization, every step's
     sampled views and `continue_from`, and the views each render of the left-out view was fitted to are checked."""
-    from warpbags.repair.pairs import leave_one_out
-
     config = tiny_config(loo_iters=12, loo_snapshot=4, loo_samples=2)  # samples at iterations 4 (pure) and 5 (seen)
     scene = training_scene(load_scene(scene_dir, name="tiny"), config)
     names = scene.image_names
@@ -555,10 +555,281 @@ def test_no_repair_writes_no_repair_files(scene_dir, tmp_path):
 def test_the_pseudo_view_ratio_ramps_linearly_then_stops():
     """r goes linearly from pseudo_ratio_start to pseudo_ratio_end over the first pseudo_until of the repair
     iterations, then 0 (the end-to-end test checks only the first and last value: r held at its start passed)."""
-    from warpbags.repair.stage import pseudo_ratio
-
     config = RepairConfig(iters=10, pseudo_until=0.5, pseudo_ratio_start=1.0, pseudo_ratio_end=0.5)
     assert [pseudo_ratio(config, i) for i in range(10)] == pytest.approx([1.0, 0.875, 0.75, 0.625, 0.5, 0, 0, 0, 0, 0])
     # 0.55 of 100 iterations is 55 (its float product, 55.00000000000001, rounded up to 56)
     config = RepairConfig(iters=100, pseudo_until=0.55, pseudo_ratio_start=1.0, pseudo_ratio_end=0.5)
     assert pseudo_ratio(config, 54) == pytest.approx(0.5) and pseudo_ratio(config, 55) == 0
+
+
+# ------------------------------------------------------------------ what the stage's mutation review found unguarded
+def test_leave_one_out_fits_stop_densifying_at_the_snapshot():
+    """The noise statistics take unseen - seen per Gaussian, so both copies must keep the one Gaussian set they share
+    at the snapshot: their densification must stop there even where the preset's densify.stop comes later."""
+    for repair in ({}, {"loo_iters": 300, "loo_snapshot": 120}):  # the quick preset's densify.stop is 201
+        config = load_preset("quick", repair={"iters": 5, **repair})
+        assert config.densify.stop > config.repair.loo_snapshot  # the case the cap is there for
+        assert leave_one_out_config(config).densify.stop <= config.repair.loo_snapshot
+
+
+def test_leave_one_out_samples_its_first_quarter_and_returns_unseen_minus_seen(scene_dir, monkeypatch):
+    """leave_one_out renders its samples at the snapshot and the iterations after it, within the first quarter of
+    the span to loo_iters, and returns the unseen copy's parameters minus the seen copy's (the sign the noise's mean
+    takes), checked on the two fits it made rather than on differences built by hand."""
+    config = tiny_config(loo_iters=24, loo_snapshot=16, loo_samples=2)  # span (24 - 16) // 4 = 2: renders at 16, 17
+    scene = training_scene(load_scene(scene_dir, name="tiny"), config)
+    fits, rendered_at = [], []
+    init, render = LeaveOneOutFit.__init__, LeaveOneOutFit.render
+
+    def recording_init(self, *args, **kwargs):
+        init(self, *args, **kwargs)
+        fits.append(self)
+
+    def recording_render(self, view):
+        rendered_at.append(self.iteration)
+        return render(self, view)
+
+    monkeypatch.setattr(LeaveOneOutFit, "__init__", recording_init)
+    monkeypatch.setattr(LeaveOneOutFit, "render", recording_render)
+    coarse = SimpleNamespace(training_views=TrainingViews.of(scene, config, torch.device("cpu")))
+    _, differences = leave_one_out(coarse, scene.viewmats, config, left_out=1)
+    assert rendered_at == [16, 17]
+    (unseen,) = [fit for fit in fits if fit.model.training_views.num_views == scene.num_views - 1]
+    (seen,) = [fit for fit in fits if fit.model.training_views.num_views == scene.num_views]
+    for name in NOISY_PARAMETERS:
+        expected = unseen.model.params[name].detach().cpu() - seen.model.params[name].detach().cpu()
+        assert expected.abs().max() > 0
+        torch.testing.assert_close(differences[name], expected, rtol=0, atol=0)
+
+
+def test_build_pairs_draws_noise_from_its_ranges_and_pairs_each_render_with_its_own_views_image(monkeypatch):
+    """build_pairs: every pair, leave-one-out or noise, is the render of the view it is labelled with against that
+    view's real image; each noise render uses perturbed parameters, with a clamp and a dropout drawn across
+    noise_clamp_std and noise_dropout (each within its own range, not the other's or one end). A fake coarse model
+    renders view v as the flat value (v + 1) / 10, so a render shows which view it is of."""
+    count, size, gaussians = 3, 8, 5
+    generator = torch.Generator().manual_seed(0)
+    targets = torch.rand(count, size, size, 3, generator=generator)
+    params = {"means": torch.zeros(gaussians, 3), "scales": torch.zeros(gaussians, 3),
+              "quats": torch.zeros(gaussians, 4), "opacities": torch.zeros(gaussians)}
+    viewmats = torch.eye(4).repeat(count, 1, 1)
+    viewmats[:, 2, 3] = torch.arange(count) + 1.0
+    given_params = []
+
+    def render_views(cameras, Ks=None, params=None, sh_degree=None):
+        given_params.append(params)
+        return torch.stack([torch.full((size, size, 3), camera[2, 3].item() / 10) for camera in cameras])
+
+    coarse = SimpleNamespace(training_views=SimpleNamespace(targets=targets, Ks=torch.eye(3).repeat(count, 1, 1)),
+                             params=params, render_views=render_views)
+
+    def fake_leave_one_out(coarse, viewmats, config, left_out, should_stop):
+        samples = torch.full((2, size, size, 3), (left_out + 1) / 10)
+        return samples, {name: torch.randn(gaussians, *value.shape[1:]) for name, value in params.items()}
+
+    draws = []  # (clamp_std, dropout) of every noise render
+    perturbed = pairs_module.perturbed_gaussians
+
+    def recording_perturbed(params, noise, clamp_std, dropout, generator):
+        draws.append((clamp_std, dropout))
+        return perturbed(params, noise, clamp_std, dropout, generator)
+
+    monkeypatch.setattr(pairs_module, "leave_one_out", fake_leave_one_out)
+    monkeypatch.setattr(pairs_module, "perturbed_gaussians", recording_perturbed)
+    config = tiny_config(noise_renders=8, noise_clamp_std=(0.1, 0.2), noise_dropout=(0.5, 0.9))
+    pairs = build_pairs(coarse, viewmats, config, log=lambda message: None)
+    assert pairs.kinds.count(LEAVE_ONE_OUT) == 2 * count and pairs.kinds.count(NOISE) == 8 * count
+    for corrupted, target, view in zip(pairs.corrupted, pairs.targets, pairs.views):
+        assert torch.all(corrupted == (view + 1) / 10)  # the render of the view the pair is labelled with
+        assert torch.equal(target, targets[view])  # ... against that view's real image
+    clamps, dropouts = torch.tensor([draw[0] for draw in draws]), torch.tensor([draw[1] for draw in draws])
+    assert len(draws) == 8 * count
+    assert 0.1 <= clamps.min() and clamps.max() <= 0.2 and clamps.max() - clamps.min() > 0.05
+    assert 0.5 <= dropouts.min() and dropouts.max() <= 0.9 and dropouts.max() - dropouts.min() > 0.2
+    noisy = [given for given in given_params if given is not None]
+    assert len(noisy) == 8 * count and all(not torch.equal(given["means"], params["means"]) for given in noisy)
+
+
+def random_pairs(views, kinds, size=16, seed=0) -> RepairPairs:
+    generator = torch.Generator().manual_seed(seed)
+    count = len(views)
+    return RepairPairs(torch.rand(count, size, size, 3, generator=generator),
+                       torch.rand(count, size, size, 3, generator=generator), list(kinds), list(views),
+                       NoiseStatistics({}, {}))
+
+
+def test_the_repairer_fit_validates_on_the_held_out_views_noise_pairs():
+    """The fit's validation set is the held-out (last) view's noise pairs, not its leave-one-out ones: its identity
+    error is that of pair 3 alone."""
+    pairs = random_pairs([0, 0, 1, 1], [LEAVE_ONE_OUT, NOISE, LEAVE_ONE_OUT, NOISE])
+    repairer = UNetRepairer(RepairConfig(fit_steps=2, fit_crop=8, fit_batch=2))
+    stats = repairer.fit(pairs, log=lambda message: None)
+    expected = ((pairs.corrupted[3] - pairs.targets[3]) ** 2).mean().item()
+    assert stats["validation_view"] == 1
+    assert stats["validation_mse_identity"] == pytest.approx(expected, rel=1e-6)
+
+
+def test_the_repairer_final_fit_takes_the_best_checks_step_count():
+    """After the validated run, the final fit trains for the step count of the best check (20 here), not fit_steps."""
+    pairs = random_pairs([0, 1], [NOISE, NOISE])
+    pairs.corrupted.zero_()
+    pairs.targets.fill_(1.0)  # identity MSE 1: every check below beats it
+    repairer = UNetRepairer(RepairConfig(fit_steps=30, fit_crop=8, fit_batch=2))
+    final_steps = []
+
+    def fake_train(pairs, steps, size, should_stop, validation=None, check_every=0):
+        if validation is not None:
+            return [], [(10, 0.5), (20, 0.1), (30, 0.3)]
+        final_steps.append(steps)
+        return [0.0] * steps, []
+
+    repairer._train = fake_train
+    stats = repairer.fit(pairs, log=lambda message: None)
+    assert stats["steps"] == 20 and final_steps == [20]
+
+
+def test_a_flipped_training_crop_flips_its_target_too():
+    """Crops are flipped for augmentation: with targets equal to the inputs, every crop's target must still equal
+    its input, which a flip of the input alone breaks."""
+    pairs = random_pairs([0, 1, 2, 3], [NOISE] * 4)
+    pairs = RepairPairs(pairs.corrupted, pairs.corrupted.clone(), pairs.kinds, pairs.views, pairs.noise)
+    repairer = UNetRepairer(RepairConfig(fit_batch=16, fit_crop=8))
+    for _ in range(3):
+        inputs, targets = repairer._crops(pairs, 8)
+        assert torch.equal(inputs, targets)
+
+
+def test_training_crops_find_object_pixels_missing_from_the_render():
+    """A part of the object the render lacks (white there, dark in the real image) is what the repair must paint:
+    crops centre on pixels that are object in either image, so every crop here holds the corner only the real image
+    shows."""
+    corrupted = torch.ones(2, 32, 32, 3)
+    targets = torch.ones(2, 32, 32, 3)
+    targets[:, :4, :4] = 0.2
+    pairs = RepairPairs(corrupted, targets, [NOISE, NOISE], [0, 1], NoiseStatistics({}, {}))
+    repairer = UNetRepairer(RepairConfig(fit_batch=8, fit_crop=8))
+    _, crop_targets = repairer._crops(pairs, 8)
+    assert all((crop < 0.99).any() for crop in crop_targets)
+
+
+def test_repaired_images_stay_in_the_unit_range():
+    """A network whose output overshoots (a bias of 0.5 on a 0.9 image) still gives images in [0, 1]."""
+    repairer = UNetRepairer(RepairConfig())
+    with torch.no_grad():
+        repairer.network.output.bias.fill_(0.5)
+    repaired = repairer.repair(torch.full((1, 8, 8, 3), 0.9))
+    assert repaired.max() <= 1.0
+
+
+class RecordingPlugin:
+    """A plug-in repairer whose fit takes should_stop and records it, and whose repair moves images to `device`."""
+
+    def __init__(self, device=None):
+        self.device, self.should_stop = device, None
+
+    def fit(self, pairs, log, should_stop):
+        self.should_stop = should_stop
+        return {}
+
+    def repair(self, images):
+        return images.to(self.device) if self.device else images
+
+    def state_dict(self):
+        return {}
+
+    def load_state_dict(self, state):
+        pass
+
+
+def test_a_plugin_whose_fit_takes_should_stop_is_given_it():
+    """A plug-in that can stop its own (long) fit on Ctrl-C gets the stage's should_stop."""
+    plugin = RecordingPlugin()
+    stop = lambda: False  # noqa: E731
+    PluginRepairer(plugin, "mine:Plugin").fit(SimpleNamespace(), print, should_stop=stop)
+    assert plugin.should_stop is stop
+
+
+def test_a_plugin_repair_returned_on_another_device_is_one_line():
+    """Images a plug-in returns on another device than it was given fail as one line naming it, not later in the
+    loss as a device mismatch."""
+    with pytest.raises(WarpbagsError, match="returned .* on meta"):
+        PluginRepairer(RecordingPlugin("meta"), "mine:Plugin").repair(torch.rand(2, 8, 8, 3))
+
+
+def ring_stage(folder, views=4, **repair):
+    """A repair stage over `views` training cameras evenly around a ring, a model rendering flat grey that records
+    the cameras it is given, and a repairer that changes nothing; the coarse stage ends at iteration 30."""
+    base = torch.eye(4)
+    base[2, 3] = 4.0
+    viewmats = turntable_viewmats(base[None].double(), views).float()
+    calls = []
+
+    def render_views(cameras):
+        calls.append(cameras.clone())
+        return torch.full((len(cameras), 8, 8, 3), 0.5)
+
+    model = SimpleNamespace(training_views=SimpleNamespace(device="cpu"),
+                            params={"means": torch.zeros(10, 3), "opacities": torch.zeros(10)},
+                            render_views=render_views)
+    stage = RepairStage(tiny_config(weight_lpips=0.0, **repair), folder, model, viewmats,
+                        torch.Generator().manual_seed(0), log=lambda message: None, repairer=AddingRepairer(0.0))
+    return stage, model, viewmats, calls
+
+
+def test_pseudo_cameras_sit_30_to_70_percent_along_every_gap(tmp_path):
+    """Pseudo cameras are drawn 30-70% of the way along a gap between neighbouring training cameras, over every gap
+    including the one that closes the ring, and the stage's weights are their distance_weights."""
+    stage, model, viewmats, _ = ring_stage(tmp_path, pseudo_views=400)
+    stage.refresh(model, viewmats, iteration=30)
+    pseudo, train = camera_centers(stage.viewmats.double()), camera_centers(viewmats.double())
+    cosines = (pseudo / pseudo.norm(dim=1, keepdim=True)) @ (train / train.norm(dim=1, keepdim=True)).T
+    angles = torch.rad2deg(torch.arccos(cosines.clamp(-1, 1)))  # [K, C] degrees; the gaps are 90 degrees
+    nearest_two = angles.topk(2, dim=1, largest=False)
+    assert nearest_two.values[:, 0].min() >= 0.3 * 90 - 0.5  # none closer than 30% of a gap to a training camera
+    gaps = {tuple(sorted(pair)) for pair in nearest_two.indices.tolist()}
+    assert gaps == {(0, 1), (1, 2), (2, 3), (0, 3)}
+    torch.testing.assert_close(stage.weights, distance_weights(stage.viewmats, viewmats))
+
+
+def test_the_pseudo_loss_draws_a_random_pseudo_view_each_iteration(tmp_path):
+    """Each repair iteration's pseudo loss renders one pseudo view drawn at random, so 20 iterations between
+    refreshes use more than one of the 4."""
+    stage, model, viewmats, calls = ring_stage(tmp_path, pseudo_views=4, refresh_every=50)
+    for iteration in range(30, 50):
+        stage.loss(model, viewmats, iteration)
+    used = {tuple(call[0].flatten().tolist()) for call in calls if len(call) == 1}  # the single-view renders
+    assert len(used) > 1
+
+
+def test_pseudo_view_refreshes_count_from_the_repair_stages_start(tmp_path, monkeypatch):
+    """Refreshes come every refresh_every repair iterations from the stage's first (iteration 30 here), not at
+    multiples of refresh_every of the whole run's count: 7 does not divide 30, so the two differ."""
+    stage, model, viewmats, _ = ring_stage(tmp_path, refresh_every=7)
+    refreshed = []
+    refresh = stage.refresh
+
+    def recording_refresh(model, viewmats, iteration):
+        refreshed.append(iteration)
+        refresh(model, viewmats, iteration)
+
+    monkeypatch.setattr(stage, "refresh", recording_refresh)
+    for iteration in range(30, 47):
+        stage.loss(model, viewmats, iteration)
+    assert refreshed == [30, 37, 44]
+
+
+def test_a_repair_step_mixes_real_and_pseudo_losses_by_the_ratio(scene_dir, tmp_path, monkeypatch):
+    """Inside the ratio's ramp a repair step's loss is (1 - r) real + r pseudo: a real loss of 1 and a pseudo loss
+    of 3 make it exactly that."""
+    config = tiny_config(pseudo_until=1.0, pseudo_ratio_start=0.8, pseudo_ratio_end=0.2)
+    trainer = Trainer(training_scene(load_scene(scene_dir, name="tiny"), config), config, tmp_path,
+                      log=lambda message: None)
+    trainer.iteration = config.iters + 5
+    means = trainer.model.params["means"]
+    monkeypatch.setattr(trainer.model, "loss", lambda views, viewmats, settings: (means.sum() * 0 + 1.0, {}, None))
+    trainer.repair_stage = SimpleNamespace(loss=lambda model, viewmats, iteration: (means.sum() * 0 + 3.0, {}))
+    ratio = pseudo_ratio(config.repair, 5)
+    assert 0 < ratio < 1
+    record = trainer.train_step()
+    assert record["pseudo_ratio"] == pytest.approx(ratio)
+    assert record["loss"] == pytest.approx((1 - ratio) * 1.0 + ratio * 3.0)
