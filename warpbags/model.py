@@ -265,17 +265,16 @@ class GaussianModel:
         Raises:
             Diverged: the loss or a parameter is not finite (nothing was stepped).
         """
-        pose_views = views if settings.pose_active else None
-        if pose_views is not None and settings.pose_anchor > 0:
-            loss = loss + settings.pose_anchor * cameras.anchor_loss(pose_views)
+        if settings.pose_active and settings.pose_anchor > 0:
+            loss = loss + settings.pose_anchor * cameras.anchor_loss(views)
         self._check_finite(loss, cameras)
         loss.backward()
         if after_backward is not None:
             after_backward()
         self.optimizer.step()
         self.optimizer.zero_grad(set_to_none=True)
-        if pose_views is not None:
-            cameras.step(pose_views)
+        if settings.pose_active:
+            cameras.step(views)
         cameras.zero_grad()
 
     def _check_finite(self, loss: torch.Tensor, cameras: CameraOptimizer) -> None:
