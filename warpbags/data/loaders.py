@@ -162,7 +162,7 @@ def _images_without_a_camera(root: Path, cameras: LayoutCameras) -> list[Path]:
     if not folder.is_dir():
         return []
     named = {Path(os.path.normpath(path)) for path in cameras.image_paths}
-    return sorted(path for path in folder.rglob("*") if path.suffix in IMAGE_EXTENSIONS
+    return sorted(path for path in folder.rglob("*") if path.suffix.lower() in IMAGE_EXTENSIONS
                   and not path.name.startswith(".") and path.is_file() and Path(os.path.normpath(path)) not in named)
 
 
